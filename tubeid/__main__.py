@@ -1,0 +1,3 @@
+from tubeid.cli import main
+
+raise SystemExit(main())
