@@ -1,0 +1,194 @@
+"""Soize's random-matrix ensembles SG+ and SE+ (nonparametric model uncertainty).
+
+Conventions (MODEL.md §3.3):
+
+* ``G ∈ SG+`` of size n and dispersion δ: ``G = Lᵀ L`` with L upper triangular,
+  ``σ = δ/√(n+1)``, ``L_jk = σ·N(0,1)`` for j < k and ``L_jj = σ·√(2 V_j)`` with
+  ``V_j ~ Gamma(shape (n+1)/(2δ²) + (1 − j)/2, scale 1)``, **j counted from 1**.
+  Then E[G] = I, Var(G_jk) = δ²(1 + δ_jk)/(n+1) and δ² = E‖G − I‖²_F / n.
+  G is Wishart with (n+1)/δ² degrees of freedom and scale I·δ²/(n+1) (Bartlett decomposition).
+* Admissible dispersion: 0 < δ < δ_max(n) = √((n+1)/(n+5)) (E‖G⁻¹‖² finite).
+* ``A ∈ SE+`` with mean A̲ (symmetric positive definite): ``A = L_Aᵀ G L_A`` with A̲ = L_Aᵀ L_A
+  (L_A upper triangular, Cholesky). Then E[A] = A̲ and A has the units of A̲.
+
+Random draws come from a ``numpy.random.Generator`` (or a seed, mapped through
+``tubeid.seeds.rng_for(seed, <function name>)``); realisations are vectorised over ``size``.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from tubeid.errors import SpecificationError
+from tubeid.seeds import rng_for
+
+__all__ = ["delta_max", "sg_plus", "se_plus", "sg_plus_dispersion", "Dispersion"]
+
+
+def delta_max(n: int) -> float:
+    """Upper bound (excluded) of the SG+ dispersion for matrices of size n: √((n+1)/(n+5))."""
+    n = _check_size_n(n, "n")
+    return math.sqrt((n + 1) / (n + 5))
+
+
+def _check_size_n(n, field: str) -> int:
+    if isinstance(n, (bool, np.bool_)) or not isinstance(n, (numbers.Integral, np.integer)) or n < 1:
+        raise SpecificationError(field, n, "must be an integer >= 1")
+    return int(n)
+
+
+def _check_delta(delta, n: int, field: str = "delta") -> float:
+    dmax = math.sqrt((n + 1) / (n + 5))
+    rule = f"must satisfy 0 < {field} < delta_max(n={n}) = {dmax:.6g}, i.e. lie in the open interval (0, {dmax:.6g})"
+    if isinstance(delta, (bool, np.bool_)) or not isinstance(delta, (numbers.Real, np.floating, np.integer)):
+        raise SpecificationError(field, delta, rule)
+    d = float(delta)
+    if not (math.isfinite(d) and 0.0 < d < dmax):
+        raise SpecificationError(field, delta, rule)
+    return d
+
+
+def _check_shape(size) -> tuple[int, ...]:
+    if isinstance(size, (numbers.Integral, np.integer)) and not isinstance(size, (bool, np.bool_)):
+        size = (size,)
+    try:
+        shape = tuple(size)
+    except TypeError:
+        raise SpecificationError("size", size, "must be a non-negative integer or a tuple of them") from None
+    for s in shape:
+        if isinstance(s, (bool, np.bool_)) or not isinstance(s, (numbers.Integral, np.integer)) or s < 0:
+            raise SpecificationError("size", size, "must be a non-negative integer or a tuple of them")
+    return tuple(int(s) for s in shape)
+
+
+def _as_rng(rng, name: str) -> np.random.Generator:
+    if isinstance(rng, np.random.Generator):
+        return rng
+    if isinstance(rng, (numbers.Integral, np.integer)) and not isinstance(rng, (bool, np.bool_)) and rng >= 0:
+        return rng_for(int(rng), name)
+    raise SpecificationError("rng", rng, "must be a numpy.random.Generator or a non-negative integer seed")
+
+
+def sg_plus(n: int, delta: float, size=(), *, rng) -> np.ndarray:
+    """Draw realisations of G ∈ SG+ (dimensionless), shape ``(*size, n, n)``.
+
+    ``rng``: a ``numpy.random.Generator`` or a non-negative integer seed.
+    Exactly the generator of MODEL.md §3.3 (j counted from 1), vectorised over ``size``.
+    """
+    n = _check_size_n(n, "n")
+    d = _check_delta(delta, n)
+    shape = _check_shape(size)
+    gen = _as_rng(rng, "sg_plus")
+    sigma = d / math.sqrt(n + 1)
+    j = np.arange(1, n + 1)  # j counted from 1 (counting from 0 biases E[G] by δ²/(n+1))
+    gamma_shape = (n + 1) / (2.0 * d * d) + (1.0 - j) / 2.0
+    iu = np.triu_indices(n, k=1)
+    L = np.zeros(shape + (n, n))
+    L[..., iu[0], iu[1]] = sigma * gen.standard_normal(shape + (iu[0].size,))
+    V = gen.standard_gamma(gamma_shape, size=shape + (n,))
+    L[..., j - 1, j - 1] = sigma * np.sqrt(2.0 * V)
+    G = np.swapaxes(L, -1, -2) @ L
+    return 0.5 * (G + np.swapaxes(G, -1, -2))  # exact symmetry (round-off only)
+
+
+class _Desc(str):
+    """A description of a bad value, shown without quotes in error messages."""
+
+    def __repr__(self):
+        return str(self)
+
+
+def _check_mean(mean, name: str) -> np.ndarray:
+    try:
+        m = np.asarray(mean, dtype=float)
+    except (TypeError, ValueError):
+        raise SpecificationError(name, mean, "must be a real square matrix") from None
+    if m.ndim != 2 or m.shape[0] != m.shape[1] or m.shape[0] < 1:
+        raise SpecificationError(name, _Desc(f"array of shape {m.shape}"), "must be a square matrix (n, n) with n >= 1")
+    if not np.all(np.isfinite(m)):
+        raise SpecificationError(name, _Desc("matrix with non-finite entries"), "must be finite")
+    scale = np.max(np.abs(m))
+    asym = np.max(np.abs(m - m.T))
+    if asym > 1e-10 * scale:
+        raise SpecificationError(
+            name, _Desc(f"matrix with max |{name} - {name}ᵀ| = {asym:.3g} (max |entry| = {scale:.3g})"),
+            "must be symmetric positive definite (it is not symmetric)")
+    m = 0.5 * (m + m.T)
+    try:
+        low = np.linalg.cholesky(m)
+    except np.linalg.LinAlgError:
+        low = None
+    if low is None or not np.all(np.diag(low) > 0):
+        lam = np.linalg.eigvalsh(m)
+        raise SpecificationError(
+            name, _Desc(f"matrix with smallest eigenvalue {lam[0]:.3g}"),
+            "must be symmetric positive definite (it is not positive definite)")
+    return low.T  # upper L_A with mean = L_Aᵀ L_A
+
+
+def se_plus(mean, delta: float, size=(), *, rng, name: str = "mean") -> np.ndarray:
+    """Draw realisations of A ∈ SE+ with E[A] = ``mean``, shape ``(*size, n, n)``, units of ``mean``.
+
+    A = L_Aᵀ G L_A, G ∈ SG+(n, δ), mean = L_Aᵀ L_A. ``name`` labels ``mean`` in error messages
+    (e.g. "K_B"); δ errors are labelled ``delta[<name>]`` when a name is given.
+    """
+    LA = _check_mean(mean, name)
+    n = LA.shape[0]
+    _check_delta(delta, n, "delta" if name == "mean" else f"delta[{name}]")
+    shape = _check_shape(size)
+    G = sg_plus(n, delta, shape, rng=_as_rng(rng, "se_plus"))
+    A = LA.T @ G @ LA
+    return 0.5 * (A + np.swapaxes(A, -1, -2))
+
+
+def sg_plus_dispersion(G) -> float:
+    """Sample estimate of δ = √(E‖G − I‖²_F / n) from realisations ``G`` of shape (..., n, n)."""
+    g = np.asarray(G, dtype=float)
+    if g.ndim < 2 or g.shape[-1] != g.shape[-2] or g.shape[-1] < 1:
+        raise SpecificationError("G", _Desc(f"array of shape {g.shape}"), "must have shape (..., n, n) with n >= 1")
+    if g.size == 0:
+        raise SpecificationError("G", _Desc(f"array of shape {g.shape}"), "must hold at least one realisation")
+    if not np.all(np.isfinite(g)):
+        raise SpecificationError("G", _Desc("array with non-finite entries"), "must be finite")
+    n = g.shape[-1]
+    dev = g - np.eye(n)
+    return float(np.sqrt(np.mean(np.sum(dev * dev, axis=(-2, -1))) / n))
+
+
+@dataclass(frozen=True)
+class Dispersion:
+    """SG+ dispersions of a random reduced model (mass, damping, stiffness); 0 = deterministic.
+
+    Each field is a finite float >= 0; ``check(n)`` additionally requires each non-zero field
+    to be < delta_max(n) for reduced matrices of size n.
+    """
+
+    mass: float = 0.0
+    damping: float = 0.0
+    stiffness: float = 0.0
+
+    def __post_init__(self):
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (numbers.Real, np.floating, np.integer)) \
+                    or not math.isfinite(float(v)) or float(v) < 0:
+                raise SpecificationError(f"dispersion.{f.name}", v, "must be a finite number >= 0 (0 = deterministic)")
+            object.__setattr__(self, f.name, float(v))
+
+    @property
+    def is_deterministic(self) -> bool:
+        """True when no matrix is randomised."""
+        return self.mass == 0.0 and self.damping == 0.0 and self.stiffness == 0.0
+
+    def check(self, n: int) -> "Dispersion":
+        """Validate the non-zero dispersions against delta_max(n); returns self."""
+        n = _check_size_n(n, "n")
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if v != 0.0:
+                _check_delta(v, n, f"dispersion.{f.name}")
+        return self
