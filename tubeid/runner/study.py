@@ -1,0 +1,391 @@
+"""What a study is: sweep axes, a block task, labelled outputs, validated parameters.
+
+A study file (``studies/*.py``) defines a module-level ``study = Study(...)``. The sweep is the
+Cartesian product of the ``axes`` (ordered: dim -> coordinate values); it is cut into blocks of
+``chunks[dim]`` points per axis, one dask task and one set of whole Zarr chunks per block. The
+``task`` is called as ``task(block, rng, **parameters)`` where ``block`` maps each axis to the
+1-D coordinates of the block and ``rng(**coords)`` returns the generator of one point, keyed
+by its coordinates on ``seed_axes`` only (never by block or worker), so results do not depend on
+chunking, worker count, order, retries or resumes. It returns ``{output name: array}`` with shape
+(block sizes along the axes in order) + (sizes of the output's extra dims).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import hashlib
+import inspect
+import itertools
+import json
+import math
+import pathlib
+import sys
+import types
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from tubeid.errors import SpecificationError
+from tubeid.seeds import rng_for
+
+__all__ = ["Study", "Output", "Parameter", "pointwise", "load_study", "study_hash", "Block", "RngFactory"]
+
+_PLAIN = (bool, int, float, str, type(None))
+
+
+def _plain(value, field):
+    """Check that ``value`` is a plain JSON value (stored in the provenance and hashed)."""
+    if isinstance(value, (list, tuple)):
+        return [_plain(v, field) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if not isinstance(value, _PLAIN) or (isinstance(value, float) and not math.isfinite(value)):
+        raise SpecificationError(field, value, "must be a plain finite value (bool, int, float, str or a list of them)")
+    return value
+
+
+def _scalar(value):
+    """A numpy scalar as the equivalent Python scalar (stable seed keys: repr(0.1) not 'np.float64(0.1)')."""
+    return value.item() if isinstance(value, np.generic) else value
+
+
+@dataclasses.dataclass(frozen=True)
+class Parameter:
+    """A study parameter: its value and what is admissible (``choices`` and/or inclusive ``bounds``)."""
+
+    value: Any
+    choices: Sequence | None = None
+    bounds: tuple[float | None, float | None] | None = None
+    units: str = ""
+    doc: str = ""
+
+    def check(self, name: str, value) -> Any:
+        """Return ``value`` (made plain) if admissible, else raise ``SpecificationError``."""
+        field = f"parameters.{name}"
+        value = _plain(value, field)
+        if self.choices is not None and value not in list(self.choices):
+            raise SpecificationError(field, value, f"must be one of {list(self.choices)!r}")
+        if self.bounds is not None:
+            lo, hi = self.bounds
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise SpecificationError(field, value, "must be a number")
+            if (lo is not None and value < lo) or (hi is not None and value > hi):
+                raise SpecificationError(field, value, f"must lie in [{lo}, {hi}]")
+        return value
+
+
+@dataclasses.dataclass(frozen=True)
+class Output:
+    """A result variable: extra dims beyond the study axes (coordinates in ``Study.coords``), dtype, units."""
+
+    dims: tuple[str, ...] = ()
+    dtype: str = "float64"
+    units: str = ""
+    long_name: str = ""
+
+    def __post_init__(self):
+        object.__setattr__(self, "dims", tuple(self.dims))
+        try:
+            dt = np.dtype(self.dtype)
+        except TypeError as exc:
+            raise SpecificationError("output.dtype", self.dtype, "must be a numpy dtype") from exc
+        if dt.kind not in "biufc":
+            raise SpecificationError("output.dtype", self.dtype, "must be a numeric dtype")
+
+
+@dataclasses.dataclass(frozen=True)
+class Block:
+    """One block of the sweep: its index per axis, slice per axis and coordinates per axis."""
+
+    index: tuple[int, ...]
+    slices: dict[str, slice]
+    coords: dict[str, np.ndarray]
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return tuple(s.stop - s.start for s in self.slices.values())
+
+
+@dataclasses.dataclass(frozen=True)
+class Study:
+    """A parameter sweep run as one dask task per block (see the module docstring).
+
+    name: identifier (store file name); seed: non-negative int study seed;
+    axes: ordered {dim: coordinate values}; chunks: {dim: points per block} (missing dims use the
+    ``tubeid.runner.default-chunk`` configuration value); task: ``task(block, rng, **parameters)``;
+    outputs: {name: Output}; coords: coordinates of the outputs' extra dims; units: {dim: units} for
+    coordinates; seed_axes: axes whose coordinates key the random streams (default: all axes;
+    ``("realisation",)`` gives common random numbers across the other axes); parameters:
+    {name: plain value or Parameter}, passed to ``task`` as keywords; model: the model specification
+    (stored as text in the provenance); check: optional ``check(study)`` raising SpecificationError
+    for rules that involve several fields (e.g. an axis range that depends on a parameter).
+    """
+
+    name: str
+    seed: int
+    axes: Mapping[str, Any]
+    task: Callable
+    outputs: Mapping[str, Output]
+    chunks: Mapping[str, int] = dataclasses.field(default_factory=dict)
+    coords: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    units: Mapping[str, str] = dataclasses.field(default_factory=dict)
+    seed_axes: tuple[str, ...] | None = None
+    parameters: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    model: Any = None
+    check: Callable | None = None
+    description: str = ""
+
+    def __post_init__(self):
+        from tubeid import config
+
+        if not isinstance(self.name, str) or not self.name or any(c in self.name for c in "/\\ "):
+            raise SpecificationError("name", self.name, "must be a non-empty string without spaces or slashes")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
+            raise SpecificationError("seed", self.seed, "must be a non-negative integer")
+        if not self.axes:
+            raise SpecificationError("axes", dict(self.axes), "must name at least one axis")
+        axes = {}
+        for dim, values in self.axes.items():
+            arr = np.asarray(list(values) if isinstance(values, range) else values)
+            if arr.ndim != 1 or arr.size == 0:
+                raise SpecificationError(f"axes.{dim}", _short(values), "must be a non-empty 1-D sequence")
+            if arr.dtype.kind not in "biufU":
+                raise SpecificationError(f"axes.{dim}", _short(values), "must hold numbers or strings")
+            if len(np.unique(arr)) != arr.size:
+                raise SpecificationError(f"axes.{dim}", _short(values), "coordinates must be distinct")
+            axes[dim] = arr
+        object.__setattr__(self, "axes", axes)
+        chunks = {}
+        for dim, c in self.chunks.items():
+            if dim not in axes:
+                raise SpecificationError(f"chunks.{dim}", c, f"is not an axis (axes: {list(axes)})")
+        for dim in axes:
+            c = self.chunks.get(dim, config.get("runner.default-chunk", 16))
+            if isinstance(c, bool) or not isinstance(c, (int, np.integer)) or c < 1:
+                raise SpecificationError(f"chunks.{dim}", c, "must be a positive integer")
+            chunks[dim] = min(int(c), axes[dim].size)
+        object.__setattr__(self, "chunks", chunks)
+        coords = {}
+        for dim, values in self.coords.items():
+            if dim in axes:
+                raise SpecificationError(f"coords.{dim}", _short(values), "is an axis; give its values in axes")
+            arr = np.asarray(values)
+            if arr.ndim != 1 or arr.size == 0:
+                raise SpecificationError(f"coords.{dim}", _short(values), "must be a non-empty 1-D sequence")
+            coords[dim] = arr
+        object.__setattr__(self, "coords", coords)
+        if not callable(self.task):
+            raise SpecificationError("task", self.task, "must be callable as task(block, rng, **parameters)")
+        if not self.outputs:
+            raise SpecificationError("outputs", dict(self.outputs), "must declare at least one output")
+        for name, out in self.outputs.items():
+            if not isinstance(out, Output):
+                raise SpecificationError(f"outputs.{name}", out, "must be an Output")
+            for dim in out.dims:
+                if dim not in coords:
+                    raise SpecificationError(f"outputs.{name}.dims", out.dims, f"dim {dim!r} needs coordinates in Study.coords")
+            if name in axes or name in coords or name == "block_done":
+                raise SpecificationError(f"outputs.{name}", name, "clashes with a dimension or reserved name")
+        seed_axes = tuple(axes) if self.seed_axes is None else tuple(self.seed_axes)
+        for dim in seed_axes:
+            if dim not in axes:
+                raise SpecificationError("seed_axes", seed_axes, f"{dim!r} is not an axis (axes: {list(axes)})")
+        object.__setattr__(self, "seed_axes", seed_axes)
+        params = {}
+        for name, p in self.parameters.items():
+            p = p if isinstance(p, Parameter) else Parameter(p)
+            params[name] = dataclasses.replace(p, value=p.check(name, p.value))
+        object.__setattr__(self, "parameters", params)
+        self._check_signature()
+        if self.check is not None:
+            self.check(self)
+
+    # -- parameters ---------------------------------------------------------------------------
+    def _check_signature(self):
+        try:
+            sig = inspect.signature(self.task)
+        except (TypeError, ValueError):
+            return
+        kw = {n: p for n, p in list(sig.parameters.items())[2:]}
+        if any(p.kind is p.VAR_KEYWORD for p in kw.values()):
+            return
+        for name in self.parameters:
+            if name not in kw:
+                raise SpecificationError(f"parameters.{name}", self.parameters[name].value,
+                                         f"unknown parameter: the task accepts {sorted(kw)}")
+        for name, p in kw.items():
+            if p.default is p.empty and p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD) and name not in self.parameters:
+                raise SpecificationError(f"parameters.{name}", None, "required by the task but not given")
+
+    @property
+    def values(self) -> dict[str, Any]:
+        """The parameter values passed to the task."""
+        return {name: p.value for name, p in self.parameters.items()}
+
+    def with_parameters(self, overrides: Mapping[str, Any]) -> "Study":
+        """A copy with some parameter values replaced (unknown names and inadmissible values refused)."""
+        params = dict(self.parameters)
+        for name, value in overrides.items():
+            if name not in params:
+                raise SpecificationError(f"parameters.{name}", value, f"unknown parameter (known: {sorted(params)})")
+            params[name] = dataclasses.replace(params[name], value=params[name].check(name, value))
+        return dataclasses.replace(self, parameters=params)
+
+    # -- geometry -----------------------------------------------------------------------------
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return tuple(a.size for a in self.axes.values())
+
+    @property
+    def block_grid(self) -> tuple[int, ...]:
+        """Number of blocks along each axis."""
+        return tuple(-(-a.size // self.chunks[d]) for d, a in self.axes.items())
+
+    @property
+    def n_blocks(self) -> int:
+        return math.prod(self.block_grid)
+
+    def block(self, index: Sequence[int]) -> Block:
+        slices, coords = {}, {}
+        for (dim, values), i in zip(self.axes.items(), index):
+            c = self.chunks[dim]
+            slices[dim] = slice(i * c, min((i + 1) * c, values.size))
+            coords[dim] = values[slices[dim]]
+        return Block(tuple(int(i) for i in index), slices, coords)
+
+    def blocks(self):
+        """All blocks, in C order of their indices."""
+        for index in itertools.product(*(range(n) for n in self.block_grid)):
+            yield self.block(index)
+
+    # -- randomness ---------------------------------------------------------------------------
+    @property
+    def rng(self) -> "RngFactory":
+        """The factory passed to the task: ``rng(**seed-axis coords)`` -> Generator of one point."""
+        return RngFactory(int(self.seed), self.seed_axes)
+
+    def compute_block(self, block: Block) -> dict[str, np.ndarray]:
+        """Run the task on one block; check and cast its outputs."""
+        result = self.task(block.coords, self.rng, **self.values)
+        if not isinstance(result, Mapping):
+            if len(self.outputs) != 1:
+                raise SpecificationError("task result", type(result).__name__, "must be a dict {output name: array}")
+            result = {next(iter(self.outputs)): result}
+        if set(result) != set(self.outputs):
+            raise SpecificationError("task result", sorted(result), f"must have exactly the outputs {sorted(self.outputs)}")
+        out = {}
+        for name, spec in self.outputs.items():
+            arr = np.asarray(result[name])
+            shape = block.shape + tuple(self.coords[d].size for d in spec.dims)
+            if arr.shape != shape:
+                raise SpecificationError(f"task result {name}.shape", arr.shape, f"must be {shape} for block {block.index}")
+            out[name] = arr.astype(spec.dtype, copy=False)
+        return out
+
+    def describe_model(self) -> str:
+        """The model specification as text ('' if none)."""
+        m = self.model
+        if m is None:
+            return ""
+        for attr in ("to_yaml", "to_text", "to_json"):
+            if callable(getattr(m, attr, None)):
+                return str(getattr(m, attr)())
+        if dataclasses.is_dataclass(m):
+            return json.dumps(dataclasses.asdict(m), default=repr, indent=1)
+        return m if isinstance(m, str) else repr(m)
+
+
+def _short(values, n=6):
+    values = list(values) if not isinstance(values, (str, bytes)) else values
+    return values if len(values) <= n else f"{values[:n]}... ({len(values)} values)"
+
+
+def pointwise(fn: Callable) -> Callable:
+    """Make a block task from a per-point function ``fn(point, rng, **parameters) -> {output: array}``.
+
+    ``point`` maps each axis to its scalar coordinate; ``rng`` is that point's generator (keyed by the
+    seed axes). The per-point outputs are stacked over the block.
+    """
+    sig = inspect.signature(fn)
+
+    @functools.wraps(fn)
+    def task(block, rng, **parameters):
+        dims = list(block)
+        sizes = [len(block[d]) for d in dims]
+        collected: dict[str, np.ndarray] = {}
+        for flat, idx in enumerate(itertools.product(*(range(n) for n in sizes))):
+            point = {d: _scalar(block[d][i]) for d, i in zip(dims, idx)}
+            res = fn(point, rng.at(point), **parameters)
+            if not isinstance(res, Mapping):
+                res = {None: res}
+            for name, value in res.items():
+                value = np.asarray(value)
+                if name not in collected:
+                    collected[name] = np.empty(tuple(sizes) + value.shape, dtype=value.dtype)
+                collected[name][idx] = value
+        return collected[None] if list(collected) == [None] else collected
+
+    task.__signature__ = sig  # keep the parameter names visible to Study validation
+    return task
+
+
+@dataclasses.dataclass(frozen=True)
+class RngFactory:
+    """Generators keyed by (study seed, a point's coordinates on the seed axes, optional stream names).
+
+    ``rng(realisation=3)`` (exactly the seed axes as keywords) or ``rng.at(point)`` (a full point;
+    coordinates on other axes are ignored). ``rng("loads", realisation=3)`` gives an independent
+    named stream at the same point. Never keyed by block or worker.
+    """
+
+    seed: int
+    seed_axes: tuple[str, ...]
+
+    def __call__(self, *stream, **coords) -> np.random.Generator:
+        if set(coords) != set(self.seed_axes):
+            raise SpecificationError("rng coordinates", sorted(coords), f"must be exactly the seed axes {list(self.seed_axes)}")
+        return rng_for(self.seed, *(_scalar(coords[d]) for d in self.seed_axes), *stream)
+
+    def at(self, point: Mapping[str, Any], *stream) -> np.random.Generator:
+        return self(*stream, **{d: point[d] for d in self.seed_axes})
+
+
+def study_hash(source: str, overrides: Mapping[str, Any] | None = None) -> str:
+    """SHA-256 of the study source text and the parameter overrides (the study's identity)."""
+    h = hashlib.sha256(source.encode())
+    h.update(b"\0" + json.dumps(dict(overrides or {}), sort_keys=True).encode())
+    return h.hexdigest()
+
+
+_CACHE: dict[str, Study] = {}
+
+
+def load_study(path: str | pathlib.Path | None = None, *, source: str | None = None,
+               overrides: Mapping[str, Any] | None = None) -> tuple[Study, str, str]:
+    """Execute a study file (or its ``source`` text) and return ``(study, source, hash)``.
+
+    Cached per process by hash, so a worker executes each study source once.
+    """
+    if source is None:
+        p = pathlib.Path(path)
+        if not p.is_file():
+            raise SpecificationError("study", str(path), "no such study file")
+        source = p.read_text()
+    overrides = dict(overrides or {})
+    key = study_hash(source, overrides)
+    if key not in _CACHE:
+        module = types.ModuleType(f"tubeid_study_{key[:12]}")
+        module.__file__ = str(path or "<study>")
+        try:
+            code = compile(source, module.__file__, "exec")
+        except SyntaxError as exc:
+            raise SpecificationError("study", str(path), f"is not valid Python: {exc}") from exc
+        sys.modules[module.__name__] = module  # dataclasses and pickling look modules up here
+        exec(code, module.__dict__)
+        study = getattr(module, "study", None)
+        if not isinstance(study, Study):
+            raise SpecificationError("study", str(path), "must define a module-level `study = Study(...)`")
+        _CACHE[key] = study.with_parameters(overrides) if overrides else study
+    return _CACHE[key], source, key
