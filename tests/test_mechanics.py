@@ -1,0 +1,299 @@
+"""Mechanics against independent references: beam closed forms, full-model condensation, quadrature."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import scipy.linalg
+
+from tubeid.errors import SpecificationError
+from tubeid.mechanics.assembly import assemble, tube_matrices
+from tubeid.mechanics.library import builtin_spec
+from tubeid.mechanics.reduction import condensed_stiffness, j_functional, j_quadrature, reduce
+from tubeid.mechanics.spec import (
+    BundleSpec,
+    LinkSpec,
+    LoadPoint,
+    ReductionSpec,
+    SensorSpec,
+    StopSpec,
+    TubeSpec,
+    load_spec,
+    spec_from_dict,
+    spec_to_dict,
+)
+
+BETA_L_CLAMPED = np.array([4.730040745, 7.853204624, 10.99560784, 14.13716549])  # roots of cos·cosh = 1
+
+
+def _tube(n_elements=8, **kw):
+    base = dict(name="t", length=16.0, outer_radius=0.5, wall=0.2, density=250.0, youngs_modulus=7.5e8, n_elements=n_elements)
+    base.update(kw)
+    return TubeSpec(**base)
+
+
+def test_clamped_beam_frequencies_converge_to_closed_form():
+    errors = []
+    for ne in (4, 8, 16, 32):
+        t = _tube(ne, damping_ratio=0.0)
+        M, _, K = tube_matrices(t)
+        f = np.sqrt(scipy.linalg.eigh(K, M, eigvals_only=True)[:4]) / (2 * np.pi)
+        exact = BETA_L_CLAMPED**2 / (2 * np.pi * t.length**2) * math.sqrt(t.youngs_modulus * t.inertia / (t.density * t.area))
+        errors.append(np.abs(f / exact - 1))
+    errors = np.array(errors)
+    # Hermite elements converge as h^4 in frequency: each halving of h divides the error by ~16.
+    assert np.all(np.diff(errors[:, :3], axis=0) < 0)
+    assert errors[-1, :4].max() < 5e-5
+    assert errors[1, 0] < 1e-4  # 8 elements: the paper's mesh, first mode within 0.01 %
+    ratio = errors[2, 0] / errors[3, 0]
+    assert 10 < ratio < 22, ratio
+
+
+def test_modal_damping_ratio_is_exact_on_tube_modes():
+    t = _tube(8, damping_ratio=0.02)
+    M, D, K = tube_matrices(t)
+    n = M.shape[0]
+    A = np.block([[np.zeros((n, n)), np.eye(n)], [-np.linalg.solve(M, K), -np.linalg.solve(M, D)]])
+    lam = np.linalg.eigvals(A)
+    zeta = -lam.real / np.abs(lam)
+    np.testing.assert_allclose(zeta, 0.02, rtol=1e-8)
+
+
+def test_paper_models_share_first_three_frequencies_and_differ_above():
+    fr = assemble(builtin_spec("paper-reference")).eigenfrequencies(10)
+    fs = assemble(builtin_spec("paper-simplified")).eigenfrequencies(10)
+    assert assemble(builtin_spec("paper-reference")).n_dof == 70
+    assert assemble(builtin_spec("paper-simplified")).n_dof == 28
+    np.testing.assert_allclose(fs[:3], fr[:3], rtol=5e-3)  # MODEL.md §2: within 0.5 %
+    assert abs(fs[3] / fr[3] - 1) > 0.05  # but not beyond: model uncertainty is real
+
+
+def test_four_springs_per_grid_would_make_models_identical():
+    """MODEL.md §2 trap: with 4×4e7 N/m per grid the condensed stiffness equals the reference one."""
+    spec = builtin_spec("paper-simplified")
+    stiff = spec.replace(links=tuple(LinkSpec(l.tube, l.x, 4 * l.stiffness, l.to_tube) for l in spec.links))
+    ref = reduce(builtin_spec("paper-reference").replace(reduction=ReductionSpec(b_cutoff_hz=600.0))).subsystem
+    simp = reduce(stiff.replace(reduction=ReductionSpec(b_cutoff_hz=600.0))).subsystem
+    w = 2 * np.pi * np.array([3.0, 17.0, 55.0, 90.0])
+    np.testing.assert_allclose(condensed_stiffness(simp.M, simp.D, simp.K, 3, w), condensed_stiffness(ref.M, ref.D, ref.K, 3, w), rtol=1e-6)
+
+
+def _full_condensed(spec, omega):
+    """Z(ω) of subsystem B condensed directly from the unreduced physical matrices."""
+    fe = assemble(spec)
+    c = fe.interface
+    b = np.array([i for i, d in enumerate(fe.dofs) if d[0] != spec.a_tube], dtype=int)
+    idx = np.concatenate([b, c])
+    M, D, K = (m[np.ix_(idx, idx)] for m in fe.parts["B"])
+    return condensed_stiffness(M, D, K, len(c), omega)
+
+
+@pytest.mark.parametrize("name", ["paper-simplified", "paper-reference"])
+def test_craig_bampton_condensed_stiffness_converges_to_full(name):
+    spec = builtin_spec(name)
+    omega = 2 * np.pi * np.linspace(0.5, 100.0, 157)
+    Zfull = _full_condensed(spec, omega)
+    errs = []
+    counts = (2, 4, 6, 8) if name == "paper-simplified" else (8, 16, 24, 32)
+    for nm in counts:
+        sub = reduce(spec.replace(reduction=ReductionSpec(b_modes=nm, b_cutoff_hz=None))).subsystem
+        Z = condensed_stiffness(sub.M, sub.D, sub.K, sub.n_c, omega)
+        errs.append(np.max(np.linalg.norm(Z - Zfull, axis=(-2, -1)) / np.linalg.norm(Zfull, axis=(-2, -1))))
+    assert all(a > b for a, b in zip(errs, errs[1:])), errs
+    sub = reduce(spec).subsystem  # default: modes below 300 Hz
+    Z = condensed_stiffness(sub.M, sub.D, sub.K, sub.n_c, omega)
+    assert np.max(np.linalg.norm(Z - Zfull, axis=(-2, -1)) / np.linalg.norm(Zfull, axis=(-2, -1))) < 1e-3
+
+
+def test_j_closed_form_against_refined_quadrature():
+    sub = reduce(builtin_spec("paper-simplified")).subsystem
+    J = j_functional(sub.M, sub.D, sub.K, sub.n_c, 100.0)
+    q = [j_quadrature(sub.M, sub.D, sub.K, sub.n_c, 100.0, n) for n in (2001, 8001, 32001)]
+    errs = [abs(x / J - 1) for x in q]
+    assert errs[0] > errs[1] > errs[2]  # quadrature converges ...
+    assert errs[2] < 1e-7  # ... to the closed form
+    # and the closed form is batched: a stack of two different models gives their own values
+    K2 = np.stack([sub.K, 1.3 * sub.K])
+    Jb = j_functional(sub.M, sub.D, K2, sub.n_c, 100.0)
+    assert Jb[0] == pytest.approx(J, rel=1e-12)
+    assert Jb[1] == pytest.approx(j_quadrature(sub.M, sub.D, 1.3 * sub.K, sub.n_c, 100.0, 32001), rel=1e-6)
+
+
+def test_j_refuses_singular_reduced_mass():
+    spec = builtin_spec("paper-simplified").replace(reduction=ReductionSpec(b_cutoff_hz=None))
+    sub = reduce(spec).subsystem
+    with pytest.raises(SpecificationError, match="M_B.*positive definite"):
+        j_functional(sub.M, sub.D, sub.K, sub.n_c, 100.0)
+
+
+def test_reduced_global_model_reproduces_low_frequencies():
+    red = reduce(builtin_spec("paper-reference"))
+    np.testing.assert_allclose(red.eigenfrequencies(6), red.fe.eigenfrequencies(6), rtol=1e-4)
+    # the stop vector reads the centre tube at x = 6 m (a node): exactly one physical DOF
+    b = red.fe.stop_vectors()[0]
+    assert np.count_nonzero(b) == 1 and b.max() == 1.0
+
+
+def test_point_vector_interpolates_cubic_exactly():
+    """Hermite shape functions reproduce a cubic field y(x) and its slope exactly."""
+    spec = builtin_spec("paper-simplified")
+    fe = assemble(spec)
+    y = lambda x: 1e-3 * (x**3 - 3 * x**2 + 2)  # noqa: E731
+    dy = lambda x: 1e-3 * (3 * x**2 - 6 * x)  # noqa: E731
+    u = np.zeros(fe.n_dof)
+    for i, (tube, node, kind) in enumerate(fe.dofs):
+        x = 2.0 * node
+        u[i] = y(x) if kind == "y" else dy(x)
+    for x in (2.0, 3.3, 7.9):  # inside elements with no constrained DOF
+        assert fe.point_vector("centre", x) @ u == pytest.approx(y(x), rel=1e-12)
+        assert fe.point_vector("centre", x, derivative=1) @ u == pytest.approx(dy(x), rel=1e-12)
+
+
+def test_other_topologies_are_expressible_from_file(tmp_path):
+    """Three unequal tubes in a row, springs between neighbours only, one pinned end."""
+    text = """
+name = "row-of-three"
+band_hz = 80.0
+[[tubes]]
+name = "left"
+length = 10.0
+outer_radius = 0.3
+wall = 0.05
+density = 8000.0
+youngs_modulus = 2.0e11
+n_elements = 6
+[[tubes]]
+name = "middle"
+length = 12.0
+outer_radius = 0.3
+wall = 0.05
+density = 8000.0
+youngs_modulus = 2.0e11
+n_elements = 6
+ends = ["clamped", "pinned"]
+[[tubes]]
+name = "right"
+length = 10.0
+outer_radius = 0.25
+wall = 0.05
+density = 7800.0
+youngs_modulus = 2.1e11
+n_elements = 5
+[[links]]
+tube = "left"
+x = 5.0
+stiffness = 1e6
+to_tube = "middle"
+to_x = 6.0
+[[links]]
+tube = "middle"
+x = 4.0
+stiffness = 2e6
+to_tube = "right"
+to_x = 4.0
+[[stops]]
+tube = "middle"
+x = 3.0
+gap = 1e-4
+stiffness = 1e7
+[[sensors]]
+name = "s1"
+tube = "middle"
+x = 3.0
+"""
+    p = tmp_path / "row.toml"
+    p.write_text(text)
+    spec = load_spec(p)
+    fe = assemble(spec)
+    assert fe.n_dof == 2 * (7 - 2) + (2 * 7 - 3) + 2 * (6 - 2)
+    assert len(fe.interface) == 2
+    sub = reduce(spec).subsystem
+    assert np.isfinite(j_functional(sub.M, sub.D, sub.K, sub.n_c, spec.band_hz))
+    # YAML round trip of the same specification
+    import yaml
+
+    y = tmp_path / "row.yaml"
+    y.write_text(yaml.safe_dump(spec_to_dict(spec)))
+    assert load_spec(y) == spec
+
+
+def _bad(mutate):
+    d = spec_to_dict(builtin_spec("paper-simplified"))
+    mutate(d)
+    return d
+
+
+@pytest.mark.parametrize(
+    "mutate, field, rule",
+    [
+        (lambda d: d["tubes"][0].update(length=-2.0), r"tubes\[0\]\.length", "> 0"),
+        (lambda d: d["tubes"][1].update(youngs_modulus=0.0), r"tubes\[1\]\.youngs_modulus", "> 0"),
+        (lambda d: d["tubes"][0].update(wall=0.7), r"tubes\[0\]\.wall", "outer_radius"),
+        (lambda d: d["tubes"][0].update(n_elements=0), r"tubes\[0\]\.n_elements", "integer >= 1"),
+        (lambda d: d["tubes"][0].update(ends=["clamped", "glued"]), r"tubes\[0\]\.ends", "clamped"),
+        (lambda d: d["tubes"][1].update(name="centre"), r"tubes\[1\]\.name", "unique"),
+        (lambda d: d["stops"][0].update(x=17.0), r"stops\[0\]\.x", "off tube"),
+        (lambda d: d["stops"][0].update(gap=0.0, stiffness=-1e8), r"stops\[0\]\.stiffness", "> 0"),
+        (lambda d: d["stops"][0].update(gap=-1e-6), r"stops\[0\]\.gap", ">= 0"),
+        (lambda d: d["sensors"][0].update(x=-1.0), r"sensors\[0\]\.x", "off tube"),
+        (lambda d: d["sensors"][0].update(tube="nowhere"), r"sensors\[0\]\.tube", "no such tube"),
+        (lambda d: d["links"][0].update(to_tube="missing"), r"links\[0\]\.to_tube", "no such tube"),
+        (lambda d: d["links"][0].update(x=5.0), r"links\[0\]\.x", "node"),
+        (lambda d: d["links"][0].update(stiffness=-3.0), r"links\[0\]\.stiffness", "> 0"),
+        (lambda d: d["loads"][0].update(kind="torque"), r"loads\[0\]\.kind", "force"),
+        (lambda d: d["tubes"][0].update(lenght=3.0), r"tubes\[0\]\.lenght", "unknown field"),
+        (lambda d: d.update(band_hz=0), r"band_hz", "> 0"),
+        (lambda d: d.update(reduction={"b_modes": -1}), r"reduction\.b_modes", "integer >= 0"),
+    ],
+)
+def test_bad_specifications_are_refused_with_field_value_rule(mutate, field, rule):
+    with pytest.raises(SpecificationError, match=field) as exc:
+        spec_from_dict(_bad(mutate))
+    assert rule in str(exc.value)
+
+
+def test_rigid_body_mode_refused():
+    t = _tube(4, ends=("free", "free"))
+    with pytest.raises(SpecificationError, match="rigid-body"):
+        assemble(BundleSpec(name="floating", tubes=(t,)))
+
+
+def test_stops_off_the_nonlinear_tube_refused():
+    spec = builtin_spec("paper-simplified")
+    with pytest.raises(SpecificationError, match=r"stops\[1\]\.tube"):
+        spec.replace(stops=spec.stops + (StopSpec("equivalent", 6.0, 1e-6, 1e8),))
+
+
+def test_specifications_are_immutable():
+    spec = builtin_spec("paper-simplified")
+    with pytest.raises(AttributeError):
+        spec.band_hz = 50.0  # type: ignore[misc]
+    assert spec.replace(band_hz=50.0).band_hz == 50.0 and spec.band_hz == 100.0
+
+
+def test_model_command_json(capsys):
+    from tubeid.cli import main
+
+    assert main(["model", "paper-simplified", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["n_dof"] == 28 and len(out["eigenfrequencies_hz"]) == 10
+    assert out["n_reduced"] == 12 and out["delta_max"] == pytest.approx(math.sqrt(13 / 17))
+    assert out["J_units"] == "m^2 rad/(N^2 s)" and 1e-10 < out["J"] < 1e-9
+    assert main(["model", "no-such-model"]) == 2
+    assert "unknown built-in model" in capsys.readouterr().err
+
+
+def test_load_and_sensor_matrices():
+    red = reduce(builtin_spec("paper-simplified"))
+    pts = (LoadPoint("T", "centre", 8.0, "force"), LoadPoint("M", "centre", 8.0, "moment"))
+    B = red.fe.load_matrix(pts)
+    i_y = red.fe.dof_index("centre", 4, "y")
+    i_t = red.fe.dof_index("centre", 4, "theta")
+    assert B[i_y, 0] == 1.0 and B[i_t, 1] == 1.0 and np.count_nonzero(B) == 2
+    C = red.sensor_matrix((SensorSpec("mid", "centre", 8.0),))
+    assert C.shape == (1, red.N)
+    # reading the interface DOF at x = 8 m: q = unit u_c(8 m) gives u(8 m) = 1 through T
+    q = np.zeros(red.N)
+    q[-2] = 1.0  # interface DOFs are ordered by x: 4, 8, 12 m
+    assert (C @ q)[0] == pytest.approx(1.0, abs=1e-12)

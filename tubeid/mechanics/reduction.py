@@ -1,0 +1,249 @@
+"""Craig–Bampton reduction, condensed dynamic stiffness Z(ω) on the interface, and J.
+
+Reduced coordinates of the whole bundle are ordered ``(y_A, y_B, u_c)``: fixed-interface modal
+coordinates of subsystem A (the non-linear tube), of subsystem B (the linear rest), then the
+physical interface DOFs u_c [m] (A's transverse displacements at the grid nodes). Physical DOFs are
+u = T q. Subsystem B alone, reduced, has coordinates ``(y_B, u_c)`` and matrices ``M_B, D_B, K_B``
+(size n = n_modes_B + n_c): these are what the nonparametric approach randomises.
+
+Condensed dynamic stiffness of B on the interface (MODEL.md §3.1):
+Z(ω) = A_cc − A_cy A_yy⁻¹ A_yc, A(ω) = −ω² M_B + iω D_B + K_B   [N/m].
+
+J = ∫_{−Ω}^{Ω} ‖Z(ω)⁻¹‖²_F dω with Ω = 2π·band_hz, in **m²·rad/(N²·s)** (compliance squared times
+rad/s). :func:`j_functional` evaluates it in closed form from the poles of B: with the quadratic
+eigenpairs (λ_k, φ_k) of (M_B, D_B, K_B), Z(ω)⁻¹ = [A(iω)⁻¹]_cc = Σ_k φ_k,c φ_k,cᵀ / (a_k (iω − λ_k)),
+a_k = φ_kᵀ(2λ_k M + D)φ_k, and each pair of poles integrates analytically over the band:
+∫ dω / ((iω − λ_k)(−iω − λ̄_l)) = −(I(λ_k) + I(λ̄_l)) / (λ_k + λ̄_l), I(a) = −i[Log(iΩ − a) − Log(−iΩ − a)].
+No frequency grid, hence no quadrature error near the lightly damped resonances.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+import scipy.linalg
+
+from tubeid.errors import SpecificationError
+from tubeid.mechanics.assembly import FEModel, assemble
+from tubeid.mechanics.spec import BundleSpec, LoadPoint, SensorSpec
+
+__all__ = [
+    "J_UNITS",
+    "ReducedSubsystem",
+    "ReducedModel",
+    "craig_bampton",
+    "reduce",
+    "condensed_stiffness",
+    "j_functional",
+    "j_quadrature",
+]
+
+J_UNITS = "m^2 rad/(N^2 s)"
+
+
+def _select_modes(w2: np.ndarray, n_modes: int | None, cutoff_hz: float | None) -> np.ndarray:
+    keep = np.ones(w2.shape, dtype=bool)
+    if cutoff_hz is not None:
+        keep &= np.sqrt(np.clip(w2, 0, None)) / (2 * np.pi) <= cutoff_hz
+    idx = np.flatnonzero(keep)
+    return idx if n_modes is None else idx[:n_modes]
+
+
+def craig_bampton(M: np.ndarray, K: np.ndarray, internal: np.ndarray, interface: np.ndarray, n_modes: int | None = None, cutoff_hz: float | None = None):
+    """Craig–Bampton basis of a substructure.
+
+    Returns ``(Phi, Psi, freqs_hz)``: fixed-interface modes Φ (mass-normalised on the internal
+    DOFs, kept by count and/or cut-off), static constraint modes Ψ = −K_ii⁻¹ K_ic, and the kept
+    fixed-interface frequencies. Physical internal DOFs: u_i = Φ y + Ψ u_c.
+    """
+    Kii = K[np.ix_(internal, internal)]
+    Mii = M[np.ix_(internal, internal)]
+    if len(internal) == 0:
+        return np.zeros((0, 0)), np.zeros((0, len(interface))), np.zeros(0)
+    w2, phi = scipy.linalg.eigh(Kii, Mii)
+    keep = _select_modes(w2, n_modes, cutoff_hz)
+    Psi = -np.linalg.solve(Kii, K[np.ix_(internal, interface)]) if len(interface) else np.zeros((len(internal), 0))
+    return phi[:, keep], Psi, np.sqrt(np.clip(w2[keep], 0, None)) / (2 * np.pi)
+
+
+@dataclass(frozen=True, eq=False)
+class ReducedSubsystem:
+    """Reduced linear subsystem B: coordinates (y_B, u_c); the last ``n_c`` are the interface DOFs."""
+
+    M: np.ndarray
+    D: np.ndarray
+    K: np.ndarray
+    n_c: int
+    mode_frequencies_hz: np.ndarray
+
+    @property
+    def n(self) -> int:
+        """Size of the reduced matrices (the SG+ dimension when they are randomised)."""
+        return self.M.shape[-1]
+
+
+@dataclass(frozen=True, eq=False)
+class ReducedModel:
+    """Craig–Bampton reduced model of a whole bundle (stops open), q = (y_A, y_B, u_c), u = T q.
+
+    ``A_part``: the (M, D, K) contributions of subsystem A in reduced coordinates (N × N);
+    ``subsystem``: the reduced subsystem B; ``b_index``: positions of B's coordinates (y_B, u_c)
+    in q. :meth:`matrices` embeds (possibly random, batched) B matrices into the global ones.
+    """
+
+    fe: FEModel
+    T: np.ndarray
+    A_part: tuple[np.ndarray, np.ndarray, np.ndarray] = field(repr=False)
+    subsystem: ReducedSubsystem = field(repr=False)
+    b_index: np.ndarray = field(repr=False)
+
+    @property
+    def spec(self) -> BundleSpec:
+        return self.fe.spec
+
+    @property
+    def N(self) -> int:
+        return self.T.shape[1]
+
+    def matrices(self, M_B=None, D_B=None, K_B=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Global (M, D, K) with B's reduced matrices replaced by the given ones.
+
+        Each given matrix may carry leading batch axes (..., n, n); the result broadcasts them.
+        """
+        out = []
+        for a_mat, b_new, b_mean in zip(self.A_part, (M_B, D_B, K_B), (self.subsystem.M, self.subsystem.D, self.subsystem.K)):
+            b = b_mean if b_new is None else np.asarray(b_new)
+            g = np.broadcast_to(a_mat, b.shape[:-2] + a_mat.shape).copy()
+            ix = np.ix_(self.b_index, self.b_index)
+            g[(...,) + ix] += b
+            out.append(g)
+        return tuple(out)
+
+    @cached_property
+    def mean_matrices(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self.matrices()
+
+    def load_matrix(self, points: tuple[LoadPoint, ...] | None = None) -> np.ndarray:
+        """(N, m) generalised load influence matrix."""
+        return self.T.T @ self.fe.load_matrix(points)
+
+    def sensor_matrix(self, sensors: tuple[SensorSpec, ...] | None = None) -> np.ndarray:
+        """(n_sensors, N) observation matrix."""
+        return self.fe.sensor_matrix(sensors) @ self.T
+
+    def stop_vectors(self) -> np.ndarray:
+        """(n_stops, N): u_stop = b·q."""
+        return self.fe.stop_vectors() @ self.T
+
+    def eigenfrequencies(self, n: int | None = 10) -> np.ndarray:
+        """Undamped eigenfrequencies [Hz] of the reduced mean model (stops open)."""
+        M, _, K = self.mean_matrices
+        f = np.sqrt(np.clip(scipy.linalg.eigh(K, M, eigvals_only=True), 0, None)) / (2 * np.pi)
+        return f if n is None else f[:n]
+
+
+def reduce(model: BundleSpec | FEModel) -> ReducedModel:
+    """Craig–Bampton reduction of both subsystems of a bundle, as its ``reduction`` field says."""
+    fe = model if isinstance(model, FEModel) else assemble(model)
+    spec = fe.spec
+    red = spec.reduction
+    n = fe.n_dof
+    c = fe.interface
+    a_name = spec.a_tube
+    is_a = np.array([d[0] == a_name for d in fe.dofs])
+    a_int = np.array([i for i in np.flatnonzero(is_a) if i not in set(c)], dtype=int)
+    b_int = np.flatnonzero(~is_a)
+    MA, DA, KA = fe.parts["A"]
+    MB, DB, KB = fe.parts["B"]
+    # A is reduced with its own matrices; B with its own (interface held fixed for both).
+    Phi_a, Psi_a, _ = craig_bampton(MA, KA, a_int, c, red.a_modes, red.a_cutoff_hz)
+    Phi_b, Psi_b, f_b = craig_bampton(MB, KB, b_int, c, red.b_modes, red.b_cutoff_hz)
+    na, nb, nc = Phi_a.shape[1], Phi_b.shape[1], len(c)
+    T = np.zeros((n, na + nb + nc))
+    T[np.ix_(a_int, np.arange(na))] = Phi_a
+    T[np.ix_(a_int, na + nb + np.arange(nc))] = Psi_a
+    T[np.ix_(b_int, na + np.arange(nb))] = Phi_b
+    T[np.ix_(b_int, na + nb + np.arange(nc))] = Psi_b
+    T[c, na + nb + np.arange(nc)] = 1.0
+    A_part = tuple(T.T @ m @ T for m in (MA, DA, KA))
+    b_index = np.arange(na, na + nb + nc)
+    sub = tuple((T.T @ m @ T)[np.ix_(b_index, b_index)] for m in (MB, DB, KB))
+    sub = tuple(0.5 * (s + s.T) for s in sub)
+    A_part = tuple(0.5 * (s + s.T) for s in A_part)
+    return ReducedModel(fe=fe, T=T, A_part=A_part, subsystem=ReducedSubsystem(*sub, n_c=nc, mode_frequencies_hz=f_b), b_index=b_index)
+
+
+# -- frequency-domain functionals of subsystem B ---------------------------------------------------
+def condensed_stiffness(M, D, K, n_c: int, omega) -> np.ndarray:
+    """Z(ω) [N/m] for matrices (..., n, n) whose last ``n_c`` coordinates are the interface.
+
+    Vectorised over the batch axes and the angular frequencies ``omega`` [rad/s]; result shape
+    (..., len(omega), n_c, n_c).
+    """
+    M, D, K = (np.asarray(x)[..., None, :, :] for x in (M, D, K))
+    w = np.asarray(omega, dtype=float)[:, None, None]
+    A = K - w**2 * M + 1j * w * D
+    y, cc = slice(0, A.shape[-1] - n_c), slice(A.shape[-1] - n_c, None)
+    Ayy, Ayc, Acy, Acc = A[..., y, y], A[..., y, cc], A[..., cc, y], A[..., cc, cc]
+    if Ayy.shape[-1] == 0:
+        return Acc
+    return Acc - Acy @ np.linalg.solve(Ayy, Ayc)
+
+
+def _check_mass(M: np.ndarray) -> None:
+    ev = np.linalg.eigvalsh(M)
+    if np.any(ev[..., 0] <= 1e-12 * ev[..., -1]):
+        raise SpecificationError(
+            "M_B", f"min eigenvalue {float(np.min(ev[..., 0])):.3g}",
+            "the reduced mass must be positive definite: keep fewer fixed-interface modes of B "
+            "(reduction.b_modes / b_cutoff_hz); with every mode kept the massless interface makes M_B singular",
+        )
+
+
+def _log_integral(a: np.ndarray, Omega: float) -> np.ndarray:
+    """I(a) = ∫_{−Ω}^{Ω} dω/(iω − a) for Re(a) < 0 (principal Log is continuous on the path)."""
+    return -1j * (np.log(1j * Omega - a) - np.log(-1j * Omega - a))
+
+
+def j_functional(M, D, K, n_c: int, band_hz: float) -> np.ndarray:
+    """J = ∫_{−Ω}^{Ω} ‖Z(ω)⁻¹‖²_F dω [m²·rad/(N²·s)] in closed form; batched over leading axes."""
+    M, D, K = (np.asarray(x, dtype=float) for x in (M, D, K))
+    n = M.shape[-1]
+    _check_mass(M)
+    Omega = 2 * np.pi * band_hz
+    MinvK = np.linalg.solve(M, K)
+    MinvD = np.linalg.solve(M, D)
+    batch = MinvK.shape[:-2]
+    S = np.zeros(batch + (2 * n, 2 * n))
+    S[..., :n, n:] = np.eye(n)
+    S[..., n:, :n] = -MinvK
+    S[..., n:, n:] = -MinvD
+    lam, V = np.linalg.eig(S)
+    if np.any(lam.real >= 0):
+        raise SpecificationError("damping", "D_B", "every pole of subsystem B must be damped (Re λ < 0) for J to be finite")
+    phi = V[..., :n, :]
+    a = np.einsum("...ik,...ik->...k", phi, (2 * lam[..., None, :]) * (M @ phi) + D @ phi)
+    v = phi[..., n - n_c :, :]
+    C = np.einsum("...cl,...ck->...lk", v.conj(), v)  # C[l, k] = v_l^H v_k
+    coef = C**2 / (a[..., None, :] * a.conj()[..., :, None])  # [l, k]
+    Ik = _log_integral(lam, Omega)
+    Il = _log_integral(lam.conj(), Omega)
+    P = -(Ik[..., None, :] + Il[..., :, None]) / (lam[..., None, :] + lam.conj()[..., :, None])
+    return np.real(np.sum(coef * P, axis=(-2, -1)))
+
+
+def j_quadrature(M, D, K, n_c: int, band_hz: float, n_freq: int = 20001) -> np.ndarray:
+    """J by composite Simpson quadrature of ‖Z(ω)⁻¹‖²_F on [0, Ω], doubled (Z(−ω) = conj Z(ω)).
+
+    A straightforward reference, independent of the pole expansion of :func:`j_functional`.
+    """
+    if n_freq % 2 == 0:
+        n_freq += 1
+    import scipy.integrate
+
+    omega = np.linspace(0.0, 2 * np.pi * band_hz, n_freq)
+    Z = condensed_stiffness(M, D, K, n_c, omega)
+    g = np.sum(np.abs(np.linalg.inv(Z)) ** 2, axis=(-2, -1))
+    return 2.0 * scipy.integrate.simpson(g, x=omega, axis=-1)

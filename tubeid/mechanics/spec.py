@@ -1,0 +1,369 @@
+"""Declarative, validated, immutable specification of a tube bundle.
+
+Units are SI throughout: metres, kilograms, seconds, newtons, pascals. A bundle is a set of
+Euler–Bernoulli tubes (transverse displacement ``y`` and rotation ``theta`` per node), linear
+springs between two tubes' points or to the ground, symmetric elastic stops, load points and
+sensors. The *non-linear tube* (subsystem A of the paper) is the tube that carries the stops;
+everything else is the linear subsystem B, and the coupling interface is the set of A's nodes
+where a link joins A to B.
+
+A specification is built in Python or read from YAML/TOML by :func:`load_spec`. Every rule is
+checked when the object is made; a broken rule raises :class:`~tubeid.errors.SpecificationError`
+naming the field (``tubes[1].length``), the value and the rule.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import pathlib
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+from tubeid.errors import SpecificationError
+
+__all__ = [
+    "TubeSpec",
+    "LinkSpec",
+    "StopSpec",
+    "LoadPoint",
+    "SensorSpec",
+    "ReductionSpec",
+    "BundleSpec",
+    "load_spec",
+    "spec_from_dict",
+    "spec_to_dict",
+]
+
+END_CONDITIONS = ("clamped", "pinned", "free")
+LOAD_KINDS = ("force", "moment")
+_NODE_TOL = 1e-9  # m: a position closer than this to a node is that node
+
+
+def _positive(field_name: str, value, *, allow_zero: bool = False) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise SpecificationError(field_name, value, "must be a number") from None
+    if not math.isfinite(v) or (v < 0 if allow_zero else v <= 0):
+        raise SpecificationError(field_name, value, "must be >= 0" if allow_zero else "must be > 0")
+    return v
+
+
+@dataclass(frozen=True)
+class TubeSpec:
+    """One tube: a hollow circular Euler beam meshed with equal Hermite elements.
+
+    ``length`` [m], ``outer_radius`` [m], ``wall`` thickness [m], ``density`` [kg/m³],
+    ``youngs_modulus`` [Pa], ``n_elements``, ``ends`` (each ``clamped``, ``pinned`` or ``free``),
+    ``damping_ratio``: modal damping ratio applied on the tube's own modes (with its end
+    conditions, without links) — D = M Φ diag(2 ξ ω) Φᵀ M.
+    """
+
+    name: str
+    length: float
+    outer_radius: float
+    wall: float
+    density: float
+    youngs_modulus: float
+    n_elements: int = 8
+    ends: tuple[str, str] = ("clamped", "clamped")
+    damping_ratio: float = 0.02
+
+    def validate(self, where: str) -> None:
+        if not isinstance(self.name, str) or not self.name:
+            raise SpecificationError(f"{where}.name", self.name, "must be a non-empty string")
+        for f in ("length", "outer_radius", "wall", "density", "youngs_modulus"):
+            _positive(f"{where}.{f}", getattr(self, f))
+        if self.wall > self.outer_radius:
+            raise SpecificationError(f"{where}.wall", self.wall, f"must be <= outer_radius ({self.outer_radius} m)")
+        if not isinstance(self.n_elements, int) or isinstance(self.n_elements, bool) or self.n_elements < 1:
+            raise SpecificationError(f"{where}.n_elements", self.n_elements, "must be an integer >= 1")
+        if len(self.ends) != 2 or any(e not in END_CONDITIONS for e in self.ends):
+            raise SpecificationError(f"{where}.ends", self.ends, f"must be two of {END_CONDITIONS}")
+        if not 0.0 <= float(self.damping_ratio) < 1.0:
+            raise SpecificationError(f"{where}.damping_ratio", self.damping_ratio, "must be in [0, 1)")
+
+    @property
+    def area(self) -> float:
+        """Cross-section area [m²]."""
+        ri = self.outer_radius - self.wall
+        return math.pi * (self.outer_radius**2 - ri**2)
+
+    @property
+    def inertia(self) -> float:
+        """Second moment of area [m⁴]."""
+        ri = self.outer_radius - self.wall
+        return math.pi / 4.0 * (self.outer_radius**4 - ri**4)
+
+    @property
+    def nodes(self) -> tuple[float, ...]:
+        """Node abscissae [m]."""
+        return tuple(self.length * k / self.n_elements for k in range(self.n_elements + 1))
+
+    def node_index(self, x: float) -> int | None:
+        """Index of the node at ``x`` (within 1e-9 m), or None."""
+        k = round(x / self.length * self.n_elements)
+        return k if abs(k * self.length / self.n_elements - x) <= _NODE_TOL * max(1.0, self.length) else None
+
+
+@dataclass(frozen=True)
+class LinkSpec:
+    """A linear spring [N/m] between the transverse displacement of ``tube`` at ``x`` and that of
+    ``to_tube`` at ``to_x`` (default: the same ``x``), or the ground when ``to_tube`` is None."""
+
+    tube: str
+    x: float
+    stiffness: float
+    to_tube: str | None = None
+    to_x: float | None = None
+
+    @property
+    def other_x(self) -> float:
+        return self.x if self.to_x is None else self.to_x
+
+
+@dataclass(frozen=True)
+class StopSpec:
+    """A symmetric elastic stop on ``tube`` at ``x`` [m]: f = −k (|u| − g) sign(u) for |u| > g.
+
+    ``gap`` g [m] ≥ 0, ``stiffness`` k [N/m] > 0 (undamped).
+    """
+
+    tube: str
+    x: float
+    gap: float
+    stiffness: float
+
+
+@dataclass(frozen=True)
+class LoadPoint:
+    """A point where a load is applied: a transverse ``force`` [N] or a ``moment`` [N·m]."""
+
+    name: str
+    tube: str
+    x: float
+    kind: str = "force"
+
+
+@dataclass(frozen=True)
+class SensorSpec:
+    """A transverse-displacement sensor [m] on ``tube`` at ``x``."""
+
+    name: str
+    tube: str
+    x: float
+
+
+@dataclass(frozen=True)
+class ReductionSpec:
+    """Craig–Bampton fixed-interface modes kept per subsystem: by count (``*_modes``) and/or by
+    cut-off frequency (``*_cutoff_hz``). None keeps every mode. Both given: the stricter wins.
+
+    Default: B keeps its modes below 300 Hz (3× the paper's band; J then converges to 1e-7
+    relative), A keeps all. B cannot keep *every* mode: its interface DOFs carry no mass of their
+    own, so the reduced mass M_B would be singular.
+    """
+
+    b_modes: int | None = None
+    b_cutoff_hz: float | None = 300.0
+    a_modes: int | None = None
+    a_cutoff_hz: float | None = None
+
+    def validate(self, where: str = "reduction") -> None:
+        for f in ("b_modes", "a_modes"):
+            v = getattr(self, f)
+            if v is not None and (not isinstance(v, int) or isinstance(v, bool) or v < 0):
+                raise SpecificationError(f"{where}.{f}", v, "must be None or an integer >= 0")
+        for f in ("b_cutoff_hz", "a_cutoff_hz"):
+            v = getattr(self, f)
+            if v is not None:
+                _positive(f"{where}.{f}", v)
+
+
+@dataclass(frozen=True)
+class BundleSpec:
+    """A tube bundle: tubes, links, stops, load points, sensors, analysis band and reduction.
+
+    ``band_hz``: the frequency band of analysis B = [−band, band] Hz. ``nonlinear_tube``: the tube
+    of subsystem A (default: the tube carrying the stops). ``assumptions``: free text shown in the
+    documentation of built-in models.
+    """
+
+    name: str
+    tubes: tuple[TubeSpec, ...]
+    links: tuple[LinkSpec, ...] = ()
+    stops: tuple[StopSpec, ...] = ()
+    loads: tuple[LoadPoint, ...] = ()
+    sensors: tuple[SensorSpec, ...] = ()
+    band_hz: float = 100.0
+    nonlinear_tube: str | None = None
+    reduction: ReductionSpec = field(default_factory=ReductionSpec)
+    assumptions: str = ""
+
+    def __post_init__(self) -> None:
+        for f in ("tubes", "links", "stops", "loads", "sensors"):
+            object.__setattr__(self, f, tuple(getattr(self, f)))
+        self.validate()
+
+    # -- validation -------------------------------------------------------------------------
+    def validate(self) -> None:
+        if not self.tubes:
+            raise SpecificationError("tubes", [], "a bundle needs at least one tube")
+        names = [t.name for t in self.tubes]
+        for i, t in enumerate(self.tubes):
+            t.validate(f"tubes[{i}]")
+            if names.index(t.name) != i:
+                raise SpecificationError(f"tubes[{i}].name", t.name, "tube names must be unique")
+        _positive("band_hz", self.band_hz)
+        self.reduction.validate()
+
+        def tube_of(where: str, name: str) -> TubeSpec:
+            if name not in names:
+                raise SpecificationError(where, name, f"no such tube; tubes are {names}")
+            return self.tubes[names.index(name)]
+
+        def on_tube(where: str, tube: TubeSpec, x) -> None:
+            try:
+                xv = float(x)
+            except (TypeError, ValueError):
+                raise SpecificationError(where, x, "must be a number (m)") from None
+            if not (-_NODE_TOL <= xv <= tube.length + _NODE_TOL):
+                raise SpecificationError(where, x, f"is off tube {tube.name!r}: must be in [0, {tube.length}] m")
+
+        for i, link in enumerate(self.links):
+            w = f"links[{i}]"
+            t = tube_of(f"{w}.tube", link.tube)
+            on_tube(f"{w}.x", t, link.x)
+            _positive(f"{w}.stiffness", link.stiffness)
+            if t.node_index(link.x) is None:
+                raise SpecificationError(f"{w}.x", link.x, f"must be a node of tube {t.name!r} (nodes {list(t.nodes)})")
+            if link.to_tube is not None:
+                o = tube_of(f"{w}.to_tube", link.to_tube)
+                on_tube(f"{w}.to_x", o, link.other_x)
+                if o.node_index(link.other_x) is None:
+                    raise SpecificationError(f"{w}.to_x", link.other_x, f"must be a node of tube {o.name!r}")
+                if o.name == t.name and abs(link.other_x - link.x) < _NODE_TOL:
+                    raise SpecificationError(f"{w}.to_tube", link.to_tube, "a link cannot join a point to itself")
+        for i, s in enumerate(self.stops):
+            w = f"stops[{i}]"
+            t = tube_of(f"{w}.tube", s.tube)
+            on_tube(f"{w}.x", t, s.x)
+            _positive(f"{w}.gap", s.gap, allow_zero=True)
+            try:
+                k = float(s.stiffness)
+            except (TypeError, ValueError):
+                raise SpecificationError(f"{w}.stiffness", s.stiffness, "must be a number (N/m)") from None
+            if not math.isfinite(k) or k <= 0:
+                rule = "must be > 0 (a stop pushes back; with a zero gap a negative stiffness would make the tube unstable)"
+                raise SpecificationError(f"{w}.stiffness", s.stiffness, rule)
+        for what, items in (("loads", self.loads), ("sensors", self.sensors)):
+            seen: set[str] = set()
+            for i, p in enumerate(items):
+                w = f"{what}[{i}]"
+                if not isinstance(p.name, str) or not p.name or p.name in seen:
+                    raise SpecificationError(f"{w}.name", p.name, "must be a unique non-empty string")
+                seen.add(p.name)
+                on_tube(f"{w}.x", tube_of(f"{w}.tube", p.tube), p.x)
+                if what == "loads" and p.kind not in LOAD_KINDS:
+                    raise SpecificationError(f"{w}.kind", p.kind, f"must be one of {LOAD_KINDS}")
+        a = self.a_tube
+        if a is not None:
+            tube_of("nonlinear_tube", a)
+            for i, s in enumerate(self.stops):
+                if s.tube != a:
+                    raise SpecificationError(f"stops[{i}].tube", s.tube, f"all stops must be on the non-linear tube {a!r}")
+
+    # -- derived ------------------------------------------------------------------------------
+    @property
+    def a_tube(self) -> str | None:
+        """Name of the non-linear tube (subsystem A), or None for a purely linear bundle."""
+        if self.nonlinear_tube is not None:
+            return self.nonlinear_tube
+        return self.stops[0].tube if self.stops else None
+
+    def tube(self, name: str) -> TubeSpec:
+        for t in self.tubes:
+            if t.name == name:
+                return t
+        raise SpecificationError("tube", name, f"no such tube; tubes are {[t.name for t in self.tubes]}")
+
+    def replace(self, **changes) -> "BundleSpec":
+        """A new, validated specification with some fields changed."""
+        return dataclasses.replace(self, **changes)
+
+
+# -- dictionaries and files ----------------------------------------------------------------------
+_CLASSES = {"tubes": TubeSpec, "links": LinkSpec, "stops": StopSpec, "loads": LoadPoint, "sensors": SensorSpec}
+
+
+def _build(cls, data: Any, where: str):
+    if not isinstance(data, Mapping):
+        raise SpecificationError(where, data, "must be a table/mapping")
+    known = {f.name for f in dataclasses.fields(cls)}
+    for key in data:
+        if key not in known:
+            raise SpecificationError(f"{where}.{key}", data[key], f"unknown field; known fields are {sorted(known)}")
+    required = {f.name for f in dataclasses.fields(cls) if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING}
+    for key in sorted(required - set(data)):
+        raise SpecificationError(f"{where}.{key}", None, "is required")
+    kwargs = dict(data)
+    if "ends" in kwargs:
+        kwargs["ends"] = tuple(kwargs["ends"])
+    return cls(**kwargs)
+
+
+def spec_from_dict(data: Mapping[str, Any]) -> BundleSpec:
+    """Build and validate a :class:`BundleSpec` from plain data (as read from YAML or TOML)."""
+    if not isinstance(data, Mapping):
+        raise SpecificationError("specification", type(data).__name__, "must be a mapping at top level")
+    data = dict(data)
+    known = {f.name for f in dataclasses.fields(BundleSpec)}
+    for key in data:
+        if key not in known:
+            raise SpecificationError(key, data[key], f"unknown field; known fields are {sorted(known)}")
+    for key, cls in _CLASSES.items():
+        items = data.get(key, [])
+        if not isinstance(items, (list, tuple)):
+            raise SpecificationError(key, items, "must be a list")
+        data[key] = tuple(_build(cls, item, f"{key}[{i}]") for i, item in enumerate(items))
+    if "reduction" in data:
+        data["reduction"] = _build(ReductionSpec, data["reduction"], "reduction")
+    if "name" not in data:
+        raise SpecificationError("name", None, "is required")
+    return BundleSpec(**data)
+
+
+def spec_to_dict(spec: BundleSpec) -> dict[str, Any]:
+    """Plain-data form of a specification (round-trips through :func:`spec_from_dict`)."""
+    out = dataclasses.asdict(spec)
+    for t in out["tubes"]:
+        t["ends"] = list(t["ends"])
+    for key in _CLASSES:
+        out[key] = list(out[key])
+    return out
+
+
+def load_spec(path: str | pathlib.Path) -> BundleSpec:
+    """Read a bundle specification from a ``.yaml``/``.yml`` or ``.toml`` file."""
+    p = pathlib.Path(path)
+    if not p.is_file():
+        raise SpecificationError("specification file", str(p), "does not exist")
+    text = p.read_text()
+    if p.suffix in (".yaml", ".yml"):
+        import yaml
+
+        try:
+            data = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            raise SpecificationError("specification file", str(p), f"is not valid YAML ({exc})") from None
+    elif p.suffix == ".toml":
+        import tomllib
+
+        try:
+            data = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise SpecificationError("specification file", str(p), f"is not valid TOML ({exc})") from None
+    else:
+        raise SpecificationError("specification file", str(p), "must end in .yaml, .yml or .toml")
+    return spec_from_dict(data)
