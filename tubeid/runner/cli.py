@@ -102,6 +102,14 @@ def _show(args) -> int:
     shown = ds.copy()
     shown.attrs = {}
     print(shown)
+    import numpy as np
+
+    for name, var in ds.data_vars.items():
+        if var.size <= 50_000_000:  # summary statistics of what is written so far
+            v = np.asarray(var.values, dtype=float)
+            ok = np.isfinite(v)
+            stats = f"mean {v[ok].mean():.6g}, min {v[ok].min():.6g}, max {v[ok].max():.6g}" if ok.any() else "no data yet"
+            print(f"  {name} [{var.attrs.get('units', '')}]: {stats} ({ok.mean():.0%} written)")
     if args.source:
         print("\n# study source\n" + a.get("study_source", ""))
     return 0

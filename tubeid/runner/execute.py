@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import importlib.util
 import logging
 import os
 import pathlib
@@ -89,7 +90,7 @@ def _client(workers: int | None, scheduler: str | None, quiet: bool):
         cluster = LocalCluster(n_workers=int(n), threads_per_worker=int(config.get("runner.threads-per-worker", 1)),
                                processes=True, host=config.get("runner.host", "127.0.0.1"),
                                dashboard_address=config.get("runner.dashboard-address", "127.0.0.1:0"),
-                               silence_logs=logging.ERROR)
+                               silence_logs=logging.CRITICAL)
     with cluster, Client(cluster) as client:
         yield client
 
@@ -179,6 +180,8 @@ def _run_dask(workers, scheduler, path, source, overrides, key, todo, report, pr
         report.workers = len(client.scheduler_info(n_workers=-1)["workers"])
         link = getattr(client, "dashboard_link", "") or ""
         report.dashboard = link
+        if link and importlib.util.find_spec("bokeh") is None:
+            link += " (its plots need bokeh>=3.1 installed)"
         where = scheduler or f"embedded LocalCluster ({report.workers} single-threaded worker processes)"
         _log(f"tubeid: running on {where}" + (f"; dashboard {link}" if link else ""), quiet)
         t1 = time.perf_counter()
