@@ -139,6 +139,10 @@ def likelihood_curve(samples, x_ref, grid, grid_name: str = "delta", n_bootstrap
                      rng=None, *, confidence: float = 0.95, refine: bool = True) -> xr.Dataset:
     """Likelihood θ ↦ p̂(x_ref; θ) from Monte-Carlo samples of shape (len(grid), N), with a bootstrap.
 
+    ``x_ref``: one observation, or a 1-D array of independent observations (the log-likelihood
+    is then the sum of their log-densities, and ``likelihood`` their product divided by its
+    maximum over the grid, ``exp(likelihood_log_scale)``, to stay finite).
+
     ``samples[g, k]``: realisation k of the observable at ``grid[g]`` (common random numbers
     across the grid); an ``xarray.DataArray`` with a ``grid_name`` dimension is transposed first.
     ``rng`` (Generator or non-negative seed) is required when ``n_bootstrap > 0``.
@@ -168,10 +172,13 @@ def likelihood_curve(samples, x_ref, grid, grid_name: str = "delta", n_bootstrap
     if s.ndim != 2 or s.shape[0] != g.size:
         raise SpecificationError("samples", _Desc(f"array of shape {s.shape}"),
                                  f"must have shape (len(grid), N) = ({g.size}, N) with N >= 5")
-    if isinstance(x_ref, (bool, np.bool_)) or not isinstance(x_ref, (numbers.Real, np.floating, np.integer)) \
-            or not math.isfinite(float(x_ref)):
-        raise SpecificationError("x_ref", x_ref, "must be a finite real number")
-    x_ref = float(x_ref)
+    try:
+        xs = np.atleast_1d(np.asarray(x_ref, dtype=float))
+    except (TypeError, ValueError):
+        raise SpecificationError("x_ref", x_ref, "must be a finite real number or a 1-D array of them") from None
+    if isinstance(x_ref, (bool, np.bool_)) or xs.ndim != 1 or xs.size == 0 or not np.all(np.isfinite(xs)):
+        raise SpecificationError("x_ref", x_ref, "must be a finite real number or a 1-D array of them")
+    x_ref = float(xs[0]) if xs.size == 1 else xs
     if isinstance(n_bootstrap, (bool, np.bool_)) or not isinstance(n_bootstrap, (numbers.Integral, np.integer)) \
             or n_bootstrap < 0:
         raise SpecificationError("n_bootstrap", n_bootstrap, "must be an integer >= 0")
@@ -191,7 +198,12 @@ def likelihood_curve(samples, x_ref, grid, grid_name: str = "delta", n_bootstrap
         bad = g[np.argmax(h <= 0)]
         raise SpecificationError("samples", _Desc(f"constant samples at {grid_name} = {bad:g}"),
                                  "must not all be equal (zero spread, h = 0)")
-    ll = _log_kde(s, x_ref, h)  # log-sum-exp: finite even where the likelihood itself underflows to 0
+    def joint(samples_, h_):  # independent observations: log-likelihoods add
+        return sum(_log_kde(samples_, float(x), h_) for x in xs)
+
+    ll = joint(s, h)  # log-sum-exp: finite even where the likelihood itself underflows to 0
+    # several observations: their joint density can overflow; report it relative to its maximum
+    log_scale = float(np.max(ll)) if xs.size > 1 else 0.0
     discrete, refined = _refine_argmax(g, ll)
     argmax = float(refined if refine else discrete)
 
@@ -207,8 +219,8 @@ def likelihood_curve(samples, x_ref, grid, grid_name: str = "delta", n_bootstrap
             b = min(chunk, n_bootstrap - start)
             idx = gen.integers(0, N, size=(b, N))
             res = np.moveaxis(s[:, idx], 0, 1)  # (b, G, N), same indices for every grid value
-            lb = _log_kde(res, x_ref, _silverman(res))
-            boot_p.append(np.exp(lb))
+            lb = joint(res, _silverman(res))
+            boot_p.append(np.exp(lb - log_scale))
             d_b, r_b = _refine_argmax(g, lb)
             boot_arg.append(r_b if refine else d_b)
         bp, ba = np.concatenate(boot_p), np.concatenate(boot_arg)
@@ -219,7 +231,7 @@ def likelihood_curve(samples, x_ref, grid, grid_name: str = "delta", n_bootstrap
             a_std = float(np.nanstd(ba, ddof=1)) if np.sum(np.isfinite(ba)) > 1 else math.nan
             a_low, a_high = (float(v) for v in np.nanpercentile(ba, [tail, 100.0 - tail]))
 
-    p = np.exp(ll)
+    p = np.exp(ll - log_scale)
     dims = (grid_name,)
     ds = xr.Dataset(
         {
@@ -240,7 +252,9 @@ def likelihood_curve(samples, x_ref, grid, grid_name: str = "delta", n_bootstrap
             "argmax_at_boundary": int(np.argmax(ll) in (0, G - 1)),
             "argmax_method": ("parabola through the log-likelihood at the discrete maximum and its two neighbours"
                               if refine else "discrete grid maximum"),
-            "x_ref": x_ref,
+            "x_ref": x_ref if xs.size == 1 else xs.tolist(),
+            "n_observations": int(xs.size),
+            "likelihood_log_scale": log_scale,
             "n_samples": N,
             "n_bootstrap": n_bootstrap,
             "confidence": float(confidence),

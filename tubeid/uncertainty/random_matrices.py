@@ -26,7 +26,7 @@ import numpy as np
 from tubeid.errors import SpecificationError
 from tubeid.seeds import rng_for
 
-__all__ = ["delta_max", "sg_plus", "se_plus", "sg_plus_dispersion", "Dispersion"]
+__all__ = ["delta_max", "sg_plus", "sg_plus_germs", "sg_plus_from_germs", "se_plus", "sg_plus_dispersion", "Dispersion"]
 
 
 def delta_max(n: int) -> float:
@@ -93,6 +93,40 @@ def sg_plus(n: int, delta: float, size=(), *, rng) -> np.ndarray:
     L[..., j - 1, j - 1] = sigma * np.sqrt(2.0 * V)
     G = np.swapaxes(L, -1, -2) @ L
     return 0.5 * (G + np.swapaxes(G, -1, -2))  # exact symmetry (round-off only)
+
+
+def sg_plus_germs(n: int, size=(), *, rng) -> tuple[np.ndarray, np.ndarray]:
+    """The δ-free random germs of SG+: standard normals (*size, n(n−1)/2) and uniforms (*size, n).
+
+    With :func:`sg_plus_from_germs` they give common random numbers across a δ grid: the same
+    germs map smoothly to G(δ) for every δ (the gamma variates by inverse CDF), so a likelihood
+    curve over δ is smooth.
+    """
+    n = _check_size_n(n, "n")
+    shape = _check_shape(size)
+    gen = _as_rng(rng, "sg_plus_germs")
+    return gen.standard_normal(shape + (n * (n - 1) // 2,)), gen.random(shape + (n,))
+
+
+def sg_plus_from_germs(n: int, delta: float, normals, uniforms) -> np.ndarray:
+    """G ∈ SG+(n, δ) from germs (see :func:`sg_plus_germs`); same law as :func:`sg_plus`.
+
+    V_j = F⁻¹_Gamma(a_j)(u_j) with a_j = (n+1)/(2δ²) + (1 − j)/2, j counted from 1.
+    """
+    import scipy.special
+
+    n = _check_size_n(n, "n")
+    d = _check_delta(delta, n)
+    normals, uniforms = np.asarray(normals, float), np.asarray(uniforms, float)
+    sigma = d / math.sqrt(n + 1)
+    j = np.arange(1, n + 1)
+    a = (n + 1) / (2.0 * d * d) + (1.0 - j) / 2.0
+    iu = np.triu_indices(n, k=1)
+    L = np.zeros(uniforms.shape[:-1] + (n, n))
+    L[..., iu[0], iu[1]] = sigma * normals
+    L[..., j - 1, j - 1] = sigma * np.sqrt(2.0 * scipy.special.gammaincinv(a, uniforms))
+    G = np.swapaxes(L, -1, -2) @ L
+    return 0.5 * (G + np.swapaxes(G, -1, -2))
 
 
 class _Desc(str):
