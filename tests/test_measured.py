@@ -1,0 +1,436 @@
+"""Measured-data readers and validation (tubeid.measured.readers / .validation).
+
+All files are made in tmp_path from synthetic Gaussian data with fixed seeds. Round trips must be
+exact (assert_identical compares floats exactly): NetCDF, Zarr and UFF 58b store float64, CSV is
+written with 17 significant digits. Files written by other tools in ASCII UFF are checked with the
+tolerances of that format (stated where used).
+"""
+
+from __future__ import annotations
+
+import inspect
+import pickle
+from pathlib import Path
+
+import numpy as np
+import pytest
+import pyuff
+import xarray as xr
+from scipy.signal import lfilter
+
+from tubeid.errors import SpecificationError
+from tubeid.measured import readers, validation
+from tubeid.measured.readers import read_measurements, sidecar_path, write_measurements
+from tubeid.measured.validation import validate_measurements
+from tubeid.seeds import rng_for
+
+SEED = 20080901
+FS = 1024.0  # Hz
+N = 1000
+
+
+def raw_dataset(values, *, names=("S1", "S2", "S3"), x=(0.10, 0.55, 0.30), tube=("centre", "centre", "north"),
+                t0=0.25, dt=1 / FS, units="m", time=None) -> xr.Dataset:
+    values = np.asarray(values, dtype=float)
+    t = t0 + np.arange(values.shape[0]) * dt if time is None else np.asarray(time, dtype=float)
+    return xr.Dataset(
+        {"displacement": (("time", "sensor"), values, {"units": units})},
+        coords={"time": ("time", t, {"units": "s"}), "sensor": ("sensor", list(names)),
+                "x": ("sensor", list(x), {"units": "m"}), "tube": ("sensor", list(tube))})
+
+
+def gaussian(n=N, m=3, key="record", scale=1e-4) -> np.ndarray:
+    return scale * rng_for(SEED, key).standard_normal((n, m))
+
+
+@pytest.fixture
+def record() -> xr.Dataset:
+    return validate_measurements(raw_dataset(gaussian()))
+
+
+def write_csv(path: Path, header, rows, sidecar_rows=None, sidecar_header=("sensor", "tube", "x")) -> Path:
+    lines = [",".join(header)] + [",".join(repr(float(v)) if not isinstance(v, str) else v for v in r) for r in rows]
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    if sidecar_rows is not None:
+        side = [",".join(sidecar_header)] + [",".join(str(c) for c in r) for r in sidecar_rows]
+        sidecar_path(path).write_text("\n".join(side) + "\n", encoding="utf-8")
+    return path
+
+
+def good_csv(path: Path, values=None, t=None, names=("S1", "S2"), units=None) -> Path:
+    values = gaussian(50, len(names), key="csv") if values is None else values
+    t = np.arange(values.shape[0]) / FS if t is None else t
+    header = ["time", *names]
+    if units is None:
+        side = [(s, "centre", 0.1 * (j + 1)) for j, s in enumerate(names)]
+        return write_csv(path, header, np.column_stack([t, values]), side)
+    side = [(s, "centre", 0.1 * (j + 1), u) for j, (s, u) in enumerate(zip(names, units))]
+    return write_csv(path, header, np.column_stack([t, values]), side, ("sensor", "tube", "x", "units"))
+
+
+def refused(call, *words):
+    """Run ``call``; it must raise SpecificationError whose message contains every word."""
+    with pytest.raises(SpecificationError) as info:
+        call()
+    msg = str(info.value)
+    for w in words:
+        assert w in msg, f"{w!r} not in message: {msg}"
+    return msg
+
+
+# --------------------------------------------------------------------------- round trips
+@pytest.mark.parametrize(
+    "filename, fmt, label",
+    [("rec.nc", None, "netcdf4"), ("rec3.nc", "netcdf3", "netcdf3"), ("rec.zarr", None, "zarr"),
+     ("rec.csv", None, "csv"), ("rec.uff", None, "uff58")])
+def test_round_trip_is_exact(tmp_path, record, filename, fmt, label):
+    path = write_measurements(record, tmp_path / filename, format=fmt)
+    back = read_measurements(path)
+    # Exact: float64 storage everywhere (UFF written as binary 58b doubles with explicit abscissa,
+    # CSV with %.17g), so data, time, x and names must be bit-identical.
+    xr.testing.assert_identical(back.displacement, record.displacement)
+    assert back.attrs == {"source": str(path), "format": label, "dt": record.attrs["dt"]}
+    assert back.sensor.dtype.kind == "U" and back.tube.dtype.kind == "U"
+    assert back.displacement.attrs["units"] == "m" and back.time.attrs["units"] == "s"
+    assert back.x.attrs["units"] == "m"
+
+
+def test_canonical_form(record):
+    assert record.displacement.dims == ("time", "sensor")
+    assert record.displacement.dtype == np.float64
+    assert list(record.sensor.values) == ["S1", "S2", "S3"]
+    assert list(record.tube.values) == ["centre", "centre", "north"]
+    np.testing.assert_array_equal(record.x.values, [0.10, 0.55, 0.30])
+    assert record.attrs["dt"] == 1 / FS  # (t[-1]-t[0])/(n-1) with t = 0.25 + i/1024, exact in binary
+    assert record.attrs["source"] == "<memory>" and record.attrs["format"] == "memory"
+    # (sensor, time) order is accepted and transposed; the input is not modified.
+    raw = raw_dataset(gaussian())
+    swapped = raw.transpose("sensor", "time")
+    xr.testing.assert_identical(validate_measurements(swapped), record)
+    assert swapped.displacement.dims == ("sensor", "time")
+
+
+def test_netcdf_signature_picks_engine_not_extension(tmp_path, record):
+    path = write_measurements(record, tmp_path / "classic.cdf", format="netcdf3")
+    assert path.read_bytes()[:3] == b"CDF"
+    assert read_measurements(path).attrs["format"] == "netcdf3"
+
+
+def test_lab_ascii_uff_with_sidecar_positions_and_mm(tmp_path):
+    """A typical lab file: ASCII 58, even abscissa, no positions in ID line 4, units mm, node names."""
+    values_m = gaussian(512, 2, key="lab")
+    dt = 1 / 2048  # 4.8828125e-4 s, stored by the format with 6 significant digits
+    path = tmp_path / "lab.uff"
+    sets = []
+    for j, id1 in enumerate(["", "upstream"]):
+        sets.append(pyuff.prepare_58(
+            binary=0, id1=id1, id2="", id3="", id4="", id5="", func_type=1, rsp_node=7 + j, rsp_dir=2,
+            ref_node=0, ref_dir=0, abscissa_spacing=1, abscissa_spec_data_type=17, abscissa_axis_units_lab="s",
+            ordinate_spec_data_type=8, ordinate_len_unit_exp=1, ordinate_axis_units_lab="mm",
+            orddenom_spec_data_type=0, data=values_m[:, j] * 1e3, x=np.arange(512) * dt))
+    path.write_bytes(b"")
+    pyuff.UFF(str(path)).write_sets(sets, mode="add")
+    sidecar_path(path).write_text("sensor,tube,x\nnode7dir2,centre,0.2\nupstream,west,0.75\n")
+    ds = read_measurements(path, tubes={"centre": 1.0, "west": 1.0})
+    assert list(ds.sensor.values) == ["node7dir2", "upstream"]  # blank ID line 1 -> node/direction
+    assert list(ds.tube.values) == ["centre", "west"]
+    np.testing.assert_array_equal(ds.x.values, [0.2, 0.75])
+    # ASCII 58 double data are written %20.11e: 12 significant digits -> relative error <= 5e-12;
+    # mm -> m adds a few ulp. Tolerance 1e-11 relative to each sample.
+    np.testing.assert_allclose(ds.displacement.values, values_m, rtol=1e-11, atol=0)
+    # The abscissa increment is written %13.5e: dt known to 6 significant digits (<= 5e-6 relative).
+    assert abs(ds.attrs["dt"] - dt) / dt <= 5e-6
+    assert ds.attrs["format"] == "uff58"
+
+
+# --------------------------------------------------------------------------- units
+@pytest.mark.parametrize("unit, metres", [("m", 1.0), ("mm", 1e-3), ("um", 1e-6), ("\u00b5m", 1e-6),
+                                          ("\u03bcm", 1e-6), ("micron", 1e-6), ("nm", 1e-9)])
+def test_units_to_metres_in_memory(unit, metres):
+    values = np.full((4, 3), 2.5)
+    values[1] = -1.0  # not constant (a constant channel is refused as dead)
+    values[2] = 0.5
+    ds = validate_measurements(raw_dataset(values, units=unit))
+    assert ds.displacement.attrs["units"] == "m"
+    # One multiplication by the table factor: within 1 ulp of the closed form 2.5 * metres.
+    np.testing.assert_allclose(ds.displacement.values[0], 2.5 * metres, rtol=2.3e-16, atol=0)
+
+
+def test_csv_in_mm_converted_to_m(tmp_path, record):
+    mm = record.displacement.values * 1e3
+    path = good_csv(tmp_path / "mm.csv", values=mm, t=record.time.values, names=("S1", "S2", "S3"),
+                    units=("mm", "mm", "mm"))
+    ds = read_measurements(path)
+    # (v * 1e3 as text %r) * 1e-3: two roundings plus the inexact 1e-3 -> <= ~4e-16 relative.
+    np.testing.assert_allclose(ds.displacement.values, record.displacement.values, rtol=1e-15, atol=0)
+    assert not np.array_equal(mm * 1e-3, mm)  # the conversion did something
+
+
+@pytest.mark.parametrize("filename", ["mm.nc", "mm.zarr", "mm.uff", "mm.csv"])
+def test_files_in_mm_read_as_m(tmp_path, record, filename):
+    in_mm = record.copy()
+    in_mm["displacement"] = record.displacement * 1e3
+    in_mm.displacement.attrs["units"] = "mm"
+    path = write_measurements(in_mm, tmp_path / filename, validate=False)
+    ds = read_measurements(path)
+    assert ds.displacement.attrs["units"] == "m"
+    np.testing.assert_allclose(ds.displacement.values, record.displacement.values, rtol=1e-15, atol=0)
+
+
+def test_x_units_converted(record):
+    raw = record.copy()
+    raw["x"] = raw.x * 1e3
+    raw.x.attrs["units"] = "mm"
+    np.testing.assert_allclose(validate_measurements(raw).x.values, record.x.values, rtol=1e-15)
+
+
+# --------------------------------------------------------------------------- refusals
+def test_refuses_unknown_units_csv(tmp_path):
+    path = good_csv(tmp_path / "u.csv", units=("m", "furlong"))
+    refused(lambda: read_measurements(path), "u.csv", "'S2'", "furlong", "unknown unit")
+
+
+def test_refuses_unknown_and_missing_units_uff_and_netcdf(tmp_path, record):
+    bad = record.copy()
+    bad.displacement.attrs["units"] = "inch"
+    path = write_measurements(bad, tmp_path / "inch.uff", validate=False)
+    refused(lambda: read_measurements(path), "inch.uff", "'S1'", "inch", "unknown unit")
+    bad.displacement.attrs.pop("units")
+    path = write_measurements(bad, tmp_path / "none.uff", validate=False)
+    refused(lambda: read_measurements(path), "none.uff", "'S1'", "units missing")
+    path = write_measurements(bad, tmp_path / "none.nc", validate=False)
+    refused(lambda: read_measurements(path), "none.nc", "'S1'", "units missing")
+
+
+def test_refuses_time_units_other_than_seconds(tmp_path, record):
+    bad = record.copy()
+    bad.time.attrs["units"] = "ms"
+    path = write_measurements(bad, tmp_path / "ms.nc", validate=False)
+    refused(lambda: read_measurements(path), "ms.nc", "seconds")
+    bad.time.attrs["units"] = "seconds since 2024-01-01"  # accepted: offsets in seconds
+    assert validate_measurements(bad).attrs["dt"] == record.attrs["dt"]
+
+
+def test_refuses_non_increasing_time(tmp_path):
+    t = np.arange(50) / FS
+    t[[20, 21]] = t[[21, 20]]
+    path = good_csv(tmp_path / "order.csv", t=t)
+    refused(lambda: read_measurements(path), "order.csv", "time[21]", "strictly increasing")
+    t = np.arange(50) / FS
+    t[30] = t[29]
+    path = good_csv(tmp_path / "repeat.csv", t=t)
+    refused(lambda: read_measurements(path), "repeat.csv", "strictly increasing")
+
+
+def test_refuses_non_uniform_time(tmp_path):
+    t = np.arange(50) / FS
+    t[10] += 0.01 / FS  # 1 % of a step; the tolerance is 1e-6
+    path = good_csv(tmp_path / "jitter.csv", t=t)
+    refused(lambda: read_measurements(path), "jitter.csv", "uniform")
+    t = np.arange(50) / FS
+    t[10] += 1e-9 / FS  # float-level noise: accepted
+    assert read_measurements(good_csv(tmp_path / "ok.csv", t=t)).sizes["time"] == 50
+
+
+@pytest.mark.parametrize("bad_value, word", [("nan", "nan"), ("inf", "inf"), ("-inf", "-inf")])
+def test_refuses_non_finite_samples_csv(tmp_path, bad_value, word):
+    values = gaussian(50, 2, key="csv").astype(object)
+    values[17, 1] = bad_value
+    path = good_csv(tmp_path / "nan.csv", values=values)
+    msg = refused(lambda: read_measurements(path), "nan.csv", "'S2'", "displacement[17]", "finite")
+    assert word in msg
+
+
+def test_refuses_nan_in_netcdf_and_nan_never_written_to_uff(tmp_path, record):
+    bad = record.copy(deep=True)
+    bad.displacement[5, 2] = np.nan
+    path = write_measurements(bad, tmp_path / "nan.nc", validate=False)
+    refused(lambda: read_measurements(path), "nan.nc", "'S3'", "finite")
+    # pyuff would silently write NaN as 0: the UFF writer refuses instead.
+    refused(lambda: write_measurements(bad, tmp_path / "nan.uff", validate=False), "nan.uff", "NaN")
+    refused(lambda: write_measurements(bad, tmp_path / "nan2.uff"), "'S3'", "finite")
+
+
+def test_refuses_sensor_off_the_tube_or_unknown_tube(tmp_path, record):
+    path = write_measurements(record, tmp_path / "pos.uff")
+    tubes = {"centre": 1.0, "north": 1.0}
+    assert read_measurements(path, tubes=tubes).sizes["sensor"] == 3
+    refused(lambda: read_measurements(path, tubes={"centre": 0.5, "north": 1.0}),
+            "pos.uff", "'S2'", "off the tube", "0.55")
+    refused(lambda: read_measurements(path, tubes={"centre": 1.0}), "pos.uff", "'S3'", "unknown tube", "north")
+    neg = record.copy()
+    neg["x"] = ("sensor", [0.1, -0.01, 0.3], {"units": "m"})
+    path = write_measurements(neg, tmp_path / "neg.csv", validate=False)
+    refused(lambda: read_measurements(path, tubes=tubes), "neg.csv", "'S2'", "off the tube")
+    # Ends of the tube are on it.
+    ends = record.copy()
+    ends["x"] = ("sensor", [0.0, 1.0, 1.0], {"units": "m"})
+    validate_measurements(ends, tubes=tubes)
+
+
+def test_refuses_missing_positions(tmp_path, record):
+    # CSV: sensor absent from the sidecar, or with an empty x.
+    path = write_csv(tmp_path / "nopos.csv", ["time", "S1", "S2"],
+                     np.column_stack([np.arange(20) / FS, gaussian(20, 2)]), [("S1", "centre", 0.2)])
+    refused(lambda: read_measurements(path), "nopos.csv", "'S2'", "missing its position")
+    path = write_csv(tmp_path / "emptyx.csv", ["time", "S1", "S2"],
+                     np.column_stack([np.arange(20) / FS, gaussian(20, 2)]), [("S1", "centre", 0.2), ("S2", "centre", "")])
+    refused(lambda: read_measurements(path), "emptyx.csv", "'S2'", "missing its position")
+    # UFF without ID-line-4 position and without sidecar.
+    nox = record.drop_vars("x")
+    path = write_measurements(nox, tmp_path / "bare.uff", validate=False)
+    refused(lambda: read_measurements(path), "bare.uff", "'S1'", "missing its position", "ID line 4")
+    # ... a sidecar then supplies the positions.
+    sidecar_path(path).write_text("sensor,tube,x\nS1,centre,0.1\nS2,centre,0.55\nS3,north,0.3\n")
+    xr.testing.assert_identical(read_measurements(path).displacement, record.displacement)
+    # ... and a sidecar that disagrees with ID line 4 is refused.
+    path = write_measurements(record, tmp_path / "both.uff")
+    sidecar_path(path).write_text("sensor,tube,x\nS1,centre,0.2\n")
+    refused(lambda: read_measurements(path), "both.uff", "'S1'", "conflicts")
+    # NetCDF without x, and in memory with an empty tube name.
+    path = write_measurements(nox, tmp_path / "nopos.nc", validate=False)
+    refused(lambda: read_measurements(path), "nopos.nc", "'S1'", "missing its position")
+    notube = record.copy()
+    notube["tube"] = ("sensor", ["centre", "", "north"])
+    refused(lambda: validate_measurements(notube), "<memory>", "'S2'", "missing its position")
+
+
+def test_refuses_too_short_for_resolution(tmp_path, record):
+    path = write_measurements(record, tmp_path / "short.nc")
+    duration = N / FS  # 0.9765625 s
+    ds = read_measurements(path, min_resolution_hz=1 / duration)  # exactly one segment: accepted
+    assert ds.sizes["time"] == N
+    refused(lambda: read_measurements(path, min_resolution_hz=1.0), "short.nc", "too short", "1.0 Hz", "one segment")
+    refused(lambda: read_measurements(path, min_resolution_hz=-1.0), "min_resolution_hz", "> 0")
+
+
+def narrowband(n, key, f0=20.0, r=0.995) -> np.ndarray:
+    """Oversampled resonant Gaussian process (like a tube response): white noise through a 2-pole resonator."""
+    w = rng_for(SEED, key).standard_normal(n + 2000)
+    y = lfilter([1.0], [1.0, -2 * r * np.cos(2 * np.pi * f0 / FS), r * r], w)[2000:]
+    return y / y.std()
+
+
+def test_refuses_clipped_channel(tmp_path):
+    good = np.column_stack([narrowband(8192, "a"), narrowband(8192, "b")])
+    clipped = good.copy()
+    clipped[:, 1] = np.clip(clipped[:, 1], -10, 2.0)  # saturates the top only, ~2.3 % of samples
+    t = np.arange(8192) / FS
+    assert read_measurements(good_csv(tmp_path / "fine.csv", values=good, t=t)).sizes["sensor"] == 2
+    path = good_csv(tmp_path / "clip.csv", values=clipped, t=t)
+    refused(lambda: read_measurements(path), "clip.csv", "'S2'", "clipped", "maximum")
+    dead = good.copy()
+    dead[:, 0] = 0.0
+    refused(lambda: validate_measurements(raw_dataset(dead, names=("a", "b"), x=(0.1, 0.2), tube=("c", "c"))),
+            "'a'", "constant")
+
+
+@pytest.mark.parametrize("kind", ["white", "white16bit", "white32", "narrowband"])
+def test_clipping_rule_does_not_fire_on_gaussian_data(kind):
+    # 20 independent Gaussian records of 20 000 samples: the rule must stay silent on all of them
+    # (continuous data reach their extremes once; 16-bit quantisation over +-6 sigma has steps of
+    # 1.8e-4 sigma, so several samples share the extreme level with negligible probability).
+    for k in range(20):
+        if kind == "narrowband":
+            y = narrowband(20_000, ("nb", k))
+        else:
+            y = rng_for(SEED, "clip-null", k).standard_normal(20_000)
+        if kind == "white16bit":
+            step = 12.0 / 2**16
+            y = np.round(y / step) * step
+        elif kind == "white32":
+            y = y.astype(np.float32).astype(float)
+        validate_measurements(raw_dataset(y[:, None], names=("s",), x=(0.5,), tube=("c",)))
+
+
+def test_refuses_fewer_than_two_samples(tmp_path):
+    path = good_csv(tmp_path / "one.csv", values=np.array([[1e-4, 2e-4]]), t=np.array([0.0]))
+    refused(lambda: read_measurements(path), "one.csv", "fewer than 2 samples")
+    path = good_csv(tmp_path / "zero.csv", values=np.empty((0, 2)), t=np.empty(0))
+    refused(lambda: read_measurements(path), "zero.csv", "fewer than 2 samples")
+
+
+def test_refuses_duplicate_sensor_names(tmp_path, record):
+    path = good_csv(tmp_path / "dup.csv", names=("S1", "S1"))
+    refused(lambda: read_measurements(path), "dup.csv", "S1", "duplicate")
+    dup = record.assign_coords(sensor=["A", "B", "A"])
+    path = write_measurements(dup, tmp_path / "dup.nc", validate=False)
+    refused(lambda: read_measurements(path), "dup.nc", "'A'", "duplicate")
+
+
+def test_refuses_missing_sidecar_and_bad_sidecar(tmp_path):
+    path = good_csv(tmp_path / "lonely.csv")
+    sidecar_path(path).unlink()
+    refused(lambda: read_measurements(path), "lonely.csv", "lonely.sensors.csv", "sidecar", "missing")
+    path = good_csv(tmp_path / "extra.csv")
+    with open(sidecar_path(path), "a") as fh:
+        fh.write("S9,centre,0.4\n")
+    refused(lambda: read_measurements(path), "extra.sensors.csv", "S9", "not columns")
+    path = good_csv(tmp_path / "hdr.csv")
+    sidecar_path(path).write_text("name,tube,x\nS1,centre,0.1\n")
+    refused(lambda: read_measurements(path), "hdr.sensors.csv", "sensor")
+
+
+def test_refuses_malformed_csv(tmp_path):
+    path = tmp_path / "text.csv"
+    path.write_text("time,S1\n0.0,abc\n0.001,1e-4\n")
+    sidecar_path(path).write_text("sensor,tube,x\nS1,centre,0.1\n")
+    refused(lambda: read_measurements(path), "text.csv", "CSV of numbers")
+    path.write_text("t,S1\n0.0,1e-4\n")
+    refused(lambda: read_measurements(path), "text.csv", "time,<sensor>")
+
+
+def test_refuses_uff_channels_with_different_time_axes(tmp_path, record):
+    path = write_measurements(record, tmp_path / "a.uff")
+    other = validate_measurements(raw_dataset(gaussian(N, 1, key="o"), names=("S4",), x=(0.2,), tube=("north",),
+                                              t0=0.5))
+    path2 = write_measurements(other, tmp_path / "b.uff")
+    combined = tmp_path / "mixed.uff"
+    combined.write_bytes(path.read_bytes() + path2.read_bytes())
+    refused(lambda: read_measurements(combined), "mixed.uff", "'S4'", "identical for all channels")
+
+
+def test_refuses_unknown_format_and_never_unpickles(tmp_path):
+    canary = tmp_path / "canary"
+
+    class Hostile:
+        def __reduce__(self):
+            return (Path.touch, (canary,))
+
+    payload = pickle.dumps(Hostile())
+    pickle.loads(payload)  # the payload really would act if unpickled ...
+    assert canary.exists()
+    canary.unlink()
+    pkl = tmp_path / "data.pkl"
+    pkl.write_bytes(payload)
+    npy = tmp_path / "data.npy"
+    np.save(npy, gaussian(10, 2))
+    refused(lambda: read_measurements(pkl), "data.pkl", "unknown format", "never loaded")
+    refused(lambda: read_measurements(npy), "data.npy", "unknown format")
+    for fmt, word in [("netcdf", "not a NetCDF file"), ("csv", "cannot be read as CSV"), ("uff", "data.pkl"),
+                      ("zarr", "directory")]:
+        refused(lambda: read_measurements(pkl, format=fmt), word)
+    refused(lambda: read_measurements(pkl, format="pickle"), "unknown format")
+    assert not canary.exists()  # ... and no reader unpickled it
+    for module in (readers, validation):
+        code = inspect.getsource(module)
+        assert "import pickle" not in code and "np.load(" not in code and "allow_pickle" not in code
+
+
+def test_refuses_missing_file_and_bad_options(tmp_path, record):
+    refused(lambda: read_measurements(tmp_path / "nothere.nc"), "nothere.nc", "does not exist")
+    refused(lambda: read_measurements(tmp_path / "x.nc", tubes={"centre": -1.0}), "tubes['centre']", "> 0")
+    refused(lambda: validate_measurements(record, tubes={}), "tubes", "non-empty")
+    refused(lambda: validate_measurements(record.rename(displacement="d")), "displacement")
+    refused(lambda: validate_measurements(record.displacement), "xarray.Dataset")
+
+
+def test_zarr_writer_will_not_overwrite_a_foreign_directory(tmp_path, record):
+    folder = tmp_path / "precious.zarr"
+    folder.mkdir()
+    (folder / "thesis.tex").write_text("keep me")
+    refused(lambda: write_measurements(record, folder), "precious.zarr", "not a Zarr store")
+    assert (folder / "thesis.tex").exists()
+    path = write_measurements(record, tmp_path / "ok.zarr")
+    write_measurements(record, path)  # an existing store is replaced
+    xr.testing.assert_identical(read_measurements(path).displacement, record.displacement)

@@ -1,0 +1,429 @@
+"""Read and write measured displacement records: NetCDF, Zarr, CSV + sidecar, UFF type 58.
+
+Every reader returns the one canonical, validated Dataset of :mod:`tubeid.measured.validation`
+(``displacement`` (time, sensor) in m, ``time`` in s, ``sensor`` with ``x`` (m) and ``tube``).
+
+Formats (chosen by ``format=`` or by the extension):
+
+- ``netcdf`` (``.nc``, ``.nc4``, ``.cdf``, ``.netcdf``): the engine is picked from the file's
+  signature, ``h5netcdf`` for NetCDF-4/HDF5, ``scipy`` for classic NetCDF-3. ``write_measurements``
+  writes NetCDF-4 (h5netcdf) for ``netcdf``/``netcdf4`` and NetCDF-3 64-bit offset (scipy) for
+  ``netcdf3``. ``zarr`` (``.zarr`` directory): written as Zarr v3, strings as variable length.
+  Both hold the canonical layout (MODEL.md §5); ``displacement`` must carry a ``units`` attribute.
+- ``csv`` (``.csv``): one header line ``time,<sensor>,…`` then one row per sample (time in s,
+  displacement in m). Sidecar ``<stem>.sensors.csv`` beside it with columns ``sensor,tube,x``
+  (x in m) and optionally ``units`` (per channel; empty or absent = ``m``). Every data column must
+  be listed in the sidecar and every sidecar row must be a data column.
+- ``uff`` (``.uff``, ``.unv``): universal file, one type-58 dataset per channel (other dataset
+  types are ignored), read and written with pyuff. Convention:
+
+  * sensor name = ID line 1 (record 1); if blank, ``node<rsp_node>dir<rsp_dir>``;
+  * position = ID line 4 (record 4) holding ``tube=<name> x=<metres>`` (name without spaces);
+    if ID line 4 has neither token, the channel's row in the sidecar ``<stem>.sensors.csv``
+    (``sensor,tube,x``; a ``units`` cell there, if any, must agree with the UFF label) is used;
+    both present must agree; neither is refused;
+  * units = ordinate units label (record 9, field 6); the unit exponents are ignored;
+  * function type (record 6) must be 1 (time response), data real, abscissa time
+    (specific data type 0 or 17, label ``s`` or blank) and identical for all channels.
+
+  Written as binary 58b in float64 with an explicit abscissa, so data and time round-trip
+  bit-exactly (pyuff's ASCII 58 keeps 12 significant digits for data, and only 6 for
+  the abscissa start and increment of evenly spaced records).
+
+Safety: nothing is ever loaded by unpickling. This module uses neither ``pickle`` nor
+``np.load``; ``.npy``/``.pkl`` and other extensions are refused as unknown formats, and a file
+forced to a format must carry that format's signature or parse as text.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import re
+import warnings
+from pathlib import Path
+
+import numpy as np
+import xarray as xr
+
+from tubeid.errors import SpecificationError
+from tubeid.measured.validation import check_options, layout, length_scale, validate_measurements
+
+__all__ = ["read_measurements", "write_measurements", "sidecar_path", "EXTENSIONS", "FORMATS"]
+
+#: Extension -> format.
+EXTENSIONS = {".nc": "netcdf", ".nc4": "netcdf", ".cdf": "netcdf", ".netcdf": "netcdf",
+              ".zarr": "zarr", ".csv": "csv", ".uff": "uff", ".unv": "uff"}
+#: Accepted ``format=`` values -> format.
+FORMATS = {"netcdf": "netcdf", "netcdf4": "netcdf", "netcdf3": "netcdf3", "zarr": "zarr",
+           "csv": "csv", "uff": "uff", "uff58": "uff", "unv": "uff"}
+
+_HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
+_CDF3_MAGIC = (b"CDF\x01", b"CDF\x02")
+_UFF_TOKEN_TUBE = re.compile(r"(?:^|\s)tube=(\S+)")
+_UFF_TOKEN_X = re.compile(r"(?:^|\s)x=(\S+)")
+
+
+def sidecar_path(path) -> Path:
+    """The sensor sidecar of a data file: ``<dir>/<stem>.sensors.csv``."""
+    path = Path(path)
+    return path.with_name(path.stem + ".sensors.csv")
+
+
+def _resolve_format(path: Path, fmt) -> str:
+    if fmt is not None:
+        key = str(fmt).lower()
+        if key not in FORMATS:
+            raise SpecificationError("format", fmt, f"unknown format; must be one of {sorted(FORMATS)}")
+        return FORMATS[key]
+    ext = path.suffix.lower()
+    if ext not in EXTENSIONS:
+        raise SpecificationError(
+            str(path), ext or "(no extension)",
+            f"unknown format: extension must be one of {sorted(EXTENSIONS)} or give format= "
+            f"(pickled or .npy files are never loaded)")
+    return EXTENSIONS[ext]
+
+
+def _fail_read(source: str, kind: str, exc: Exception):
+    if isinstance(exc, ImportError):  # a missing library is not bad input
+        raise exc
+    raise SpecificationError(source, kind, f"cannot be read as {kind}: {type(exc).__name__}: {exc}") from exc
+
+
+# --------------------------------------------------------------------------- NetCDF / Zarr
+def _open_xarray(path: Path, source: str, engine: str, kind: str, **kw) -> xr.Dataset:
+    try:
+        with xr.open_dataset(path, engine=engine, decode_times=False, decode_timedelta=False, **kw) as raw:
+            return raw.load()
+    except Exception as exc:  # noqa: BLE001 - every library failure becomes a clear refusal
+        _fail_read(source, kind, exc)
+
+
+def _read_netcdf(path: Path, source: str) -> tuple[xr.Dataset, str]:
+    if not path.is_file():
+        raise SpecificationError(source, "netcdf", "a NetCDF record must be a file")
+    with open(path, "rb") as fh:
+        magic = fh.read(8)
+    if magic.startswith(_HDF5_MAGIC):
+        return _open_xarray(path, source, "h5netcdf", "NetCDF-4"), "netcdf4"
+    if magic[:4] in _CDF3_MAGIC:
+        return _open_xarray(path, source, "scipy", "NetCDF-3"), "netcdf3"
+    raise SpecificationError(source, magic[:4],
+                             "not a NetCDF file: neither the NetCDF-4/HDF5 nor the classic NetCDF-3 signature")
+
+
+def _read_zarr(path: Path, source: str) -> xr.Dataset:
+    if not path.is_dir():
+        raise SpecificationError(source, "zarr", "a Zarr store must be a directory")
+    return _open_xarray(path, source, "zarr", "Zarr", consolidated=False)
+
+
+# --------------------------------------------------------------------------- CSV
+def _read_sidecar(data_path: Path, source: str, *, required: bool):
+    """Rows of the sidecar as {sensor: (tube, x, units or "")}; None if absent and not required."""
+    side = sidecar_path(data_path)
+    if not side.is_file():
+        if required:
+            raise SpecificationError(source, str(side),
+                                     "sensor sidecar file is missing; it must list columns sensor,tube,x")
+        return None
+    sname = str(side)
+    with open(side, newline="", encoding="utf-8-sig") as fh:
+        reader = csv.reader(fh)
+        header = next(reader, None)
+        if header is None:
+            raise SpecificationError(sname, "", "empty sidecar; header must be sensor,tube,x")
+        header = [h.strip() for h in header]
+        missing = [c for c in ("sensor", "tube", "x") if c not in header]
+        if missing:
+            raise SpecificationError(f"{sname}: header", header, f"sidecar lacks column(s) {missing}; needs sensor,tube,x")
+        col = {c: header.index(c) for c in ("sensor", "tube", "x", "units") if c in header}
+        rows: dict[str, tuple[str, float, str]] = {}
+        for lineno, row in enumerate(reader, start=2):
+            if not row or all(not cell.strip() for cell in row):
+                continue
+            if len(row) != len(header):
+                raise SpecificationError(f"{sname}: line {lineno}", row, f"must have {len(header)} fields")
+            name, tube, xs = row[col["sensor"]].strip(), row[col["tube"]].strip(), row[col["x"]].strip()
+            units = row[col["units"]].strip() if "units" in col else ""
+            if name in rows:
+                raise SpecificationError(f"{sname}: line {lineno}", name, "duplicate sensor name in sidecar")
+            try:
+                x = float(xs) if xs else math.nan
+            except ValueError:
+                raise SpecificationError(f"{sname}: channel {name!r} x", xs, "must be a number (m)") from None
+            rows[name] = (tube, x, units)
+    return rows
+
+
+def _read_csv(path: Path, source: str) -> xr.Dataset:
+    if not path.is_file():
+        raise SpecificationError(source, "csv", "a CSV record must be a file")
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            header = next(csv.reader(fh), None)
+    except UnicodeDecodeError as exc:
+        _fail_read(source, "CSV", exc)
+    if not header:
+        raise SpecificationError(source, "", "empty CSV; the header must be time,<sensor>,...")
+    header = [h.strip() for h in header]
+    if header[0] != "time" or len(header) < 2:
+        raise SpecificationError(f"{source}: header", header, "must be time,<sensor>,... (time in s first)")
+    names = header[1:]
+    dup = sorted({s for s in names if names.count(s) > 1})
+    if dup:
+        raise SpecificationError(f"{source}: header", dup, "duplicate sensor names (each channel needs its own name)")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # "input contained no data"
+            data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2, dtype=float, encoding="utf-8")
+    except Exception as exc:  # noqa: BLE001
+        _fail_read(source, "CSV of numbers", exc)
+    if data.size == 0:
+        data = np.empty((0, len(header)))
+    if data.shape[1] != len(header):
+        raise SpecificationError(source, data.shape[1], f"rows must have {len(header)} fields like the header")
+    side = _read_sidecar(path, source, required=True)
+    extra = [s for s in side if s not in names]
+    if extra:
+        raise SpecificationError(str(sidecar_path(path)), extra, f"sidecar lists sensor(s) that are not columns of {source}")
+    for name in names:
+        if name not in side:
+            raise SpecificationError(f"{source}: channel {name!r}", "position",
+                                     f"sensor is missing its position: not listed in sidecar {sidecar_path(path)}")
+    return _raw_dataset(data[:, 0], data[:, 1:], names,
+                        [side[s][0] for s in names], [side[s][1] for s in names], [side[s][2] or "m" for s in names])
+
+
+def _raw_dataset(t, values, names, tubes, xs, units) -> xr.Dataset:
+    return xr.Dataset(
+        {"displacement": (("time", "sensor"), np.asarray(values, dtype=float))},
+        coords={"time": ("time", np.asarray(t, dtype=float), {"units": "s"}),
+                "sensor": ("sensor", np.array(names, dtype=object)),
+                "x": ("sensor", np.asarray(xs, dtype=float), {"units": "m"}),
+                "tube": ("sensor", np.array(tubes, dtype=object)),
+                "units": ("sensor", np.array(units, dtype=object))})
+
+
+# --------------------------------------------------------------------------- UFF 58
+def _uff_text(value) -> str:
+    s = "" if value is None else str(value).strip()
+    return "" if s == "NONE" else s
+
+
+def _read_uff(path: Path, source: str) -> xr.Dataset:
+    import pyuff
+
+    if not path.is_file():
+        raise SpecificationError(source, "uff", "a UFF record must be a file")
+    try:
+        uff = pyuff.UFF(str(path))
+        types = list(uff.get_set_types())
+        sets = [uff.read_sets(i) for i, kind in enumerate(types) if int(kind) == 58]
+    except Exception as exc:  # noqa: BLE001
+        _fail_read(source, "UFF", exc)
+    if not sets:
+        raise SpecificationError(source, [int(k) for k in types], "no type-58 dataset (function at nodal DOF) found")
+    side = None
+    names, tubes, xs, units, columns = [], [], [], [], []
+    t_ref, ref_name = None, None
+    for k, s in enumerate(sets):
+        name = _uff_text(s.get("id1")) or f"node{s.get('rsp_node')}dir{s.get('rsp_dir')}"
+        where = f"{source}: channel {name!r}"
+        if int(s.get("func_type", -1)) != 1:
+            raise SpecificationError(f"{where} function type", s.get("func_type"),
+                                     "must be 1 (time response; record 6 field 1)")
+        data = np.asarray(s["data"])
+        if np.iscomplexobj(data):
+            raise SpecificationError(f"{where} data", str(data.dtype), "must be real (a time response)")
+        if int(s.get("abscissa_spec_data_type", 0)) not in (0, 17) or \
+                _uff_text(s.get("abscissa_axis_units_lab")) not in ("", "s", "sec", "second", "seconds"):
+            raise SpecificationError(f"{where} abscissa", (s.get("abscissa_spec_data_type"),
+                                     s.get("abscissa_axis_units_lab")), "abscissa must be time in s")
+        t = np.asarray(s["x"], dtype=float)
+        if t_ref is None:
+            t_ref, ref_name = t, name
+        elif t.shape != t_ref.shape or not np.array_equal(t, t_ref):
+            raise SpecificationError(f"{where} time axis", f"{t.size} samples",
+                                     f"must be identical for all channels (differs from channel {ref_name!r})")
+        unit = _uff_text(s.get("ordinate_axis_units_lab"))
+        if not unit:
+            raise SpecificationError(f"{where} units", unit or None,
+                                     "units missing: the ordinate units label (record 9 field 6) must be one of "
+                                     "m, mm, um, µm, micron, nm")
+        id4 = _uff_text(s.get("id4"))
+        mt, mx = _UFF_TOKEN_TUBE.search(id4), _UFF_TOKEN_X.search(id4)
+        if (mt is None) != (mx is None):
+            raise SpecificationError(f"{where} ID line 4", id4, "must hold both tube=<name> and x=<metres>")
+        if side is None:
+            side = _read_sidecar(path, source, required=False) or {}
+        if name in side and side[name][2]:
+            side_unit = side[name][2]
+            if length_scale(side_unit, f"{sidecar_path(path)}: channel {name!r} units") != length_scale(
+                    unit, f"{where} units"):
+                raise SpecificationError(f"{where} units", unit,
+                                         f"conflicts with sidecar {sidecar_path(path)} units {side_unit!r}")
+        if mt is not None:
+            tube = mt.group(1)
+            try:
+                x = float(mx.group(1))
+            except ValueError:
+                raise SpecificationError(f"{where} ID line 4 x", mx.group(1), "must be a number (m)") from None
+            if name in side:
+                st, sx, _ = side[name]
+                if st != tube or not math.isclose(sx, x, rel_tol=1e-9, abs_tol=1e-12):
+                    raise SpecificationError(f"{where} position", (tube, x),
+                                             f"conflicts with sidecar {sidecar_path(path)} ({st!r}, {sx!r})")
+        elif name in side:
+            tube, x, _ = side[name]
+        else:
+            raise SpecificationError(
+                f"{where} position", id4 or None,
+                f"sensor is missing its position: ID line 4 must read 'tube=<name> x=<metres>' "
+                f"or sidecar {sidecar_path(path)} must list the channel")
+        names.append(name)
+        tubes.append(tube)
+        xs.append(x)
+        units.append(unit)
+        columns.append(data)
+    extra = [s for s in side if s not in names]
+    if extra:
+        raise SpecificationError(str(sidecar_path(path)), extra, f"sidecar lists sensor(s) that are not channels of {source}")
+    return _raw_dataset(t_ref, np.stack([np.asarray(c, dtype=float) for c in columns], axis=1),
+                        names, tubes, xs, units)
+
+
+# --------------------------------------------------------------------------- public API
+def _as_path(path, what: str) -> Path:
+    try:
+        return Path(os.fspath(path))
+    except TypeError:
+        raise SpecificationError(what, path, "must be a file path") from None
+
+
+def read_measurements(path, *, format: str | None = None, min_resolution_hz: float | None = None,
+                      tubes=None) -> xr.Dataset:
+    """Read a measured record (NetCDF, Zarr, CSV + sidecar or UFF 58) into the canonical Dataset.
+
+    ``format``: one of :data:`FORMATS` (default: from the extension, :data:`EXTENSIONS`).
+    ``min_resolution_hz``: refuse records shorter than 1 / min_resolution_hz (s).
+    ``tubes``: {tube name: length (m)}; refuse sensors on unknown tubes or off them.
+    Raises :class:`~tubeid.errors.SpecificationError` naming the file, channel and rule.
+    """
+    path = _as_path(path, "path")
+    source = str(path)
+    check_options(min_resolution_hz, tubes)
+    fmt = _resolve_format(path, format)
+    if not path.exists():
+        raise SpecificationError(source, fmt, "file does not exist")
+    if fmt in ("netcdf", "netcdf3"):
+        raw, label = _read_netcdf(path, source)
+    elif fmt == "zarr":
+        raw, label = _read_zarr(path, source), "zarr"
+    elif fmt == "csv":
+        raw, label = _read_csv(path, source), "csv"
+    else:
+        raw, label = _read_uff(path, source), "uff58"
+    return validate_measurements(raw, min_resolution_hz=min_resolution_hz, tubes=tubes, source=source, format=label)
+
+
+def _strings_as_objects(ds: xr.Dataset) -> xr.Dataset:
+    out = ds.copy()
+    for name, var in ds.variables.items():
+        if var.dtype.kind in "US" or var.dtype.kind == "T":
+            out[name] = var.copy(data=np.array([str(v) for v in np.asarray(var.values).ravel()],
+                                               dtype=object).reshape(var.shape))
+    return out
+
+
+def _write_csv(lay: dict, path: Path) -> None:
+    names, x_m = lay["names"], _x_metres(lay, path)
+    for name in names:
+        if name != name.strip() or any(c in name for c in "\r\n") or not name:
+            raise SpecificationError(f"{path}: sensor name", name, "cannot be written to CSV faithfully")
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        csv.writer(fh, lineterminator="\n").writerow(["time", *names])
+        np.savetxt(fh, np.column_stack([lay["time"], lay["values"]]), delimiter=",", fmt="%.17g")
+    with open(sidecar_path(path), "w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh, lineterminator="\n")
+        w.writerow(["sensor", "tube", "x", "units"])
+        for j, name in enumerate(names):
+            x = x_m[j]
+            units = lay["units"][j]
+            w.writerow([name, lay["tube"][j], "" if not math.isfinite(x) else repr(float(x)),
+                        "" if units is None else units])
+
+
+def _x_metres(lay: dict, path: Path) -> np.ndarray:
+    """Sensor positions in m (NaN where absent)."""
+    if lay["x_units"] is None:
+        return lay["x"]
+    return lay["x"] * length_scale(lay["x_units"], f"{path}: x.units")
+
+
+def _write_uff(lay: dict, path: Path) -> None:
+    import pyuff
+
+    t, values, x_m = lay["time"], lay["values"], _x_metres(lay, path)
+    if not np.all(np.isfinite(values)) or not np.all(np.isfinite(t)):
+        raise SpecificationError(f"{path}: displacement", "non-finite",
+                                 "UFF cannot hold NaN or infinite samples (pyuff would write them as numbers)")
+    if t.size < 2:
+        raise SpecificationError(f"{path}: time", t.size, "UFF 58 needs at least 2 samples")
+    sets = []
+    for j, name in enumerate(lay["names"]):
+        tube = lay["tube"][j]
+        x = x_m[j]
+        if not name or name != name.strip() or len(name) > 80 or not name.isprintable():
+            raise SpecificationError(f"{path}: sensor name", name, "UFF ID line 1 needs 1-80 printable characters")
+        if tube and (re.search(r"\s", tube) or "=" in tube):
+            raise SpecificationError(f"{path}: channel {name!r} tube", tube, "UFF tube names must have no spaces or '='")
+        id4 = f"tube={tube} x={float(x)!r}" if tube and math.isfinite(x) else ""
+        unit = lay["units"][j]
+        unit = "" if unit is None else str(unit).replace("\u00b5", "u").replace("\u03bc", "u")
+        if len(id4) > 80 or len(unit) > 20 or not unit.isascii():
+            raise SpecificationError(f"{path}: channel {name!r}", (id4, unit), "does not fit UFF 58 fixed fields")
+        sets.append(pyuff.prepare_58(
+            binary=1, id1=name, id2="tubeid measured displacement", id3="", id4=id4, id5="",
+            func_type=1, rsp_node=j + 1, rsp_dir=0, ref_node=0, ref_dir=0,
+            abscissa_spacing=0, abscissa_spec_data_type=17, abscissa_axis_units_lab="s",
+            ordinate_spec_data_type=8, ordinate_len_unit_exp=1, ordinate_axis_units_lab=unit or "NONE",
+            orddenom_spec_data_type=0, data=np.array(values[:, j], dtype=float), x=np.array(t, dtype=float)))
+    # pyuff truncates the header of the first binary set in 'overwrite' mode: start from an empty
+    # file and append every set instead.
+    # pyuff also leaves a file handle to the garbage collector (ResourceWarning): silenced here.
+    path.write_bytes(b"")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ResourceWarning)
+        pyuff.UFF(str(path)).write_sets(sets, mode="add")
+
+
+def write_measurements(ds: xr.Dataset, path, *, format: str | None = None, validate: bool = True) -> Path:
+    """Write ``ds`` as NetCDF-4, NetCDF-3, Zarr, CSV + sidecar or UFF 58 (see module docstring).
+
+    With ``validate`` (default) ``ds`` is first validated and written in canonical form (m, s), so
+    ``read_measurements`` gives it back. ``validate=False`` writes ``ds`` as it is (units included),
+    e.g. to make test files; the structure must still be readable. Existing files are replaced.
+    Returns the path written.
+    """
+    path = _as_path(path, "path")
+    fmt = _resolve_format(path, format)
+    if validate:
+        ds = validate_measurements(ds)
+    lay = layout(ds, str(path))
+    if fmt in ("netcdf", "netcdf3"):
+        if path.is_dir():
+            raise SpecificationError(str(path), fmt, "is a directory, cannot write NetCDF there")
+        kw = {"engine": "scipy", "format": "NETCDF3_64BIT"} if fmt == "netcdf3" else {"engine": "h5netcdf"}
+        ds.to_netcdf(path, **kw)
+    elif fmt == "zarr":
+        if path.exists() and not (path.is_dir() and any((path / m).exists() for m in ("zarr.json", ".zgroup"))):
+            raise SpecificationError(str(path), "zarr", "exists and is not a Zarr store; refusing to overwrite it")
+        _strings_as_objects(ds).to_zarr(path, mode="w", consolidated=False)
+    elif fmt == "csv":
+        _write_csv(lay, path)
+    else:
+        _write_uff(lay, path)
+    return path
