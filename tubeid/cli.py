@@ -11,6 +11,7 @@ __all__ = ["main"]
 # Modules exposing ``register(subparsers)``; one line per feature.
 COMMAND_MODULES = [
     "tubeid.mechanics.cli",
+    "tubeid.bench",
 ]
 
 
