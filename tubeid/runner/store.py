@@ -114,6 +114,8 @@ def init_store(study, path, *, source: str, study_hash: str, study_file: str = "
     coords = {}
     for dim, values in {**study.axes, **study.coords}.items():
         attrs = {"units": study.units[dim]} if dim in study.units else {}
+        if values.dtype.kind == "U":  # variable-length strings (fixed-width UTF-32 has no Zarr v3 spec)
+            values = values.astype(object)
         coords[dim] = (dim, values, attrs)
     t = now()
     attrs = {

@@ -1,0 +1,241 @@
+"""Study runner, in-process part: study validation, seeding, store layout, resume, refusals, CLI, config.
+
+The blocks run sequentially in this process (``workers=0``, the same ``run_block`` the dask workers
+run); the real multi-process tests are in test_runner_distributed.py.
+"""
+
+import json
+import os
+import pathlib
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from tubeid.errors import SpecificationError
+from tubeid.runner.cli import main as cli
+from tubeid.runner.execute import run
+from tubeid.runner.store import open_results, store_status
+from tubeid.runner.study import Output, Parameter, Study, load_study, pointwise
+from tubeid.runner.testing import flags, store_digest, write_study
+from tubeid.seeds import rng_for
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+
+
+def _task(block, rng, *, k=1):
+    return {"y": np.zeros((len(block["r"]),))}
+
+
+def _study(**kw):
+    base = dict(name="s", seed=1, axes={"r": range(4)}, task=_task, outputs={"y": Output()})
+    base.update(kw)
+    return Study(**base)
+
+
+# -- definition refused before anything runs ------------------------------------------------------
+@pytest.mark.parametrize("kw, field", [
+    (dict(parameters={"bogus": 1}), "parameters.bogus"),                     # unknown to the task
+    (dict(parameters={"k": Parameter(5, bounds=(0, 3))}), "parameters.k"),  # outside bounds
+    (dict(parameters={"k": Parameter(5, choices=[1, 2])}), "parameters.k"),  # not a choice
+    (dict(parameters={"k": float("nan")}), "parameters.k"),                  # not plain/finite
+    (dict(axes={"r": []}), "axes.r"),                                        # empty axis
+    (dict(axes={}), "axes"),
+    (dict(axes={"r": [1, 1]}), "axes.r"),                                    # repeated coordinate
+    (dict(chunks={"q": 2}), "chunks.q"),
+    (dict(chunks={"r": 0}), "chunks.r"),
+    (dict(seed=-1), "seed"),
+    (dict(seed_axes=("q",)), "seed_axes"),
+    (dict(outputs={"y": Output(dims=("f",))}), "outputs.y.dims"),            # extra dim without coords
+    (dict(name="a b"), "name"),
+])
+def test_bad_definitions_are_refused(kw, field):
+    with pytest.raises(SpecificationError) as err:
+        _study(**kw)
+    assert err.value.field == field
+
+
+def test_parameter_overrides_are_validated():
+    s = _study(parameters={"k": Parameter(1, bounds=(0, 3))})
+    assert s.with_parameters({"k": 2}).values == {"k": 2}
+    with pytest.raises(SpecificationError, match="unknown parameter"):
+        s.with_parameters({"kk": 2})
+    with pytest.raises(SpecificationError, match=r"must lie in \[0, 3\]"):
+        s.with_parameters({"k": 4})
+
+
+def test_cli_refuses_bad_override_before_creating_a_store(tmp_path, capsys):
+    study = write_study(tmp_path)
+    store = tmp_path / "out.zarr"
+    assert cli(["run", str(study), "--store", str(store), "--workers", "0", "--set", "wrok=3"]) == 2
+    assert "parameters.wrok = 3: unknown parameter" in capsys.readouterr().err
+    assert cli(["run", str(study), "--store", str(store), "--workers", "0", "--set", "label='z'"]) == 2
+    assert not store.exists()
+    # the SG+ example refuses a delta grid outside SG+'s admissible range for the requested n
+    assert cli(["run", str(REPO / "studies/example_sgplus.py"), "--store", str(store), "--workers", "0",
+                "--set", "n=1"]) == 2
+    assert "axes.delta" in capsys.readouterr().err and not store.exists()
+
+
+def test_unwritable_store_is_refused_up_front(tmp_path):
+    study = write_study(tmp_path)
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    for bad in (blocker / "out.zarr", blocker):  # parent is a file; the store itself is a file
+        with pytest.raises(SpecificationError, match="store"):
+            run(study, bad, workers=0, quiet=True)
+    if os.geteuid() != 0:  # root ignores permission bits
+        ro = tmp_path / "ro"
+        ro.mkdir(mode=0o555)
+        with pytest.raises(SpecificationError, match="not writable"):
+            run(study, ro / "out.zarr", workers=0, quiet=True)
+
+
+# -- seeding ------------------------------------------------------------------------------------------
+def test_streams_are_keyed_by_seed_axis_coordinates_only(tmp_path):
+    study_a = write_study(tmp_path, "a.py", realisations=6, chunk=2, work=3)
+    study_b = write_study(tmp_path, "b.py", realisations=6, chunk=5, work=3)  # other blocks
+    run(study_a, tmp_path / "a.zarr", workers=0, quiet=True)
+    run(study_b, tmp_path / "b.zarr", workers=0, quiet=True)
+    a, b = open_results(tmp_path / "a.zarr").load(), open_results(tmp_path / "b.zarr").load()
+    np.testing.assert_array_equal(a.x.values, b.x.values)  # bit-identical whatever the chunking
+    # common random numbers across delta: 0.2 * v == 2 * (0.1 * v) exactly (scaling by 2 is exact)
+    np.testing.assert_array_equal(a.x.sel(delta=0.2).values, 2 * a.x.sel(delta=0.1).values)
+    # independent re-computation of one point from tubeid.seeds.rng_for(seed, realisation)
+    v = rng_for(7, 4).standard_normal((48, 48))
+    for _ in range(3):
+        v = np.tanh(v @ v.T / 48.0)
+    np.testing.assert_array_equal(a.x.sel(delta=0.1, realisation=4).values, 0.1 * v[:3, 0])
+
+
+def test_rng_factory_requires_exactly_the_seed_axes():
+    s = _study(axes={"r": range(3), "d": [0.5, 1.0]}, seed_axes=("r",))
+    assert s.rng(r=2).random() == rng_for(1, 2).random()
+    assert s.rng.at({"r": 2, "d": 0.5}).random() == s.rng.at({"r": 2, "d": 1.0}).random()
+    with pytest.raises(SpecificationError, match="seed axes"):
+        s.rng(r=2, d=0.5)
+    # numpy and Python scalars give the same stream (keys use Python scalars)
+    s2 = _study(axes={"d": [0.5, 1.0]})
+    assert s2.rng(d=np.float64(0.5)).random() == s2.rng(d=0.5).random() == rng_for(1, 0.5).random()
+
+
+def test_pointwise_stacks_per_point_results():
+    @pointwise
+    def f(point, rng, *, scale):
+        return {"u": scale * point["a"] + point["b"], "v": np.full(2, rng.random())}
+
+    s = Study(name="p", seed=3, axes={"a": [1.0, 2.0], "b": [10, 20, 30]}, task=f, seed_axes=("b",),
+              coords={"two": [0, 1]}, outputs={"u": Output(), "v": Output(dims=("two",))},
+              parameters={"scale": 3.0})
+    out = s.compute_block(s.block((0, 0)))
+    np.testing.assert_array_equal(out["u"], [[13, 23, 33], [16, 26, 36]])
+    assert out["v"].shape == (2, 3, 2)
+    np.testing.assert_array_equal(out["v"][0, :, 0], out["v"][1, :, 0])  # keyed by b only
+    assert out["v"][0, 1, 0] == rng_for(3, 20).random()
+
+
+def test_task_result_shape_is_checked():
+    s = _study(task=lambda block, rng: {"y": np.zeros(3)})
+    with pytest.raises(SpecificationError, match="y.shape"):
+        s.compute_block(s.block((0,)))
+
+
+# -- store: layout, provenance, partial results, resume ---------------------------------------------
+def test_store_layout_and_provenance(tmp_path):
+    study = write_study(tmp_path, realisations=6, chunk=4, work=2)
+    report = run(study, tmp_path / "s.zarr", workers=0, quiet=True)
+    assert (report.total, report.computed, report.skipped) == (4, 4, 0)
+    ds = xr.open_zarr(tmp_path / "s.zarr")  # plain xarray works too
+    assert ds.x.dims == ("delta", "realisation", "component")
+    assert ds.x.encoding["chunks"] == (1, 4, 3) and ds.x.attrs["units"] == "m"
+    assert ds["count"].dtype == np.int32 and (ds["count"].values == 2).all()
+    assert list(ds.component.values) == ["a", "b", "c"] and ds.delta.attrs["units"] == "1"
+    a = ds.attrs
+    assert a["study_source"] == study.read_text() and a["study_hash"] == load_study(study)[2]
+    assert a["seed"] == 7 and a["seed_axes"] == ["realisation"]
+    assert json.loads(a["parameters"]) == {"work": 2, "label": "x"}
+    assert a["model_specification"] == "MODEL-SPEC-TEXT" and a["tubeid_version"]
+    assert a["started"] <= a["finished"]
+    assert store_status(tmp_path / "s.zarr")["complete"]
+
+
+def test_interrupted_run_is_partial_readable_and_resumes_identically(tmp_path, monkeypatch):
+    study = write_study(tmp_path, realisations=8, chunk=2, work=2)
+    run(study, tmp_path / "ref.zarr", workers=0, quiet=True)
+    monkeypatch.setenv("TUBEID_TEST_FAIL_AT", "5")  # blocks are run in C order: (0,0),(0,1),(0,2) fail
+    with pytest.raises(RuntimeError, match="on purpose"):
+        run(study, tmp_path / "s.zarr", workers=0, quiet=True)
+    st = store_status(tmp_path / "s.zarr")
+    assert (st["done"], st["total"], st["complete"]) == (2, 8, False)
+    part = open_results(tmp_path / "s.zarr")
+    assert part.attrs["blocks_done"] == 2
+    assert np.isfinite(part.x.sel(delta=0.1, realisation=[0, 1, 2, 3])).all()
+    assert np.isnan(part.x.sel(realisation=[4, 5, 6, 7])).all()  # unwritten chunks read as NaN
+    monkeypatch.delenv("TUBEID_TEST_FAIL_AT")
+    report = run(study, tmp_path / "s.zarr", workers=0, quiet=True)
+    assert (report.computed, report.skipped) == (6, 2)
+    assert store_digest(tmp_path / "s.zarr") == store_digest(tmp_path / "ref.zarr")
+    assert len(store_status(tmp_path / "s.zarr")["attrs"]["runs"]) == 2
+    again = run(study, tmp_path / "s.zarr", workers=0, quiet=True)  # complete: nothing to do
+    assert again.computed == 0
+
+
+def test_store_of_another_study_is_refused_unless_asked(tmp_path, capsys):
+    study = write_study(tmp_path, realisations=4, work=2)
+    run(study, tmp_path / "s.zarr", workers=0, quiet=True)
+    before = store_digest(tmp_path / "s.zarr")
+    with pytest.raises(SpecificationError, match="different study definition"):
+        run(study, tmp_path / "s.zarr", workers=0, quiet=True, overrides={"work": 3})
+    assert store_digest(tmp_path / "s.zarr") == before
+    other = write_study(tmp_path, "other.py", realisations=4, work=3)
+    rep = run(other, tmp_path / "s.zarr", workers=0, quiet=True, new_store=True)
+    assert rep.store.name.startswith("s-") and rep.store.name.endswith(".zarr")
+    assert store_digest(tmp_path / "s.zarr") == before
+    rep = run(other, tmp_path / "s.zarr", workers=0, quiet=True, overwrite=True)
+    assert rep.store == (tmp_path / "s.zarr").resolve()
+    assert (open_results(tmp_path / "s.zarr")["count"].values == 3).all()
+    (tmp_path / "junk").mkdir()
+    (tmp_path / "junk" / "f.txt").write_text("x")
+    with pytest.raises(SpecificationError, match="not a"):
+        run(other, tmp_path / "junk", workers=0, quiet=True)
+
+
+# -- CLI and configuration -----------------------------------------------------------------------------
+def test_status_and_show_cli(tmp_path, capsys):
+    study = write_study(tmp_path, realisations=4, work=2)
+    assert cli(["run", str(study), "--store", str(tmp_path / "s.zarr"), "--workers", "0", "--no-progress"]) == 0
+    capsys.readouterr()
+    assert cli(["status", str(tmp_path / "s.zarr")]) == 0
+    assert "runner-test: 4/4 blocks done (100.0 %), complete" in capsys.readouterr().out
+    assert cli(["status", str(tmp_path / "s.zarr"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["done"] == 4
+    assert cli(["show", str(tmp_path / "s.zarr")]) == 0
+    out = capsys.readouterr().out
+    assert "study runner-test" in out and "x [m]:" in out and "(100% written)" in out
+    assert cli(["status", str(tmp_path / "nothing.zarr")]) == 2
+
+
+def test_configuration_env_overrides_and_default_chunk(tmp_path):
+    from tubeid import config
+
+    env = {"TUBEID_RUNNER__DEFAULT_CHUNK": "3", "TUBEID_RUNNER__HOST": "0.0.0.0", "OTHER": "1"}
+    assert config.collect_env(env) == {"tubeid": {"runner": {"default-chunk": 3, "host": "0.0.0.0"}}}
+    code = ("from tubeid import config; from tubeid.runner.study import Study, Output;"
+            "s = Study(name='c', seed=0, axes={'r': range(10)}, task=lambda b, rng: 0, outputs={'y': Output()});"
+            "print(s.chunks['r'], config.get('runner.workers'))")
+    env = dict(os.environ, TUBEID_RUNNER__DEFAULT_CHUNK="3", TUBEID_RUNNER__WORKERS="5")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["3", "5"]
+
+
+def test_example_studies_load_and_pi_runs(tmp_path):
+    for f in sorted((REPO / "studies").glob("example_*.py")):
+        assert isinstance(load_study(f)[0], Study)
+    run(REPO / "studies/example_pi.py", tmp_path / "pi.zarr", workers=0, quiet=True, overrides={"samples": 2000})
+    pi = open_results(tmp_path / "pi.zarr").pi
+    assert pi.sizes == {"realisation": 256}
+    # each estimate has sd sqrt(pi (4 - pi) / 2000) = 0.0367; the mean of 256 has sd 0.0023: 5 sd
+    assert abs(float(pi.mean()) - np.pi) < 5 * np.sqrt(np.pi * (4 - np.pi) / 2000 / 256)
+    assert float(pi.std()) == pytest.approx(np.sqrt(np.pi * (4 - np.pi) / 2000), rel=0.25)  # sd of sd ~ 4.4 %
