@@ -1,0 +1,207 @@
+"""Matrix PSD estimation (two-sided per Hz), Parseval, the confidence band, J_s and D."""
+
+import numpy as np
+import pytest
+import scipy.signal
+import xarray as xr
+
+from tubeid.dynamics.spectra import confidence_band, distance, j_s, psd_dataset, psd_matrix, variance_from_psd
+from tubeid.errors import SpecificationError
+from tubeid.seeds import rng_for
+
+
+def test_white_noise_level():
+    # iid N(0, sigma^2) at dt: two-sided PSD sigma^2 dt, flat from 0 to Nyquist.
+    sigma, dt = 3.0, 2e-3
+    x = sigma * rng_for(0, "white").standard_normal((2**18, 1))
+    f, S = psd_matrix(x, dt, segment_seconds=1024 * dt)
+    assert f[0] == 0 and f[-1] == pytest.approx(0.5 / dt) and S.shape == (513, 1, 1)
+    level = S[:, 0, 0].real / (sigma**2 * dt)
+    # overall mean level: ~511 segments x 513 bins -> relative std < 0.3 %; 1.5 % tolerance.
+    assert level[1:-1].mean() == pytest.approx(1.0, rel=0.015)
+    # per bin (~511 Hann segments, 50 % overlap: relative std ~ sqrt(1.08 / 511) = 4.6 %): all within
+    # 6 sigma, and the spread matches.
+    assert np.all(np.abs(level[1:-1] - 1) < 6 * 0.046)
+    assert np.std(level[1:-1]) == pytest.approx(0.046, rel=0.15)
+    # a one-sided (x2) or per-rad/s (/2pi) convention would be off by 100 % or 84 %.
+
+
+def test_matches_scipy_csd_and_convention():
+    rng = rng_for(1, "csd")
+    x = rng.standard_normal((4096, 3))
+    x[:, 1] += 0.5 * x[:, 0]
+    dt = 0.01
+    f, S = psd_matrix(x, dt, segment_seconds=2.56)
+    assert np.allclose(S, np.conj(np.swapaxes(S, -1, -2)), atol=0)  # Hermitian per bin
+    # scipy two-sided oracle: return_onesided=False, keep f >= 0 (Nyquist appears at -fs/2 there).
+    for a in range(3):
+        for b in range(3):
+            f2, P = scipy.signal.csd(x[:, b], x[:, a], fs=1 / dt, nperseg=256, detrend=False,
+                                     return_onesided=False)
+            keep = f2 >= 0
+            np.testing.assert_allclose(f[:-1], f2[keep])
+            np.testing.assert_allclose(S[:-1, a, b], P[keep], rtol=1e-12, atol=1e-15)
+            np.testing.assert_allclose(S[-1, a, b], P[f2 == -50.0][0], rtol=1e-12)  # Nyquist bin
+
+
+def test_phase_convention_with_a_delay():
+    # x_1(t) = y(t - d dt)  =>  S_12(f) = S_yy(f) exp(-2 i pi f d dt)   (S_ab = E[X_a conj X_b])
+    dt, d = 1e-3, 3
+    y = rng_for(2, "delay").standard_normal(200_000)
+    x = np.stack([np.roll(y, d), y], axis=-1)
+    f, S = psd_matrix(x, dt, segment_seconds=0.5)
+    sel = (f > 0) & (f < 300)
+    expected_phase = -2 * np.pi * f[sel] * d * dt
+    err = np.angle(S[sel, 0, 1] * np.exp(-1j * expected_phase))
+    assert np.max(np.abs(err)) < 0.05  # coherence 1: phase noise ~ bias of the shifted window, small
+    assert np.allclose(np.abs(S[sel, 0, 1]), S[sel, 1, 1].real, rtol=0.02)
+
+
+def test_parseval():
+    rng = rng_for(3, "parseval")
+    x = rng.standard_normal((2, 8000, 2)) * np.array([1.0, 5.0])
+    # boxcar, one segment: discrete Parseval exactly (DC and Nyquist once)
+    f, S = psd_matrix(x, 0.01, segment_seconds=80.0, window="boxcar", overlap=0.0)
+    np.testing.assert_allclose(variance_from_psd(f, S), np.mean(x**2, axis=-2), rtol=1e-12)
+    # auto-spectra input (..., F) too
+    auto = np.diagonal(S, axis1=-2, axis2=-1)
+    np.testing.assert_allclose(variance_from_psd(f, np.moveaxis(auto, -1, 0)), np.mean(x**2, axis=-2).T, rtol=1e-12)
+    # Welch (Hann, 50 %): each segment's window-weighted mean square, averaged. The Hann weights
+    # at 50 % overlap sum to a constant except on the first and last half segments, so the
+    # estimate equals the time mean square up to an edge effect of order (segment / record) and
+    # the fluctuation of the edge samples: 1 s segments on 80 s -> well under 1 %.
+    f, S = psd_matrix(x, 0.01, segment_seconds=1.0)
+    np.testing.assert_allclose(variance_from_psd(f, S), np.mean(x**2, axis=-2), rtol=1e-2)
+
+
+def test_welch_band_average_variance_factor():
+    """Basis of the statistical tolerances elsewhere: Var of a 10-bin band average of a Welch
+    estimate (1 s Hann segments, 50 % overlap, K = 119 per 60 s) is ~ 2.0 / (K * 10) relative."""
+    dt = 1e-3
+    x = rng_for(4, "welchvar").standard_normal((40, 60001, 1))
+    f, S = psd_matrix(x, dt, segment_seconds=1.0)
+    a = S[..., 0, 0].real / dt
+    bands = a[:, 1:491].reshape(40, 49, 10).mean(-1)  # 1960 band averages
+    factor = bands.var() * 119 * 10
+    # chi-square std of a variance estimate from ~ 1960 / (bin correlation) values: ~ 5 %.
+    assert factor == pytest.approx(2.0, rel=0.15)
+
+
+def test_batched_equals_loop():
+    x = rng_for(5, "batch").standard_normal((2, 3, 1000, 2))
+    f, S = psd_matrix(x, 0.01, segment_seconds=1.0, detrend="linear")
+    assert S.shape == (2, 3, 51, 2, 2)
+    for i in range(2):
+        for j in range(3):
+            _, Sij = psd_matrix(x[i, j], 0.01, segment_seconds=1.0, detrend="linear")
+            np.testing.assert_allclose(S[i, j], Sij, rtol=1e-13)
+
+
+def test_psd_dataset_labels():
+    rng = rng_for(6, "ds")
+    x = rng.standard_normal((3, 2000, 2))
+    da = psd_dataset(x, 0.01, segment_seconds=1.0, sensors=["P_obs", "mid"])
+    assert da.dims == ("realisation", "frequency", "sensor", "sensor_")
+    assert da.attrs["units"] == "m^2/Hz" and da["frequency"].attrs["units"] == "Hz"
+    assert list(da["sensor"].values) == ["P_obs", "mid"]
+    _, S = psd_matrix(x, 0.01, segment_seconds=1.0)
+    np.testing.assert_array_equal(da.values, S)
+    # DataArray input with time coordinate and sensor position/tube coordinates
+    xa = xr.DataArray(x, dims=("realisation", "time", "sensor"),
+                      coords={"time": np.arange(2000) * 0.01, "sensor": ["a", "b"],
+                              "x": ("sensor", [6.0, 8.0]), "tube": ("sensor", ["centre", "centre"])},
+                      attrs={"units": "m"})
+    da2 = psd_dataset(xa, segment_seconds=1.0)
+    np.testing.assert_array_equal(da2.values, S)
+    assert da2.attrs["dt"] == pytest.approx(0.01) and list(da2["x"].values) == [6.0, 8.0]
+    assert list(da2["x_"].values) == [6.0, 8.0]
+    # transposed input: dims are found by name
+    da3 = psd_dataset(xa.transpose("sensor", "time", "realisation"), segment_seconds=1.0)
+    np.testing.assert_allclose(da3.values, S, rtol=1e-13)
+    with pytest.raises(SpecificationError):
+        psd_dataset(x)  # dt needed for arrays
+    with pytest.raises(SpecificationError):
+        psd_dataset(x, 0.01, sensors=["one"])
+
+
+def test_confidence_band_quantiles():
+    rng = rng_for(7, "cb")
+    scale = np.array([1.0, 2.0, 5.0])
+    vals = rng.exponential(size=(4000, 3)) * scale
+    da = xr.DataArray(vals, dims=("realisation", "frequency"), coords={"frequency": [1.0, 2.0, 3.0]},
+                      attrs={"units": "m^2/Hz"})
+    cb = confidence_band(da, 0.95)
+    np.testing.assert_allclose(cb["lower"].values, np.quantile(vals, 0.025, axis=0), rtol=1e-14)
+    np.testing.assert_allclose(cb["upper"].values, np.quantile(vals, 0.975, axis=0), rtol=1e-14)
+    assert cb["lower"].attrs["units"] == "m^2/Hz" and cb.attrs["level"] == 0.95
+    # exponential quantiles x_q = -scale ln(1 - q); an empirical quantile from N draws has std
+    # sqrt(q (1 - q) / N) / pdf(x_q) (asymptotic): 2.7 % relative at 0.975, 10 % at 0.025. 4 sigma.
+    for q, got in ((0.025, cb["lower"].values), (0.975, cb["upper"].values)):
+        xq = -scale * np.log(1 - q)
+        sd = np.sqrt(q * (1 - q) / 4000) / ((1 - q) / scale)
+        assert np.all(np.abs(got - xq) < 4 * sd)
+    # about 95 % of fresh draws fall in the band
+    fresh = rng.exponential(size=(4000, 3)) * scale
+    inside = (fresh >= cb["lower"].values) & (fresh <= cb["upper"].values)
+    assert inside.mean() == pytest.approx(0.95, abs=0.01)
+    ds = confidence_band(xr.Dataset({"psd": da}), 0.9)
+    assert set(ds.data_vars) == {"psd_lower", "psd_upper"}
+    for bad in (dict(level=1.0), dict(level=0.0), dict(dim="delta")):
+        with pytest.raises(SpecificationError):
+            confidence_band(da, **bad)
+    with pytest.raises(SpecificationError):
+        confidence_band(vals)
+    with pytest.raises(SpecificationError):
+        confidence_band(da.astype(complex))
+
+
+def test_j_s_and_distance_closed_forms():
+    r1, r2, band = 18.0, 20.0, 100.0
+    f = np.linspace(0.0, 250.0, 501)  # 0.5 Hz grid
+    S = np.zeros((f.size, 2, 2), dtype=complex)
+    S[f <= band] = np.diag([r1, r2])
+    # J_s = (r1^2 + r2^2) * 2 (both signs) * 2 pi (rad/s per Hz) * band
+    assert j_s(f, S, band) == pytest.approx((r1**2 + r2**2) * 2 * 2 * np.pi * band, rel=1e-14)
+    # complex off-diagonal c counts twice (|S_12|^2 + |S_21|^2)
+    c = 3.0 - 4.0j
+    S2 = S.copy()
+    S2[f <= band, 0, 1] = c
+    S2[f <= band, 1, 0] = np.conj(c)
+    assert j_s(f, S2, band) == pytest.approx((r1**2 + r2**2 + 2 * abs(c) ** 2) * 4 * np.pi * band, rel=1e-14)
+    # band not on the grid: integrate to the edge (interpolated integrand of a constant)
+    assert j_s(f, S2, 99.7) == pytest.approx((r1**2 + r2**2 + 2 * abs(c) ** 2) * 4 * np.pi * 99.7, rel=1e-14)
+    # scalar PSD a f on [0, B]: J = 4 pi a^2 B^3 / 3 (trapezoid error (Δf/B)^2 / 2 ~ 1.3e-5)
+    a = 0.01
+    assert j_s(f, a * f, band) == pytest.approx(4 * np.pi * a**2 * band**3 / 3, rel=2e-5)
+    # batched
+    both = np.stack([S, S2])
+    np.testing.assert_allclose(j_s(f, both, band), [j_s(f, S, band), j_s(f, S2, band)], rtol=1e-14)
+    # D between constant diag(r) and diag(r') = |r - r'|^2 * 4 pi band
+    Sexp = np.zeros_like(S)
+    Sexp[f <= band] = np.diag([15.0, 21.0])
+    assert distance(f, S, Sexp, band) == pytest.approx((3.0**2 + 1.0**2) * 4 * np.pi * band, rel=1e-14)
+    assert distance(f, S, S, band) == 0.0
+    with pytest.raises(SpecificationError):
+        j_s(f, S, 300.0)  # grid does not cover the band
+    with pytest.raises(SpecificationError):
+        j_s(f[1:], S[1:], band)  # must start at 0 Hz
+    with pytest.raises(SpecificationError):
+        j_s(f, S, -1.0)
+    with pytest.raises(SpecificationError):
+        distance(f, S, S[:10], band)
+
+
+def test_refusals():
+    x = np.zeros((1000, 2))
+    for kw in (dict(segment_seconds=0.0), dict(segment_seconds=20.0), dict(overlap=1.0), dict(overlap=-0.1),
+               dict(detrend="quadratic"), dict(window="nonsense")):
+        with pytest.raises(SpecificationError):
+            psd_matrix(x, 0.01, **kw)
+    with pytest.raises(SpecificationError):
+        psd_matrix(x, 0.0)
+    with pytest.raises(SpecificationError):
+        psd_matrix(np.zeros(100), 0.01)
+    with pytest.raises(SpecificationError):
+        psd_matrix(np.full((100, 1), np.nan), 0.01)
+    with pytest.raises(SpecificationError):
+        variance_from_psd(np.array([1.0, 2.0]), np.ones((2, 1, 1)))

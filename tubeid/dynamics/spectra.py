@@ -1,0 +1,318 @@
+"""Matrix PSD estimation (Welch) and the spectral functionals of the identification.
+
+Convention: **two-sided PSD per Hz**, S_ab(f) = lim E[X̂_a(f) conj(X̂_b(f))] / T, i.e. the
+Fourier transform of R_ab(tau) = E[x_a(t + tau) x_b(t)]; S(-f) = conj S(f), and
+Var(x_a) = int_{-inf}^{inf} S_aa(f) df. Estimates are returned for f >= 0 only (0 .. Nyquist);
+the negative half is implied by S(-f) = conj S(f).
+
+Estimator: Welch (``scipy.signal.csd``): segments of ``segment_seconds`` (an even number of
+samples, so the last bin is the Nyquist frequency), window (Hann by default), overlap (50 % by
+default), "density" scaling; the one-sided output of scipy is halved except at DC and Nyquist to
+give the two-sided density. A record of duration T split into 2 s segments with 50 % overlap
+averages about T - 1 segments: each bin has a relative standard deviation ~ 1/sqrt(0.75 (T - 1)).
+
+Functionals (ω in rad/s, dω = 2π df):
+
+    J_s = int_B ||S(ω)||_F^2 dω,   D = int_B ||S_model(ω) - S_exp(ω)||_F^2 dω,
+
+over B: ω ∈ 2π [-band, band], both signs counted (||S(-f)||_F = ||S(f)||_F, so the integral is
+2 * 2π * int_0^band ||S(f)||_F^2 df, trapezoid rule in f). If S is in m^2/Hz, J_s and D are in
+(m^2/Hz)^2 rad/s.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.signal
+import xarray as xr
+
+from tubeid.errors import SpecificationError
+
+__all__ = ["psd_matrix", "psd_dataset", "variance_from_psd", "confidence_band", "j_s", "distance"]
+
+_DETRENDS = (False, "constant", "linear")
+
+
+def _segment_length(segment_seconds, dt, n_t) -> int:
+    try:
+        seg = float(segment_seconds)
+    except (TypeError, ValueError):
+        raise SpecificationError("segment_seconds", segment_seconds, "must be a number (s)") from None
+    if not np.isfinite(seg) or seg <= 0:
+        raise SpecificationError("segment_seconds", segment_seconds, "must be > 0 (s)")
+    nper = 2 * int(round(seg / (2.0 * dt)))
+    if nper < 2:
+        raise SpecificationError("segment_seconds", segment_seconds, f"must span at least 2 samples of dt = {dt:g} s")
+    if nper > n_t:
+        raise SpecificationError("segment_seconds", segment_seconds,
+                                 f"segment of {nper} samples is longer than the record ({n_t} samples, "
+                                 f"{n_t * dt:g} s)")
+    return nper
+
+
+def psd_matrix(x, dt: float, segment_seconds: float = 2.0, window="hann", overlap: float = 0.5,
+               detrend=False) -> tuple[np.ndarray, np.ndarray]:
+    """Welch estimate of the two-sided matrix PSD per Hz of real records x (..., n_t, m).
+
+    dt : sample interval (s). segment_seconds : Welch segment length (s; rounded to an even
+    number of samples). window : any ``scipy.signal.get_window`` spec. overlap : fraction of
+    a segment in [0, 1). detrend : False, "constant" or "linear" (per segment).
+
+    Returns (f, S): f (F,) in Hz from 0 to the Nyquist frequency 1/(2 dt) inclusive;
+    S (..., F, m, m) complex, S[..., k, a, b] = S_ab(f_k) in [x]^2/Hz, Hermitian per bin.
+    """
+    try:
+        x = np.asarray(x, dtype=float)
+    except (TypeError, ValueError):
+        raise SpecificationError("x", type(x).__name__, "must be a real numeric array (..., n_t, m)") from None
+    if x.ndim < 2:
+        raise SpecificationError("x", x.shape, "must have shape (..., n_t, m)")
+    if not np.all(np.isfinite(x)):
+        raise SpecificationError("x", "non-finite", "records must be finite")
+    try:
+        dt = float(dt)
+    except (TypeError, ValueError):
+        raise SpecificationError("dt", dt, "must be a number (s)") from None
+    if not np.isfinite(dt) or dt <= 0:
+        raise SpecificationError("dt", dt, "must be > 0 (s)")
+    n_t, m = x.shape[-2], x.shape[-1]
+    nper = _segment_length(segment_seconds, dt, n_t)
+    try:
+        ov = float(overlap)
+    except (TypeError, ValueError):
+        raise SpecificationError("overlap", overlap, "must be a fraction in [0, 1)") from None
+    if not 0.0 <= ov < 1.0:
+        raise SpecificationError("overlap", overlap, "must be a fraction in [0, 1)")
+    noverlap = min(int(round(ov * nper)), nper - 1)
+    if detrend is not False and detrend not in _DETRENDS:
+        raise SpecificationError("detrend", detrend, f"must be one of {_DETRENDS}")
+    try:
+        win = scipy.signal.get_window(window, nper)
+    except (ValueError, TypeError) as exc:
+        raise SpecificationError("window", window, f"not a scipy window ({exc})") from None
+
+    xt = np.moveaxis(x, -1, -2)  # (..., m, n_t)
+    F = nper // 2 + 1
+    S = np.empty(x.shape[:-2] + (F, m, m), dtype=complex)
+    f = None
+    for a in range(m):
+        for b in range(a, m):
+            # scipy: Pxy = conj(X) Y, so csd(x_b, x_a) = X_a conj(X_b) = S_ab (our convention)
+            f, P = scipy.signal.csd(xt[..., b, :], xt[..., a, :], fs=1.0 / dt, window=win, nperseg=nper,
+                                    noverlap=noverlap, detrend=detrend, return_onesided=True,
+                                    scaling="density", axis=-1)
+            S[..., a, b] = P
+            if b != a:
+                S[..., b, a] = np.conj(P)
+    # one-sided -> two-sided: scipy doubles every bin but DC and (even nperseg) Nyquist
+    S[..., 1:-1, :, :] *= 0.5
+    idx = np.arange(m)
+    S[..., idx, idx] = S[..., idx, idx].real
+    return np.asarray(f, dtype=float), S
+
+
+def psd_dataset(x, dt: float | None = None, segment_seconds: float = 2.0, window="hann", overlap: float = 0.5,
+                detrend=False, sensors=None, dims=None, units: str = "m") -> xr.DataArray:
+    """Labelled Welch matrix PSD: DataArray "psd" with dims (*leading, "frequency", "sensor", "sensor_").
+
+    x : ndarray (..., n_t, m), or a DataArray with dims (..., "time", "sensor") whose uniform
+    "time" coordinate (s) gives dt and whose coordinates (sensor names, and non-index "x",
+    "tube" on "sensor") are carried over. sensors / dims : labels for ndarray input (default
+    "s0".., and ("realisation",) for one leading dim, else "batch0".. ). units : unit of x;
+    the result's ``units`` attribute is f"{units}^2/Hz" (two-sided).
+    """
+    coords: dict = {}
+    sensor_extra = {}
+    if isinstance(x, xr.DataArray):
+        if "time" not in x.dims or "sensor" not in x.dims:
+            raise SpecificationError("x.dims", x.dims, "must contain 'time' and 'sensor'")
+        lead = [d for d in x.dims if d not in ("time", "sensor")]
+        xv = x.transpose(*lead, "time", "sensor")
+        if dt is None:
+            if "time" not in x.coords or x.sizes["time"] < 2:
+                raise SpecificationError("x.time", None, "a time coordinate (s) is needed when dt is not given")
+            t = np.asarray(x["time"].values, dtype=float)
+            steps = np.diff(t)
+            dt = float(np.mean(steps))
+            if not np.allclose(steps, dt, rtol=1e-6, atol=0):
+                raise SpecificationError("x.time", "non-uniform", "sampling must be uniform")
+        dims_lead = tuple(lead)
+        for d in lead:
+            if d in x.coords:
+                coords[d] = x[d].values
+        sensor_names = x["sensor"].values if "sensor" in x.coords else np.array([f"s{i}" for i in range(x.sizes["sensor"])])
+        for name, c in x.coords.items():
+            if name != "sensor" and c.dims == ("sensor",):
+                sensor_extra[name] = c.values
+        units = x.attrs.get("units", units)
+        data = xv.values
+    else:
+        data = np.asarray(x)
+        if dt is None:
+            raise SpecificationError("dt", None, "is required for array input (s)")
+        if data.ndim < 2:
+            raise SpecificationError("x", data.shape, "must have shape (..., n_t, m)")
+        nlead = data.ndim - 2
+        if dims is None:
+            dims_lead = ("realisation",) if nlead == 1 else tuple(f"batch{i}" for i in range(nlead))
+        else:
+            dims_lead = tuple(dims)
+            if len(dims_lead) != nlead:
+                raise SpecificationError("dims", dims, f"must name the {nlead} leading dimension(s)")
+        m = data.shape[-1]
+        sensor_names = np.array([f"s{i}" for i in range(m)] if sensors is None else list(sensors))
+        if sensor_names.size != m:
+            raise SpecificationError("sensors", sensors, f"must name the {m} channels")
+    f, S = psd_matrix(data, dt, segment_seconds=segment_seconds, window=window, overlap=overlap, detrend=detrend)
+    coords["frequency"] = ("frequency", f, {"units": "Hz"})
+    coords["sensor"] = sensor_names
+    coords["sensor_"] = sensor_names
+    for name, vals in sensor_extra.items():
+        coords[name] = ("sensor", vals)
+        coords[name + "_"] = ("sensor_", vals)
+    return xr.DataArray(
+        S, dims=dims_lead + ("frequency", "sensor", "sensor_"), coords=coords, name="psd",
+        attrs={"units": f"{units}^2/Hz", "convention": "two-sided PSD per Hz, f >= 0 stored, S(-f) = conj S(f)",
+               "estimator": f"Welch, window={window!r}, segment={segment_seconds} s, overlap={overlap}",
+               "dt": float(dt)})
+
+
+def variance_from_psd(f, S, nyquist_last: bool = True) -> np.ndarray:
+    """Variances int_{-inf}^{inf} S_aa(f) df from the f >= 0 half of a two-sided PSD.
+
+    f : uniform grid 0, Δf, ..., (Hz). S : (..., F, m, m) or (..., F) (auto-spectra).
+    Rectangle rule on the symmetric bins: Δf (S(0) + 2 sum_{0<f_k<f_N} S(f_k) + S(f_N)), the DC
+    bin and, if ``nyquist_last`` (as :func:`psd_matrix` returns), the Nyquist bin counted once
+    (exact discrete Parseval for a periodogram). Returns (..., m) (or (...)), in [x]^2.
+    """
+    f = np.asarray(f, dtype=float)
+    S = np.asarray(S)
+    if f.ndim != 1 or f.size < 2 or f[0] != 0.0:
+        raise SpecificationError("f", f, "must be a 1-D uniform grid starting at 0 Hz")
+    df = f[1] - f[0]
+    if not np.allclose(np.diff(f), df, rtol=1e-9, atol=0):
+        raise SpecificationError("f", f, "must be uniform")
+    if S.ndim >= 3 and S.shape[-1] == S.shape[-2] and S.shape[-3] == f.size:
+        auto = np.diagonal(S, axis1=-2, axis2=-1).real  # (..., F, m)
+        axis = -2
+    elif S.shape[-1] == f.size:
+        auto = S.real
+        axis = -1
+    else:
+        raise SpecificationError("S", S.shape, f"must be (..., {f.size}, m, m) or (..., {f.size})")
+    w = np.full(f.size, 2.0)
+    w[0] = 1.0
+    if nyquist_last:
+        w[-1] = 1.0
+    w = w * df
+    shape = [1] * auto.ndim
+    shape[axis] = f.size
+    return np.sum(auto * w.reshape(shape), axis=axis)
+
+
+def confidence_band(psd_samples, level: float = 0.95, dim: str = "realisation"):
+    """Per-frequency confidence band of PSD realisations by the quantile method.
+
+    For each remaining coordinate (frequency, sensor, ...), the empirical quantiles
+    (1 - level)/2 and (1 + level)/2 over ``dim`` (linear interpolation between order
+    statistics, numpy's default). ``psd_samples``: xarray DataArray (or Dataset) of real
+    PSD values (take ``.real`` of auto-spectra first). Returns an xarray Dataset with
+    "lower" and "upper" (for a Dataset input: variables "<name>_lower", "<name>_upper"),
+    attrs level and method; units are kept.
+    """
+    if not isinstance(psd_samples, (xr.DataArray, xr.Dataset)):
+        raise SpecificationError("psd_samples", type(psd_samples).__name__, "must be an xarray DataArray or Dataset")
+    try:
+        p = float(level)
+    except (TypeError, ValueError):
+        raise SpecificationError("level", level, "must be a probability in (0, 1)") from None
+    if not 0.0 < p < 1.0:
+        raise SpecificationError("level", level, "must be a probability in (0, 1)")
+    if dim not in psd_samples.dims:
+        raise SpecificationError("dim", dim, f"is not a dimension of the samples {tuple(psd_samples.dims)}")
+    if psd_samples.sizes[dim] < 2:
+        raise SpecificationError(dim, psd_samples.sizes[dim], "need at least 2 realisations")
+    qs = [(1.0 - p) / 2.0, (1.0 + p) / 2.0]
+    if isinstance(psd_samples, xr.DataArray):
+        if np.iscomplexobj(psd_samples.values):
+            raise SpecificationError("psd_samples", "complex", "quantiles need real values (use .real of auto-spectra)")
+        q = psd_samples.quantile(qs, dim=dim)
+        units = psd_samples.attrs.get("units")
+        out = xr.Dataset({"lower": q.isel(quantile=0, drop=True), "upper": q.isel(quantile=1, drop=True)})
+        if units is not None:
+            out["lower"].attrs["units"] = units
+            out["upper"].attrs["units"] = units
+    else:
+        out = xr.Dataset()
+        for name, da in psd_samples.data_vars.items():
+            if dim not in da.dims:
+                continue
+            if np.iscomplexobj(da.values):
+                raise SpecificationError(f"psd_samples[{name!r}]", "complex", "quantiles need real values")
+            q = da.quantile(qs, dim=dim)
+            out[f"{name}_lower"] = q.isel(quantile=0, drop=True).assign_attrs(da.attrs)
+            out[f"{name}_upper"] = q.isel(quantile=1, drop=True).assign_attrs(da.attrs)
+    out.attrs.update({"level": p, "method": f"per-frequency empirical quantiles {qs[0]:g}, {qs[1]:g} over '{dim}'",
+                      "n_samples": int(psd_samples.sizes[dim])})
+    return out
+
+
+def _check_band_grid(f, band, npts):
+    f = np.asarray(f, dtype=float)
+    try:
+        band = float(band)
+    except (TypeError, ValueError):
+        raise SpecificationError("band", band, "must be a number (Hz)") from None
+    if not np.isfinite(band) or band <= 0:
+        raise SpecificationError("band", band, "must be > 0 (Hz)")
+    if f.ndim != 1 or f.size < 2 or not np.all(np.isfinite(f)):
+        raise SpecificationError("f", f, "must be a 1-D grid of >= 2 finite frequencies (Hz)")
+    if f[0] != 0.0:
+        raise SpecificationError("f", float(f[0]), "the grid must start at 0 Hz (f >= 0 half of a two-sided PSD)")
+    if np.any(np.diff(f) <= 0):
+        raise SpecificationError("f", f, "must be strictly increasing")
+    if f[-1] < band * (1 - 1e-12):
+        raise SpecificationError("band", band, f"exceeds the grid's last frequency {f[-1]:g} Hz")
+    if npts != f.size:
+        raise SpecificationError("S", npts, f"frequency axis (-3) must have len(f) = {f.size}")
+    return f, band
+
+
+def j_s(f, S, band: float = 100.0) -> np.ndarray:
+    """J_s = int_B ||S(ω)||_F^2 dω over ω ∈ 2π[-band, band] (rad/s), both signs counted.
+
+    f : (F,) grid in Hz from 0 (f >= 0 half of a two-sided PSD); S : (..., F, m, m) two-sided
+    PSD per Hz (or (..., F) for a scalar PSD). Computed as 2 * 2π * int_0^band ||S(f)||_F^2 df
+    with the trapezoid rule on the grid, ||S||_F^2 linearly interpolated at f = band if band is
+    not a grid point. Units: [S]^2 * rad/s, e.g. (m^2/Hz)^2 rad/s. Returns shape (...).
+    """
+    S = np.asarray(S)
+    if S.ndim >= 3 and S.shape[-1] == S.shape[-2] and S.shape[-3] == np.size(f):
+        n2 = np.sum(np.abs(S) ** 2, axis=(-2, -1))
+    elif S.ndim >= 1:
+        n2 = np.abs(S) ** 2
+    else:
+        raise SpecificationError("S", S.shape, "must be (..., F, m, m) or (..., F)")
+    f, band = _check_band_grid(f, band, n2.shape[-1])
+    inside = f <= band * (1 + 1e-12)
+    fi = f[inside]
+    vals = n2[..., inside]
+    if fi[-1] < band * (1 - 1e-12):  # close the interval at the band edge
+        k = fi.size
+        edge = n2[..., k - 1] + (n2[..., k] - n2[..., k - 1]) * (band - f[k - 1]) / (f[k] - f[k - 1])
+        fi = np.append(fi, band)
+        vals = np.concatenate([vals, edge[..., None]], axis=-1)
+    return 2.0 * 2.0 * np.pi * np.trapezoid(vals, fi, axis=-1)
+
+
+def distance(f, S_model, S_exp, band: float = 100.0) -> np.ndarray:
+    """D = int_B ||S_model(ω) - S_exp(ω)||_F^2 dω over ω ∈ 2π[-band, band] (rad/s).
+
+    Both PSDs two-sided per Hz on the same grid f (Hz, from 0); shapes broadcast. Same rule
+    and units as :func:`j_s`: [S]^2 * rad/s.
+    """
+    try:
+        diff = np.asarray(S_model) - np.asarray(S_exp)
+    except ValueError:
+        raise SpecificationError("S_exp", np.shape(S_exp), f"must broadcast with S_model {np.shape(S_model)}") from None
+    return j_s(f, diff, band)
