@@ -130,31 +130,34 @@ def _read_sidecar(data_path: Path, source: str, *, required: bool):
                                      "sensor sidecar file is missing; it must list columns sensor,tube,x")
         return None
     sname = str(side)
-    with open(side, newline="", encoding="utf-8-sig") as fh:
-        reader = csv.reader(fh)
-        header = next(reader, None)
-        if header is None:
-            raise SpecificationError(sname, "", "empty sidecar; header must be sensor,tube,x")
-        header = [h.strip() for h in header]
-        missing = [c for c in ("sensor", "tube", "x") if c not in header]
-        if missing:
-            raise SpecificationError(f"{sname}: header", header, f"sidecar lacks column(s) {missing}; needs sensor,tube,x")
-        col = {c: header.index(c) for c in ("sensor", "tube", "x", "units") if c in header}
-        rows: dict[str, tuple[str, float, str]] = {}
-        for lineno, row in enumerate(reader, start=2):
-            if not row or all(not cell.strip() for cell in row):
-                continue
-            if len(row) != len(header):
-                raise SpecificationError(f"{sname}: line {lineno}", row, f"must have {len(header)} fields")
-            name, tube, xs = row[col["sensor"]].strip(), row[col["tube"]].strip(), row[col["x"]].strip()
-            units = row[col["units"]].strip() if "units" in col else ""
-            if name in rows:
-                raise SpecificationError(f"{sname}: line {lineno}", name, "duplicate sensor name in sidecar")
-            try:
-                x = float(xs) if xs else math.nan
-            except ValueError:
-                raise SpecificationError(f"{sname}: channel {name!r} x", xs, "must be a number (m)") from None
-            rows[name] = (tube, x, units)
+    try:
+        text = side.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as exc:
+        _fail_read(sname, "UTF-8 CSV", exc)
+    reader = csv.reader(text.splitlines())
+    header = next(reader, None)
+    if header is None:
+        raise SpecificationError(sname, "", "empty sidecar; header must be sensor,tube,x")
+    header = [h.strip() for h in header]
+    missing = [c for c in ("sensor", "tube", "x") if c not in header]
+    if missing:
+        raise SpecificationError(f"{sname}: header", header, f"sidecar lacks column(s) {missing}; needs sensor,tube,x")
+    col = {c: header.index(c) for c in ("sensor", "tube", "x", "units") if c in header}
+    rows: dict[str, tuple[str, float, str]] = {}
+    for lineno, row in enumerate(reader, start=2):
+        if not row or all(not cell.strip() for cell in row):
+            continue
+        if len(row) != len(header):
+            raise SpecificationError(f"{sname}: line {lineno}", row, f"must have {len(header)} fields")
+        name, tube, xs = row[col["sensor"]].strip(), row[col["tube"]].strip(), row[col["x"]].strip()
+        units = row[col["units"]].strip() if "units" in col else ""
+        if name in rows:
+            raise SpecificationError(f"{sname}: line {lineno}", name, "duplicate sensor name in sidecar")
+        try:
+            x = float(xs) if xs else math.nan
+        except ValueError:
+            raise SpecificationError(f"{sname}: channel {name!r} x", xs, "must be a number (m)") from None
+        rows[name] = (tube, x, units)
     return rows
 
 

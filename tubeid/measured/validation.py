@@ -28,7 +28,8 @@ when there is one, and the rule):
   its samples lie within ``CLIP_RTOL * max(|max|, |min|)`` of its maximum (minimum) *and* at least
   ``CLIP_RUN`` of them are consecutive. Continuous (even 16-bit quantised) Gaussian data reach their
   extremes essentially once and never trip it; a constant channel (dead sensor) always does.
-  Caveat: a near-sinusoidal signal quantised to < ~12 bits of its range may trip it;
+  Caveats: a near-sinusoidal signal quantised to < ~12 bits of its range may trip it, and
+  clipping of data that are not oversampled (white noise) makes no runs and is not detected;
 - with ``min_resolution_hz`` given: a record shorter than one segment of that resolution, i.e.
   ``n * dt < 1 / min_resolution_hz`` (relative slack 1e-9 for rounding). Averaging estimators
   (Welch) need proportionally more and check that themselves.
