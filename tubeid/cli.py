@@ -12,6 +12,7 @@ __all__ = ["main"]
 COMMAND_MODULES = [
     "tubeid.mechanics.cli",
     "tubeid.bench",
+    "tubeid.runner.cli",
 ]
 
 

@@ -19,26 +19,34 @@ from tubeid.mechanics.reduction import J_UNITS, ReducedSubsystem, condensed_stif
 from tubeid.seeds import rng_for
 from tubeid.uncertainty.random_matrices import Dispersion, _check_mean, sg_plus_from_germs, sg_plus_germs
 
-__all__ = ["random_subsystem", "random_j", "j_monte_carlo", "random_condensed_stiffness"]
+__all__ = ["germs_from_rngs", "random_subsystem", "random_j", "j_monte_carlo", "random_condensed_stiffness"]
 
 _MATRICES = ("mass", "damping", "stiffness")
 
 
-def _germs(n: int, seed: int, realisations) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Per-realisation germs for each of the three matrices (independent streams)."""
+def germs_from_rngs(n: int, rngs) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """SG+ germs of the mass, damping and stiffness matrices, one generator per realisation.
+
+    Each realisation's generator yields, in this fixed order, the mass, damping and stiffness
+    germs, so a realisation's matrices never depend on the other realisations of its batch.
+    """
     out = {k: ([], []) for k in _MATRICES}
-    for r in realisations:
-        rng = rng_for(seed, "subsystem-B", int(r))
-        for k in _MATRICES:  # fixed order: each realisation's stream is self-contained
+    for rng in rngs:
+        for k in _MATRICES:
             z, u = sg_plus_germs(n, rng=rng)
             out[k][0].append(z)
             out[k][1].append(u)
     return {k: (np.array(z).reshape(len(z), -1), np.array(u).reshape(len(u), -1)) for k, (z, u) in out.items()}
 
 
+def _germs(n: int, seed: int, realisations) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    return germs_from_rngs(n, (rng_for(seed, "subsystem-B", int(r)) for r in realisations))
+
+
 def random_subsystem(sub: ReducedSubsystem, dispersion: Dispersion, seed: int, realisations, *, germs=None):
     """Random (M_B, D_B, K_B), each of shape (R, n, n), for the given realisation indices.
 
+    ``germs`` (from :func:`germs_from_rngs`) replaces the draws from ``(seed, realisation)``.
     Deterministic matrices (dispersion 0) are broadcast views of the mean.
     """
     realisations = np.atleast_1d(np.asarray(realisations, dtype=int))
