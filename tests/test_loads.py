@@ -194,6 +194,7 @@ def test_randomised_singular_mean():
     Sbar = s.matrix([10.0])[0].real
     c = S.real[0, 0] / Sbar[0, 0]
     np.testing.assert_allclose(S, c * Sbar, rtol=1e-12, atol=1e-14)
+    assert np.all(S.imag == 0)  # real S̄ -> real factor -> real S_F (S(-f) = conj S(f) holds)
     lam = np.linalg.eigvalsh(G)
     assert lam[0] - 1e-12 <= c <= lam[-1] + 1e-12
     np.testing.assert_allclose(randomised(s, np.eye(2)).matrix([10.0])[0], Sbar, atol=1e-13)

@@ -99,14 +99,22 @@ def psd_factor(S) -> np.ndarray:
     """A factor L with L^* L = S for each Hermitian PSD matrix of a stack S (..., m, m).
 
     Upper-triangular Cholesky factor (L = C^*, S = C C^*) where S is positive definite;
-    L = diag(sqrt(max(lambda, 0))) V^* (eigendecomposition) where S is singular, i.e. its
-    smallest eigenvalue is <= 1e-10 times its largest (a zero matrix gives L = 0).
+    L = diag(sqrt(max(lambda, 0))) V^* (eigendecomposition; real V for real S) where S is
+    singular, i.e. its smallest eigenvalue is <= 1e-10 times its largest (a zero matrix gives
+    L = 0). For singular complex S, L (hence L^* G L, not its mean) depends on the arbitrary
+    phases of the eigenvectors: the factorisation is not unique there.
     """
     S = np.asarray(S, dtype=complex)
     shape = S.shape
     S2 = S.reshape((-1,) + shape[-2:])
     S2 = 0.5 * (S2 + np.conj(np.swapaxes(S2, -1, -2)))
     lam, V = np.linalg.eigh(S2)
+    # Real matrices get real eigenvectors (a complex eigenvector phase would make L^* G L
+    # non-real where S is real, e.g. at f = 0 or for a constant real spectrum).
+    real = np.all(S2.imag == 0, axis=(1, 2))
+    if np.any(real):
+        lam_r, V_r = np.linalg.eigh(S2[real].real)
+        lam[real], V[real] = lam_r, V_r
     L = np.sqrt(np.clip(lam, 0.0, None))[:, :, None] * np.conj(np.swapaxes(V, -1, -2))
     regular = lam[:, 0] > _SINGULAR_RTOL * np.max(np.abs(lam), axis=1)
     if np.any(regular):
