@@ -1,0 +1,184 @@
+"""Study runner with real processes: `dask scheduler` + 2 `dask worker` started from the command line,
+the embedded LocalCluster with 1 and 2 workers, the runner SIGKILLed mid-study and resumed, a worker
+SIGKILLed mid-study. Every run must end with a store byte-identical (chunk files and non-volatile
+metadata) to an uninterrupted 2-worker local run; no process may be left behind.
+"""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import psutil
+import pytest
+
+from tubeid.runner.testing import flags, store_digest, write_study
+
+pytestmark = [pytest.mark.distributed, pytest.mark.timeout(180)]
+
+RUNNER = [sys.executable, "-m", "tubeid.runner.cli", "run"]
+# 2 deltas x 24 realisations in blocks of 2: 24 tasks of ~0.1-0.2 s each on one core
+SIZE = dict(realisations=24, chunk=2, work=3000)
+
+
+def _env(**extra):
+    env = dict(os.environ, PYTHONUNBUFFERED="1", **extra)
+    env.pop("DASK_SCHEDULER_ADDRESS", None)
+    env.update(extra)
+    return env
+
+
+def _stop(proc, timeout=10.0):
+    """Terminate a process started in its own session, then anything left in that session."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            pass
+    try:
+        os.killpg(proc.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    proc.wait(timeout)
+
+
+def _session_alive(sid) -> list[int]:
+    """Live (non-zombie) processes of a session."""
+    out = []
+    for p in psutil.process_iter(["pid", "status"]):
+        try:
+            if os.getsid(p.info["pid"]) == sid and p.info["status"] != psutil.STATUS_ZOMBIE:
+                out.append(p.info["pid"])
+        except (ProcessLookupError, PermissionError):
+            pass
+    return out
+
+
+def _run(args, env=None, check=True):
+    proc = subprocess.run(RUNNER + [str(a) for a in args] + ["--no-progress"], env=env or _env(),
+                          capture_output=True, text=True, timeout=120)
+    if check:
+        assert proc.returncode == 0, proc.stderr
+    return proc
+
+
+def _wait_flags(store, at_least, proc, timeout=60.0):
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        f = flags(store)
+        if f.size and f.sum() >= at_least:
+            return int(f.sum())
+        assert proc.poll() is None, "runner ended before the kill point"
+        time.sleep(0.02)
+    raise AssertionError("no progress")
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory):
+    return write_study(tmp_path_factory.mktemp("study"), **SIZE)
+
+
+@pytest.fixture(scope="module")
+def reference(study, tmp_path_factory):
+    """The uninterrupted run: embedded LocalCluster with 2 workers."""
+    store = tmp_path_factory.mktemp("ref") / "ref.zarr"
+    _run([study, "--store", store, "--workers", 2])
+    assert flags(store).all()
+    return store_digest(store)
+
+
+@pytest.fixture(scope="module")
+def scheduler(tmp_path_factory):
+    """`dask scheduler` and two `dask worker` processes on 127.0.0.1, each in its own session."""
+    from distributed import Client
+
+    d = tmp_path_factory.mktemp("cluster")
+    sfile = d / "scheduler.json"
+    procs = []
+    log = open(d / "cluster.log", "w")
+    try:
+        procs.append(subprocess.Popen([sys.executable, "-m", "dask", "scheduler", "--host", "127.0.0.1", "--port", "0",
+                                       "--no-dashboard", "--scheduler-file", str(sfile)],
+                                      stdout=log, stderr=log, start_new_session=True, env=_env()))
+        t0 = time.monotonic()
+        while not (sfile.exists() and sfile.stat().st_size):
+            assert time.monotonic() - t0 < 30 and procs[0].poll() is None, "scheduler did not start"
+            time.sleep(0.05)
+        time.sleep(0.05)
+        address = json.loads(sfile.read_text())["address"]
+        for i in range(2):
+            procs.append(subprocess.Popen([sys.executable, "-m", "dask", "worker", address, "--nthreads", "1",
+                                           "--nworkers", "1", "--host", "127.0.0.1", "--no-dashboard",
+                                           "--name", f"w{i}"],
+                                          stdout=log, stderr=log, start_new_session=True, env=_env()))
+        with Client(address, timeout="30s") as client:
+            client.wait_for_workers(2, timeout=60)
+        yield address
+    finally:
+        for p in reversed(procs):
+            _stop(p)
+        log.close()
+        left = [pid for p in procs for pid in _session_alive(p.pid)]
+        assert not left, f"processes left behind: {left}"
+
+
+def test_one_and_two_local_workers_give_identical_stores(study, reference, tmp_path):
+    _run([study, "--store", tmp_path / "one.zarr", "--workers", 1])
+    assert store_digest(tmp_path / "one.zarr") == reference
+
+
+def test_external_scheduler_gives_the_local_result(study, reference, scheduler, tmp_path):
+    proc = _run([study, "--store", tmp_path / "remote.zarr", "--scheduler", scheduler])
+    assert f"running on {scheduler}" in proc.stderr
+    assert store_digest(tmp_path / "remote.zarr") == reference
+
+
+def test_killed_runner_resumes_to_the_identical_store(study, reference, tmp_path):
+    store = tmp_path / "killed.zarr"
+    args = RUNNER + [str(study), "--store", str(store), "--workers", "2", "--no-progress"]
+    proc = subprocess.Popen(args, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
+    try:
+        _wait_flags(store, 3, proc)
+        children = psutil.Process(proc.pid).children(recursive=True)
+        proc.send_signal(signal.SIGKILL)  # the runner only: its worker processes must exit by themselves
+        proc.wait(10)
+        done = int(flags(store).sum())
+        _, alive = psutil.wait_procs(children, timeout=20)
+        assert not [p for p in alive if p.status() != psutil.STATUS_ZOMBIE], "workers outlived the runner"
+    finally:
+        _stop(proc)
+    total = flags(store).size
+    assert 3 <= done < total, "the kill must land mid-study"
+    resumed = _run([study, "--store", store, "--workers", 2])
+    assert f"{done}/{total} blocks already done" in resumed.stderr
+    assert store_digest(store) == reference
+
+
+def test_killed_worker_tasks_are_rescheduled(study, reference, scheduler, tmp_path):
+    from distributed import Client
+
+    store = tmp_path / "worker-killed.zarr"
+    # the scheduler comes from DASK_SCHEDULER_ADDRESS this time
+    proc = subprocess.Popen(RUNNER + [str(study), "--store", str(store), "--no-progress"],
+                            env=_env(DASK_SCHEDULER_ADDRESS=scheduler), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        with Client(scheduler, timeout="30s") as client:
+            _wait_flags(store, 2, proc)
+            processing = client.processing()
+            busy = [w for w, keys in processing.items() if any("tubeid-" in str(k) for k in keys)]
+            assert busy, "no worker was running a block at the kill point"
+            victim = client.run(os.getpid, workers=[busy[0]])[busy[0]]
+            os.kill(victim, signal.SIGKILL)  # the worker process (its nanny restarts it)
+            assert int(flags(store).sum()) < flags(store).size
+            _, err = proc.communicate(timeout=120)
+            assert proc.returncode == 0, err
+            assert not psutil.pid_exists(victim) or psutil.Process(victim).status() == psutil.STATUS_ZOMBIE
+            client.wait_for_workers(2, timeout=60)  # the nanny replaced it
+    finally:
+        _stop(proc)
+    assert store_digest(store) == reference
