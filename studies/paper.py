@@ -4,7 +4,7 @@ For every (δ, realisation): one random stiffness K_B ∈ SE+ of the simplified 
 linear subsystem and its J = ∫ ‖Z(ω)⁻¹‖²_F dω (closed form). Germs are keyed by the realisation
 only, so every δ shares common random numbers. Then ``tubeid.identification.likelihood_curve``
 on the stored J gives p_J(J_ref; δ) and δ_opt (see ``tubeid report``).
-Run: ``tubeid run studies/paper_delta.py``.
+Run: ``tubeid run studies/paper.py``.
 """
 
 import numpy as np
@@ -31,7 +31,7 @@ def j_block(block, rng, *, band_hz):
 
 
 study = Study(
-    name="paper-delta",
+    name="paper",
     description=f"J(delta) Monte Carlo of the stochastic simplified model; J_ref = {reference_j('paper-reference'):.6e} {J_UNITS}",
     seed=2008,
     axes={"delta": np.round(default_delta_grid(SUB.n), 4), "realisation": range(200)},
