@@ -83,6 +83,7 @@ def _client(workers: int | None, scheduler: str | None, quiet: bool):
 
     if scheduler:
         with Client(scheduler, timeout="20s") as client:
+            client.run(_warm)
             yield client
         return
     n = workers or config.get("runner.workers") or os.cpu_count() or 1
@@ -92,7 +93,12 @@ def _client(workers: int | None, scheduler: str | None, quiet: bool):
                                dashboard_address=config.get("runner.dashboard-address", "127.0.0.1:0"),
                                silence_logs=logging.CRITICAL)
     with cluster, Client(cluster) as client:
+        client.run(_warm)  # imports once per worker, before the clock of the first task starts
         yield client
+
+
+def _warm() -> None:
+    import tubeid.runner.store  # noqa: F401  (xarray, zarr)
 
 
 def run(study_path, store=None, *, workers: int | None = None, scheduler: str | None = None,

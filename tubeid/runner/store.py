@@ -157,14 +157,16 @@ def block_flags(path) -> np.ndarray:
 
 
 def write_block(path, study, block, outputs) -> None:
-    """Write one block's outputs into their own region (whole chunks), then its completion flag."""
-    region = dict(block.slices)
-    dims = tuple(study.axes)
-    data = {name: (dims + study.outputs[name].dims, arr) for name, arr in outputs.items()}
-    xr.Dataset(data).to_zarr(str(path), region=region, mode="r+", consolidated=False)
-    flag_region = {f"block_{d}": slice(i, i + 1) for d, i in zip(dims, block.index)}
-    flag = np.ones((1,) * len(dims), dtype="u1")
-    xr.Dataset({FLAG: (_flag_dims(study), flag)}).to_zarr(str(path), region=flag_region, mode="r+", consolidated=False)
+    """Write one block's outputs into their own region (whole chunks), then its completion flag.
+
+    Written with zarr directly into the arrays xarray created (same bytes as an xarray region
+    write: no scale/offset encodings are used), which costs a few ms per block instead of ~10.
+    """
+    group = zarr.open_group(str(path), mode="r+")
+    region = tuple(block.slices.values())
+    for name, arr in outputs.items():
+        group[name][region] = arr
+    group[FLAG][tuple(block.index)] = 1
 
 
 def store_status(path) -> dict:

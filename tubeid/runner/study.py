@@ -293,7 +293,9 @@ class Study:
             if callable(getattr(m, attr, None)):
                 return str(getattr(m, attr)())
         if dataclasses.is_dataclass(m):
-            return json.dumps(dataclasses.asdict(m), default=repr, indent=1)
+            m = dataclasses.asdict(m)
+        if isinstance(m, (Mapping, list, tuple)):
+            return json.dumps(m, default=repr, indent=1)
         return m if isinstance(m, str) else repr(m)
 
 

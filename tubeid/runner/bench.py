@@ -1,0 +1,87 @@
+"""Runner benchmark (``tubeid bench-runner``): speedup from 1 to 2 workers and runner overhead.
+
+A realisation-bound study (one BLAS-free numpy compute loop per realisation, calibrated here to
+about ``block_seconds`` per block) is run on the embedded LocalCluster with each worker count.
+Per run: wall = store preparation + first submit .. last result + finalisation (cluster start-up
+and worker warm-up are one-off costs, reported separately); compute = sum over tasks of the time
+inside the study's task function, measured in the task. Overhead = (workers x wall - compute) /
+compute: every worker-second not spent computing (scheduling, transfer, Zarr writes, flags, store
+creation, provenance, idle tail). Targets on a 2-core machine: speedup >= 1.8, overhead < 3 %.
+"""
+
+from __future__ import annotations
+
+import pathlib
+import tempfile
+import time
+
+import numpy as np
+
+__all__ = ["main", "BENCH_STUDY"]
+
+BENCH_STUDY = '''
+import numpy as np
+from tubeid.runner.study import Output, Parameter, Study
+
+def task(block, rng, *, work):
+    out = np.empty((block["realisation"].size, 4))
+    for j, r in enumerate(block["realisation"]):
+        x = rng(realisation=r).standard_normal(4096)
+        for _ in range(work):
+            x = np.sin(x) * 1.5 + 0.25
+        out[j] = x[:4]
+    return {"x": out}
+
+study = Study(name="bench-runner", seed=1, axes={"realisation": range(REALISATIONS)},
+              chunks={"realisation": PER_BLOCK}, task=task, coords={"component": range(4)},
+              outputs={"x": Output(dims=("component",))}, parameters={"work": Parameter(WORK, bounds=(1, None))})
+'''
+
+PER_BLOCK = 4
+
+
+def _calibrate(block_seconds: float) -> int:
+    """Loop iterations per realisation so that one block takes about ``block_seconds`` here."""
+    x = np.random.default_rng(0).standard_normal(4096)
+    n = 200
+    t0 = time.perf_counter()
+    for _ in range(n):
+        x = np.sin(x) * 1.5 + 0.25
+    per_iter = (time.perf_counter() - t0) / n
+    return max(1, int(block_seconds / PER_BLOCK / per_iter))
+
+
+def main(blocks: int = 16, block_seconds: float = 1.0, worker_counts=(1, 2)) -> int:
+    from tubeid.errors import SpecificationError
+    from tubeid.runner.execute import run
+    from tubeid.runner.testing import store_digest
+
+    if blocks < 1 or block_seconds <= 0:
+        raise SpecificationError("bench", (blocks, block_seconds), "blocks >= 1 and block-seconds > 0")
+    work = _calibrate(block_seconds)
+    with tempfile.TemporaryDirectory(prefix="tubeid-bench-") as tmp:
+        study = pathlib.Path(tmp) / "bench_study.py"
+        study.write_text(BENCH_STUDY.replace("REALISATIONS", str(blocks * PER_BLOCK))
+                         .replace("PER_BLOCK", str(PER_BLOCK)).replace("WORK", str(work)))
+        print(f"bench-runner: {blocks} blocks x {PER_BLOCK} realisations, ~{block_seconds:g} s compute per block")
+        print(f"{'workers':>7} {'startup s':>9} {'wall s':>8} {'compute s':>9} {'writes s':>8} {'overhead':>9} {'speedup':>8}")
+        reports, digests = {}, {}
+        for w in worker_counts:
+            rep = run(study, pathlib.Path(tmp) / f"w{w}.zarr", workers=w, progress=False, quiet=True)
+            reports[w] = rep
+            digests[w] = store_digest(rep.store)
+            overhead = (rep.workers * rep.wall - rep.compute) / rep.compute
+            speedup = reports[worker_counts[0]].wall / rep.wall
+            print(f"{rep.workers:>7} {rep.startup:>9.2f} {rep.wall:>8.2f} {rep.compute:>9.2f} {rep.write:>8.3f} "
+                  f"{100 * overhead:>8.2f}% {speedup:>7.2f}x")
+    base = reports[worker_counts[0]]
+    for w, rep in reports.items():
+        inflation = rep.compute / base.compute - 1
+        if abs(inflation) > 0.05:  # same work, more time inside tasks: the cores were shared
+            print(f"note: compute inside tasks took {100 * inflation:+.0f} % with {w} workers vs {worker_counts[0]}: "
+                  "other processes competed for the cores, which lowers the speedup; rerun on an idle machine")
+    same = all(d == digests[worker_counts[0]] for d in digests.values())
+    print(f"stores identical across worker counts: {'yes' if same else 'NO'}")
+    print("targets: speedup >= 1.8 on 2 workers (2 cores), overhead < 3 % of compute; the machine's other "
+          "load counts against both")
+    return 0 if same else 1
