@@ -1,0 +1,137 @@
+"""Random responses of the stochastic non-linear model: what one Monte Carlo realisation computes.
+
+Realisation r of the stochastic simplified model (paper §2.5, §3, MODEL.md §3.5):
+
+1. random reduced matrices of subsystem B (SE+, dispersions ``Dispersion``), germs from stream 0;
+2. random load spectrum S_F = L_F* G_m L_F, G_m ∈ SG+(m, δ_F) (one per realisation), stream 1;
+3. a Gaussian load history with PSD S_F (FFT spectral representation), stream 2;
+4. the non-linear transient response with the elastic stops (``tubeid.dynamics.solver``);
+5. by default only the response PSD matrix at the sensors (Welch: Hann window, 50 % overlap,
+   ``segment_seconds`` segments; two-sided per Hz) and summary statistics are kept.
+
+The three streams of realisation r are children (``Generator.spawn``) of one generator keyed by
+(seed, r) — or of the generator the runner gives for that realisation — so a realisation is the
+same whatever its batch, and grids over δ, r or δ_F share common random numbers.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import xarray as xr
+
+from tubeid.dynamics.solver import Stop, simulate
+from tubeid.dynamics.spectra import psd_matrix
+from tubeid.errors import SpecificationError
+from tubeid.mechanics.reduction import ReducedModel
+from tubeid.mechanics.spec import LoadPoint
+from tubeid.seeds import rng_for
+from tubeid.uncertainty.loads import LoadSpectrum, randomised
+from tubeid.uncertainty.processes import gaussian_loads
+from tubeid.uncertainty.random_matrices import Dispersion, sg_plus
+from tubeid.uncertainty.random_models import germs_from_rngs, random_subsystem
+
+__all__ = ["ResponseSettings", "realisation_streams", "simulate_responses"]
+
+
+@dataclass(frozen=True)
+class ResponseSettings:
+    """Time and spectral settings of a response realisation (seconds; Welch segments in s).
+
+    ``duration`` 220 s as the paper; ``dt_load`` load sampling (piecewise-linear load);
+    ``output_dt`` 3 ms response sampling; ``discard`` initial transient removed; ``segment_seconds``
+    Welch segment (Hann, 50 % overlap); ``method`` of the solver; ``keep`` "psd" or "series".
+    """
+
+    duration: float = 220.0
+    dt_load: float = 1e-3
+    output_dt: float = 3e-3
+    discard: float = 2.0
+    segment_seconds: float = 8.0
+    method: str = "exact"
+    keep: str = "psd"
+
+    def __post_init__(self):
+        for f in ("duration", "dt_load", "output_dt", "segment_seconds"):
+            v = getattr(self, f)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise SpecificationError(f"settings.{f}", v, "must be a finite number > 0 (s)")
+        if not (0 <= self.discard < self.duration):
+            raise SpecificationError("settings.discard", self.discard, f"must be in [0, duration = {self.duration}) s")
+        if self.segment_seconds > self.duration - self.discard:
+            raise SpecificationError("settings.segment_seconds", self.segment_seconds, "must not exceed duration − discard")
+        if self.keep not in ("psd", "series"):
+            raise SpecificationError("settings.keep", self.keep, "must be 'psd' or 'series'")
+
+
+def realisation_streams(seed: int | None, realisation: int, rng: np.random.Generator | None = None):
+    """The (model, load-spectrum, load-process) generators of one realisation."""
+    base = rng if rng is not None else rng_for(seed, "response", int(realisation))
+    return base.spawn(3)
+
+
+def _load_points(load: LoadSpectrum) -> tuple[LoadPoint, ...]:
+    return tuple(LoadPoint(name=n, tube=load.tube, x=float(x), kind=k) for n, k, x in zip(load.names, load.kinds, load.x))
+
+
+def simulate_responses(
+    model: ReducedModel,
+    load: LoadSpectrum,
+    realisations,
+    *,
+    seed: int | None = None,
+    rngs=None,
+    dispersion: Dispersion = Dispersion(),
+    load_dispersion: float = 0.0,
+    settings: ResponseSettings = ResponseSettings(),
+) -> xr.Dataset:
+    """Monte Carlo responses at the model's sensors: Dataset over ``realisation``.
+
+    Variables: ``psd`` (realisation, frequency, sensor, sensor_) two-sided PSD matrix [m²/Hz]
+    (complex), ``rms`` (realisation, sensor) [m], ``contact_fraction`` and ``contact_events``
+    (realisation, stop); with ``keep="series"`` also ``displacement`` (realisation, time, sensor).
+    ``rngs``: one generator per realisation (e.g. the runner's), else streams from (seed, r).
+    """
+    realisations = np.atleast_1d(np.asarray(realisations, dtype=int))
+    if rngs is None and seed is None:
+        raise SpecificationError("seed", None, "give a seed or one generator per realisation")
+    streams = [realisation_streams(seed, r, None if rngs is None else rngs[i]) for i, r in enumerate(realisations)]
+    sub = model.subsystem
+    dispersion.check(sub.n)
+    germs = germs_from_rngs(sub.n, [s[0] for s in streams])
+    MB, DB, KB = random_subsystem(sub, dispersion, 0, realisations, germs=germs)
+    M, D, K = model.matrices(MB, DB, KB)
+    m = len(load.names)
+    loads = np.empty((len(realisations), int(round(settings.duration / settings.dt_load)) + 1, m))
+    for i, s in enumerate(streams):
+        spectrum = load if load_dispersion == 0.0 else randomised(load, sg_plus(m, load_dispersion, rng=s[1]))
+        loads[i] = gaussian_loads(spectrum, settings.duration, settings.dt_load, [s[2]], interpolation="linear")[0]
+    B = model.load_matrix(_load_points(load))
+    C = model.sensor_matrix()
+    stops = [Stop(b=tuple(b), gap=s.gap, stiffness=s.stiffness, name=f"stop{i}") for i, (b, s) in enumerate(zip(model.stop_vectors(), model.spec.stops))]
+    names = [s.name for s in model.spec.sensors]
+    res = simulate(M, D, K, stops, B, C, loads, settings.dt_load, output_dt=settings.output_dt, method=settings.method,
+                   keep="series", discard=settings.discard, sensor_names=names)
+    y = res.observations.transpose("realisation", "time", "sensor")
+    f, S = psd_matrix(y.values, settings.output_dt, segment_seconds=settings.segment_seconds)
+    ds = xr.Dataset(
+        {
+            "psd": (("realisation", "frequency", "sensor", "sensor_"), S, {"units": "m^2/Hz", "long_name": "two-sided response PSD matrix"}),
+            "rms": res.rms.assign_coords(realisation=realisations),
+            "contact_fraction": res.contact_fraction.assign_coords(realisation=realisations),
+            "contact_events": res.contact_events.assign_coords(realisation=realisations),
+        },
+        coords={"realisation": realisations, "frequency": ("frequency", f, {"units": "Hz"}), "sensor": names, "sensor_": names},
+        attrs={
+            "model": model.spec.name, "loads": list(load.names), "load_dispersion": load_dispersion,
+            "dispersion": [dispersion.mass, dispersion.damping, dispersion.stiffness],
+            "duration": settings.duration, "discard": settings.discard, "output_dt": settings.output_dt,
+            "welch": f"hann window, {settings.segment_seconds} s segments, 50 % overlap; two-sided per Hz",
+            "method": settings.method,
+        },
+    )
+    if settings.keep == "series":
+        ds["displacement"] = y.assign_coords(realisation=realisations)
+    return ds
