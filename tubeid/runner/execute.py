@@ -82,7 +82,11 @@ def _client(workers: int | None, scheduler: str | None, quiet: bool):
     from distributed import Client, LocalCluster
 
     if scheduler:
-        with Client(scheduler, timeout="20s") as client:
+        try:
+            client = Client(scheduler, timeout=config.get("runner.connect-timeout", "20s"))
+        except (OSError, TypeError, ValueError) as exc:  # unreachable, refused, or TLS misconfigured
+            raise SpecificationError("scheduler", scheduler, f"cannot connect: {type(exc).__name__}: {exc}") from exc
+        with client:
             client.run(_warm)
             yield client
         return
@@ -126,29 +130,34 @@ def run(study_path, store=None, *, workers: int | None = None, scheduler: str | 
     progress = config.get("runner.progress", True) if progress is None else progress
 
     report = RunReport(store=path, total=study.n_blocks, computed=0, skipped=0, workers=0)
+    if state == "resume" and block_flags(path).all():
+        report.skipped = study.n_blocks
+        _log(f"tubeid: {path} is complete ({study.n_blocks} blocks): nothing to do", quiet)
+        return report
     t0 = time.perf_counter()
-    if state == "new":
-        init_store(study, path, source=source, study_hash=key, study_file=str(study_path), overrides=overrides)
-        _log(f"tubeid: new store {path} ({study.n_blocks} blocks)", quiet)
-    else:
-        update_attrs(path, runs=list(read_attrs(path).get("runs", [])) + [now()])
-    flags = block_flags(path)
-    todo = [b.index for b in study.blocks() if not flags[b.index]]
-    report.skipped = study.n_blocks - len(todo)
-    if state == "resume":
-        _log(f"tubeid: resuming {path}: {report.skipped}/{study.n_blocks} blocks already done", quiet)
-    report.prepare = time.perf_counter() - t0
-
-    if todo:
-        if workers == 0:
-            _run_here(study, path, source, overrides, todo, report, progress and not quiet)
+    with (contextlib.nullcontext() if workers == 0 else _client(workers, scheduler, quiet)) as client:
+        report.startup = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        if state == "new":
+            init_store(study, path, source=source, study_hash=key, study_file=str(study_path), overrides=overrides)
+            _log(f"tubeid: new store {path} ({study.n_blocks} blocks)", quiet)
         else:
-            _run_dask(workers, scheduler, path, source, overrides, key, todo, report, progress and not quiet, quiet, t_start)
+            update_attrs(path, runs=list(read_attrs(path).get("runs", [])) + [now()])
+        flags = block_flags(path)
+        todo = [b.index for b in study.blocks() if not flags[b.index]]
+        report.skipped = study.n_blocks - len(todo)
+        if state == "resume":
+            _log(f"tubeid: resuming {path}: {report.skipped}/{study.n_blocks} blocks already done", quiet)
+        report.prepare = time.perf_counter() - t0
+        show = progress and not quiet
+        if client is None:
+            _run_here(study, path, source, overrides, todo, report, show)
+        else:
+            _run_dask(client, scheduler, path, source, overrides, key, todo, report, show, quiet)
     t0 = time.perf_counter()
     if not block_flags(path).all():
         raise RuntimeError(f"{path}: run ended with unfinished blocks")  # should not happen
-    if not read_attrs(path).get("finished"):
-        update_attrs(path, finished=now())
+    update_attrs(path, finished=now())
     report.finalise = time.perf_counter() - t0
     _log(f"tubeid: done: {report.computed} blocks computed, {report.skipped} already done; store {path}", quiet)
     return report
@@ -177,28 +186,26 @@ def _run_here(study, path, source, overrides, todo, report, progress):
     report.tasks = time.perf_counter() - t0
 
 
-def _run_dask(workers, scheduler, path, source, overrides, key, todo, report, progress, quiet, t_start):
+def _run_dask(client, scheduler, path, source, overrides, key, todo, report, progress, quiet):
     from distributed import as_completed
 
-    t0 = time.perf_counter()
-    with _client(workers, scheduler, quiet) as client:
-        report.startup = time.perf_counter() - t0
-        report.workers = len(client.scheduler_info(n_workers=-1)["workers"])
-        link = getattr(client, "dashboard_link", "") or ""
-        report.dashboard = link
-        if link and importlib.util.find_spec("bokeh") is None:
-            link += " (its plots need bokeh>=3.1 installed)"
-        where = scheduler or f"embedded LocalCluster ({report.workers} single-threaded worker processes)"
-        _log(f"tubeid: running on {where}" + (f"; dashboard {link}" if link else ""), quiet)
-        t1 = time.perf_counter()
-        futures = [client.submit(run_block, str(path), source, overrides, index, pure=False,
-                                 key=f"tubeid-{key[:10]}-block-{'-'.join(map(str, index))}")
-                   for index in todo]
-        try:
-            with _bar(report.total, report.skipped, progress) as bar:
-                for fut in as_completed(futures):
-                    _account(report, fut.result(), bar)
-        except BaseException:
-            client.cancel(futures)
-            raise
-        report.tasks = time.perf_counter() - t1
+    info = client.scheduler_info(n_workers=-1)
+    report.workers = len(info["workers"])
+    link = (getattr(client, "dashboard_link", "") or "") if "dashboard" in info.get("services", {}) else ""
+    report.dashboard = link
+    if link and importlib.util.find_spec("bokeh") is None:
+        link += " (its plots need bokeh>=3.1 installed)"
+    where = scheduler or f"embedded LocalCluster ({report.workers} single-threaded worker processes)"
+    _log(f"tubeid: running on {where}" + (f"; dashboard {link}" if link else ""), quiet)
+    t1 = time.perf_counter()
+    futures = [client.submit(run_block, str(path), source, overrides, index, pure=False,
+                             key=f"tubeid-{key[:10]}-block-{'-'.join(map(str, index))}")
+               for index in todo]
+    try:
+        with _bar(report.total, report.skipped, progress) as bar:
+            for fut in as_completed(futures):
+                _account(report, fut.result(), bar)
+    except BaseException:
+        client.cancel(futures)
+        raise
+    report.tasks = time.perf_counter() - t1
