@@ -239,3 +239,35 @@ def test_example_studies_load_and_pi_runs(tmp_path):
     # each estimate has sd sqrt(pi (4 - pi) / 2000) = 0.0367; the mean of 256 has sd 0.0023: 5 sd
     assert abs(float(pi.mean()) - np.pi) < 5 * np.sqrt(np.pi * (4 - np.pi) / 2000 / 256)
     assert float(pi.std()) == pytest.approx(np.sqrt(np.pi * (4 - np.pi) / 2000), rel=0.25)  # sd of sd ~ 4.4 %
+
+
+def test_cluster_configurations_are_consistent():
+    import yaml
+
+    c = REPO / "cluster"
+    packaged = yaml.safe_load((REPO / "tubeid/tubeid.yaml").read_text())["tubeid"]["runner"]
+    local = yaml.safe_load((c / "local/tubeid-local.yaml").read_text())["tubeid"]["runner"]
+    assert local == packaged  # the documented local default is the packaged one
+    compose = yaml.safe_load((c / "docker/compose.yaml").read_text())["services"]
+    assert "tcp://scheduler:8786" in compose["worker"]["command"] and "--nthreads" in compose["worker"]["command"]
+    assert compose["runner"]["environment"]["DASK_SCHEDULER_ADDRESS"] == "tcp://scheduler:8786"
+    job = yaml.safe_load((c / "kubernetes/daskjob.yaml").read_text())
+    assert job["kind"] == "DaskJob" and job["apiVersion"] == "kubernetes.dask.org/v1"
+    runner = job["spec"]["job"]["spec"]["containers"][0]
+    worker = job["spec"]["cluster"]["spec"]["worker"]["spec"]["containers"][0]
+    assert runner["args"][:2] == ["tubeid", "run"]
+    mount = {m["name"]: m["mountPath"] for m in runner["volumeMounts"]}["results"]
+    assert {m["name"]: m["mountPath"] for m in worker["volumeMounts"]}["results"] == mount  # same store path
+    slurm = yaml.safe_load((c / "slurm/jobqueue.yaml").read_text())["jobqueue"]["slurm"]
+    assert slurm["cores"] == slurm["processes"]  # single-threaded workers
+    tls = (c / "tls/dask-tls.yaml.in").read_text()
+    assert "require-encryption: true" in tls
+    for role in ("scheduler", "worker", "client"):
+        assert f"@DIR@/{role}.pem" in tls and f"@DIR@/{role}-key.pem" in tls
+
+
+def test_slurm_job_script_has_single_threaded_workers():
+    pytest.importorskip("dask_jobqueue")
+    out = subprocess.run([sys.executable, str(REPO / "cluster/slurm/run_study.py"), "x.py", "--print-job-script"],
+                         capture_output=True, text=True, check=True).stdout
+    assert "#SBATCH --cpus-per-task=8" in out and "--nthreads 1" in out and "--nworkers 8" in out

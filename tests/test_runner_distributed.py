@@ -6,6 +6,9 @@ metadata) to an uninterrupted 2-worker local run; no process may be left behind.
 
 import json
 import os
+import pathlib
+import shutil
+import socket
 import signal
 import subprocess
 import sys
@@ -182,3 +185,34 @@ def test_killed_worker_tasks_are_rescheduled(study, reference, scheduler, tmp_pa
     finally:
         _stop(proc)
     assert store_digest(store) == reference
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl")
+def test_tls_cluster_from_the_cluster_settings(study, reference, tmp_path):
+    """cluster/tls: certificates + dask config; a TLS scheduler/worker runs the study; no-cert clients are refused."""
+    repo = pathlib.Path(__file__).resolve().parents[1]
+    certs = tmp_path / "tls"
+    subprocess.run(["bash", str(repo / "cluster/tls/make-certs.sh"), str(certs)], check=True, capture_output=True)
+    env = _env(DASK_CONFIG=str(certs))
+    with socket.socket() as s:  # a free port for the scheduler
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    address = f"tls://127.0.0.1:{port}"
+    procs = [subprocess.Popen([sys.executable, "-m", "dask", "scheduler", "--host", "127.0.0.1", "--port", str(port),
+                               "--no-dashboard"], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                              start_new_session=True)]
+    try:
+        procs.append(subprocess.Popen([sys.executable, "-m", "dask", "worker", address, "--nthreads", "1",
+                                       "--no-dashboard", "--host", "127.0.0.1"], env=env, stdout=subprocess.DEVNULL,
+                                      stderr=subprocess.DEVNULL, start_new_session=True))
+        proc = _run([study, "--store", tmp_path / "tls.zarr", "--scheduler", address], env=env)
+        assert f"running on {address}" in proc.stderr
+        assert store_digest(tmp_path / "tls.zarr") == reference
+        plain = _run([study, "--store", tmp_path / "plain.zarr", "--scheduler", address],
+                     env=_env(TUBEID_RUNNER__CONNECT_TIMEOUT="5s"), check=False)
+        assert plain.returncode == 2 and "cannot connect" in plain.stderr
+        assert not (tmp_path / "plain.zarr").exists()
+    finally:
+        for p in reversed(procs):
+            _stop(p)
+        assert not [pid for p in procs for pid in _session_alive(p.pid)]
