@@ -17,6 +17,9 @@ import time
 import psutil
 import pytest
 
+import numpy as np
+
+from tubeid.runner.store import open_results
 from tubeid.runner.testing import flags, store_digest, write_study
 
 pytestmark = [pytest.mark.distributed, pytest.mark.timeout(180)]
@@ -146,6 +149,12 @@ def test_killed_runner_resumes_to_the_identical_store(study, reference, tmp_path
                             start_new_session=True)
     try:
         _wait_flags(store, 3, proc)
+        # partial results are readable with xarray while the study runs: every flagged block is complete
+        ds = open_results(store, flags=True)
+        done_blocks = np.argwhere(ds.block_done.values == 1)
+        for i, j in done_blocks:
+            part = ds.x.isel(delta=slice(i, i + 1), realisation=slice(2 * j, 2 * j + 2)).values
+            assert np.isfinite(part).all()
         children = psutil.Process(proc.pid).children(recursive=True)
         proc.send_signal(signal.SIGKILL)  # the runner only: its worker processes must exit by themselves
         proc.wait(10)
