@@ -225,3 +225,23 @@ def test_tls_cluster_from_the_cluster_settings(study, reference, tmp_path):
         for p in reversed(procs):
             _stop(p)
         assert not [pid for p in procs for pid in _session_alive(p.pid)]
+
+
+def test_ctrl_c_stops_cleanly_and_resumes(study, reference, tmp_path):
+    store = tmp_path / "interrupted.zarr"
+    proc = subprocess.Popen(RUNNER + [str(study), "--store", str(store), "--workers", "2", "--no-progress"],
+                            env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    try:
+        _wait_flags(store, 2, proc)
+        children = psutil.Process(proc.pid).children(recursive=True)
+        os.killpg(proc.pid, signal.SIGINT)  # a terminal's Ctrl-C reaches the whole foreground group
+        _, err = proc.communicate(timeout=60)
+        _, alive = psutil.wait_procs(children, timeout=20)
+        assert not [p for p in alive if p.status() != psutil.STATUS_ZOMBIE]
+    finally:
+        _stop(proc)
+    assert proc.returncode == 130 and "rerun the same command to resume" in err
+    assert 2 <= flags(store).sum() < flags(store).size
+    _run([study, "--store", store, "--workers", 2])
+    assert store_digest(store) == reference
