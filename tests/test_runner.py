@@ -19,7 +19,7 @@ from tubeid.runner.cli import main as cli
 from tubeid.runner.execute import run
 from tubeid.runner.store import open_results, store_status
 from tubeid.runner.study import Output, Parameter, Study, load_study, pointwise
-from tubeid.runner.testing import flags, store_digest, write_study
+from tubeid.runner.testing import store_digest, write_study
 from tubeid.seeds import rng_for
 
 REPO = pathlib.Path(__file__).resolve().parents[1]

@@ -20,7 +20,7 @@ import time
 from tubeid import config
 from tubeid.errors import SpecificationError
 from tubeid.runner.store import (block_flags, check_store, init_store, now, prepare_path, read_attrs,
-                                 update_attrs, write_block)
+                                 tubeid_version, update_attrs, write_block)
 from tubeid.runner.study import load_study
 
 __all__ = ["run", "run_block", "RunReport", "default_store", "scheduler_address"]
@@ -114,7 +114,6 @@ def run(study_path, store=None, *, workers: int | None = None, scheduler: str | 
     blocks sequentially in this process, for debugging); scheduler: address of an existing
     scheduler (default: configuration, then DASK_SCHEDULER_ADDRESS).
     """
-    t_start = time.perf_counter()
     overrides = dict(overrides or {})
     study, source, key = load_study(study_path, overrides=overrides)  # validates the definition
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 0):
@@ -142,7 +141,11 @@ def run(study_path, store=None, *, workers: int | None = None, scheduler: str | 
             init_store(study, path, source=source, study_hash=key, study_file=str(study_path), overrides=overrides)
             _log(f"tubeid: new store {path} ({study.n_blocks} blocks)", quiet)
         else:
-            update_attrs(path, runs=list(read_attrs(path).get("runs", [])) + [now()])
+            attrs = read_attrs(path)
+            if attrs.get("tubeid_version") != tubeid_version():
+                _log(f"tubeid: warning: {path} was started with tubeid {attrs.get('tubeid_version')}, "
+                     f"resuming with {tubeid_version()}; use --overwrite if the results may differ", quiet)
+            update_attrs(path, runs=list(attrs.get("runs", [])) + [now()])
         flags = block_flags(path)
         todo = [b.index for b in study.blocks() if not flags[b.index]]
         report.skipped = study.n_blocks - len(todo)
