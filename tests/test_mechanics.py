@@ -297,3 +297,42 @@ def test_load_and_sensor_matrices():
     q = np.zeros(red.N)
     q[-2] = 1.0  # interface DOFs are ordered by x: 4, 8, 12 m
     assert (C @ q)[0] == pytest.approx(1.0, abs=1e-12)
+
+
+def test_effect_catalog_applies_and_round_trips(tmp_path):
+    from tubeid.mechanics.effects import EFFECTS, AddedMass, Damping, ExtraStop, SensorNoise, Tone, apply_effects
+
+    assert sorted(EFFECTS) == ["added_mass", "damping", "sensor_noise", "stop", "tone"]
+    base = builtin_spec("paper-simplified")
+    spec = apply_effects(base, [AddedMass("centre", 0.5), Damping("equivalent", 0.05), ExtraStop("centre", 10.0, 2e-6, 5e7),
+                                ExtraStop("centre", 6.0, 3e-6, 1e8), Tone(23.0, 10.0), SensorNoise(1e-16)])
+    assert spec.tube("centre").density == 375.0 and spec.tube("equivalent").damping_ratio == 0.05
+    assert [(s.x, s.gap) for s in spec.stops] == [(6.0, 3e-6), (10.0, 2e-6)]
+    assert base.stops[0].gap == 1.5e-6  # the original is untouched
+    # added mass lowers every frequency of the centre tube by 1/sqrt(1.5) when it is alone
+    f0 = assemble(BundleSpec("c", (base.tube("centre"),))).eigenfrequencies(3)
+    f1 = assemble(BundleSpec("c", (spec.tube("centre"),))).eigenfrequencies(3)
+    np.testing.assert_allclose(f1 / f0, 1 / math.sqrt(1.5), rtol=1e-10)
+    import yaml
+
+    p = tmp_path / "with-effects.yaml"
+    p.write_text(yaml.safe_dump(spec_to_dict(spec)))
+    assert load_spec(p) == spec
+
+
+@pytest.mark.parametrize(
+    "effect, field",
+    [
+        ({"kind": "tone", "frequency_hz": -3.0, "amplitude": 1.0}, "tone.frequency_hz"),
+        ({"kind": "damping", "tube": "centre", "ratio": 1.5}, "damping.ratio"),
+        ({"kind": "added_mass", "tube": "nowhere", "factor": 0.1}, r"effects\[0\]\.tube"),
+        ({"kind": "wind", "level": 1.0}, r"effects\[0\]\.kind"),
+        ({"kind": "stop", "tube": "centre", "x": 30.0, "gap": 1e-6, "stiffness": 1e8}, r"stops\[1\]\.x"),
+        ({"kind": "tone", "frequency_hz": 3.0, "amplitude": 1.0, "x": 99.0}, r"effects\[0\]\.x"),
+    ],
+)
+def test_bad_effects_are_refused(effect, field):
+    from tubeid.mechanics.effects import apply_effects
+
+    with pytest.raises(SpecificationError, match=field):
+        apply_effects(builtin_spec("paper-simplified"), [effect])

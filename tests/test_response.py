@@ -71,3 +71,25 @@ def test_bad_settings_are_refused():
         ResponseSettings(duration=10.0, discard=12.0)
     with pytest.raises(SpecificationError, match="settings.keep"):
         ResponseSettings(keep="everything")
+
+
+def test_tone_and_sensor_noise_effects_appear_where_they_should():
+    """A 23 Hz tone adds a narrow peak of power A²/2 (two-sided: A²/4 at ±f0); sensor noise adds a flat floor."""
+    from tubeid.mechanics.effects import SensorNoise, Tone, apply_effects
+
+    base = builtin_spec("paper-simplified")
+    s = ResponseSettings(duration=40.0, discard=2.0, segment_seconds=4.0)
+    model0 = reduce(base)
+    plain = simulate_responses(model0, coherent_forces(), [0, 1], seed=4, settings=s)
+    noisy = simulate_responses(reduce(apply_effects(base, [SensorNoise(level=1e-14)])), coherent_forces(), [0, 1], seed=4, settings=s)
+    f = plain.frequency.values
+    p0 = plain.psd.real.isel(sensor=0, sensor_=0).mean("realisation").values
+    p1 = noisy.psd.real.isel(sensor=0, sensor_=0).mean("realisation").values
+    hi = (f > 120) & (f < 160)  # above the load band the structure's response is far below the floor
+    assert np.mean(p1[hi] - p0[hi]) == pytest.approx(1e-14, rel=0.1)
+    toned = simulate_responses(reduce(apply_effects(base, [Tone(frequency_hz=23.0, amplitude=400.0)])), coherent_forces(), [0, 1], seed=4, settings=s)
+    p2 = toned.psd.real.isel(sensor=0, sensor_=0).mean("realisation").values
+    k = np.argmin(np.abs(f - 23.0))
+    assert p2[k] > 10 * p0[k]
+    far = np.abs(f - 23.0) > 3
+    assert np.median(p2[far] / p0[far]) == pytest.approx(1.0, rel=0.3)  # the contact couples the tone a little

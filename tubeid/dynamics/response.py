@@ -5,7 +5,9 @@ Realisation r of the stochastic simplified model (paper §2.5, §3, MODEL.md §3
 1. random reduced matrices of subsystem B (SE+, dispersions ``Dispersion``), germs from stream 0;
 2. random load spectrum S_F = L_F* G_m L_F, G_m ∈ SG+(m, δ_F) (one per realisation), stream 1;
 3. a Gaussian load history with PSD S_F (FFT spectral representation), stream 2;
-4. the non-linear transient response with the elastic stops (``tubeid.dynamics.solver``);
+4. the non-linear transient response with the elastic stops (``tubeid.dynamics.solver``), plus
+   the specification's carried effects: ``tone`` forces (random phase, stream 3) and
+   ``sensor_noise`` (white, added to the sampled responses, stream 3);
 5. by default only the response PSD matrix at the sensors (Welch: Hann window, 50 % overlap,
    ``segment_seconds`` segments; two-sided per Hz) and summary statistics are kept.
 
@@ -67,9 +69,9 @@ class ResponseSettings:
 
 
 def realisation_streams(seed: int | None, realisation: int, rng: np.random.Generator | None = None):
-    """The (model, load-spectrum, load-process) generators of one realisation."""
+    """The (model, load-spectrum, load-process, effects) generators of one realisation."""
     base = rng if rng is not None else rng_for(seed, "response", int(realisation))
-    return base.spawn(3)
+    return base.spawn(4)
 
 
 def _load_points(load: LoadSpectrum) -> tuple[LoadPoint, ...]:
@@ -108,13 +110,28 @@ def simulate_responses(
     for i, s in enumerate(streams):
         spectrum = load if load_dispersion == 0.0 else randomised(load, sg_plus(m, load_dispersion, rng=s[1]))
         loads[i] = gaussian_loads(spectrum, settings.duration, settings.dt_load, [s[2]], interpolation="linear")[0]
-    B = model.load_matrix(_load_points(load))
+    from tubeid.mechanics.effects import SensorNoise, Tone
+
+    tones = [e for e in model.spec.effects if isinstance(e, Tone)]
+    noise = sum(e.level for e in model.spec.effects if isinstance(e, SensorNoise))
+    points = _load_points(load) + tuple(LoadPoint(name=f"tone{i}", tube=e.tube, x=e.x) for i, e in enumerate(tones))
+    if tones:
+        t = np.arange(loads.shape[1]) * settings.dt_load
+        phases = np.array([s[3].uniform(0, 2 * np.pi, len(tones)) for s in streams])  # (R, n_tones)
+        f0 = np.array([e.frequency_hz for e in tones])
+        amp = np.array([e.amplitude for e in tones])
+        extra = amp * np.cos(2 * np.pi * f0 * t[None, :, None] + phases[:, None, :])
+        loads = np.concatenate([loads, extra], axis=2)
+    B = model.load_matrix(points)
     C = model.sensor_matrix()
     stops = [Stop(b=tuple(b), gap=s.gap, stiffness=s.stiffness, name=f"stop{i}") for i, (b, s) in enumerate(zip(model.stop_vectors(), model.spec.stops))]
     names = [s.name for s in model.spec.sensors]
     res = simulate(M, D, K, stops, B, C, loads, settings.dt_load, output_dt=settings.output_dt, method=settings.method,
                    keep="series", discard=settings.discard, sensor_names=names)
     y = res.observations.transpose("realisation", "time", "sensor")
+    if noise > 0:  # two-sided white PSD `noise` [m²/Hz] sampled at output_dt: variance noise/output_dt
+        sigma = np.sqrt(noise / settings.output_dt)
+        y = y.copy(data=y.values + sigma * np.stack([s[3].standard_normal(y.shape[1:]) for s in streams]))
     f, S = psd_matrix(y.values, settings.output_dt, segment_seconds=settings.segment_seconds)
     ds = xr.Dataset(
         {

@@ -200,9 +200,10 @@ class BundleSpec:
     nonlinear_tube: str | None = None
     reduction: ReductionSpec = field(default_factory=ReductionSpec)
     assumptions: str = ""
+    effects: tuple = ()
 
     def __post_init__(self) -> None:
-        for f in ("tubes", "links", "stops", "loads", "sensors"):
+        for f in ("tubes", "links", "stops", "loads", "sensors", "effects"):
             object.__setattr__(self, f, tuple(getattr(self, f)))
         self.validate()
 
@@ -267,6 +268,13 @@ class BundleSpec:
                 on_tube(f"{w}.x", tube_of(f"{w}.tube", p.tube), p.x)
                 if what == "loads" and p.kind not in LOAD_KINDS:
                     raise SpecificationError(f"{w}.kind", p.kind, f"must be one of {LOAD_KINDS}")
+        from tubeid.mechanics.effects import SensorNoise, Tone
+
+        for i, e in enumerate(self.effects):
+            if not isinstance(e, (Tone, SensorNoise)):
+                raise SpecificationError(f"effects[{i}]", e, "must be a tone or sensor_noise effect (use apply_effects for structural effects)")
+            if isinstance(e, Tone):
+                on_tube(f"effects[{i}].x", tube_of(f"effects[{i}].tube", e.tube), e.x)
         a = self.a_tube
         if a is not None:
             tube_of("nonlinear_tube", a)
@@ -329,6 +337,10 @@ def spec_from_dict(data: Mapping[str, Any]) -> BundleSpec:
         data[key] = tuple(_build(cls, item, f"{key}[{i}]") for i, item in enumerate(items))
     if "reduction" in data:
         data["reduction"] = _build(ReductionSpec, data["reduction"], "reduction")
+    if "effects" in data:
+        from tubeid.mechanics.effects import effect_from_dict
+
+        data["effects"] = tuple(effect_from_dict(e, f"effects[{i}]") for i, e in enumerate(data["effects"] or []))
     if "name" not in data:
         raise SpecificationError("name", None, "is required")
     return BundleSpec(**data)
@@ -336,7 +348,10 @@ def spec_from_dict(data: Mapping[str, Any]) -> BundleSpec:
 
 def spec_to_dict(spec: BundleSpec) -> dict[str, Any]:
     """Plain-data form of a specification (round-trips through :func:`spec_from_dict`)."""
+    from tubeid.mechanics.effects import effect_to_dict
+
     out = dataclasses.asdict(spec)
+    out["effects"] = [effect_to_dict(e) for e in spec.effects]
     for t in out["tubes"]:
         t["ends"] = list(t["ends"])
     for key in _CLASSES:
