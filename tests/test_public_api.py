@@ -26,9 +26,15 @@ PINNED = {
         "random_subsystem", "random_condensed_stiffness", "j_monte_carlo",
         "LoadSpectrum", "coherent_forces", "force_and_moment", "tabulated", "randomised", "gaussian_loads",
     ],
+    "tubeid.dynamics": [
+        "Stop", "TransientResult", "simulate", "highest_frequency", "choose_step",
+        "ResponseSettings", "simulate_responses",
+        "psd_matrix", "psd_dataset", "variance_from_psd", "confidence_band", "j_s", "distance",
+    ],
     "tubeid.identification": ["identify_delta", "reference_j", "likelihood_curve", "kde_pdf", "silverman_bandwidth"],
     "tubeid.measured": ["read_measurements", "write_measurements", "validate_measurements"],
-    "tubeid.runner": ["Study", "Output", "Parameter", "pointwise", "load_study", "run", "open_results"],
+    "tubeid.runner": ["Study", "Output", "Parameter", "pointwise", "load_study", "run", "open_results",
+                      "RunReport", "RngFactory", "store_status"],
 }
 
 

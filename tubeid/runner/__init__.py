@@ -1,7 +1,7 @@
 """The study runner: sweeps defined in Python, run as dask task graphs, stored as labelled Zarr."""
 
-from tubeid.runner.execute import run
-from tubeid.runner.store import open_results
-from tubeid.runner.study import Output, Parameter, Study, load_study, pointwise
+from tubeid.runner.execute import RunReport, run
+from tubeid.runner.store import open_results, store_status
+from tubeid.runner.study import Output, Parameter, RngFactory, Study, load_study, pointwise
 
-__all__ = ["Study", "Output", "Parameter", "pointwise", "load_study", "run", "open_results"]
+__all__ = ["Study", "Output", "Parameter", "pointwise", "load_study", "run", "open_results", "RunReport", "RngFactory", "store_status"]

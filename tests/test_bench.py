@@ -1,0 +1,19 @@
+"""Benchmarks run and report their keys (a smoke test: no timing is asserted)."""
+
+import math
+
+from tubeid.bench import bench_j
+from tubeid.dynamics.bench import bench_transient
+
+
+def test_bench_j_reports_rates_and_agreement():
+    out = bench_j(n_realisations=10, n_deltas=2, n_baseline=1)
+    assert out["j_evaluations_per_second"] > 0 and out["j_speedup"] > 0
+    assert out["j_baseline_relative_difference"] < 1e-3  # the loop and the closed form agree
+
+
+def test_bench_transient_reports_the_issue_keys():
+    out = bench_transient(duration=24.0, baseline_window=0.2)
+    for key in ("seconds_per_realisation", "baseline_seconds_per_realisation", "speedup", "flop_bound_seconds", "psd_error_vs_fine_step"):
+        assert key in out and math.isfinite(out[key]) and out[key] >= 0
+    assert out["f_max_hz"] > 900  # the stop-closed highest frequency of the paper model (947 Hz)
