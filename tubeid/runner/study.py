@@ -30,7 +30,8 @@ import numpy as np
 from tubeid.errors import SpecificationError
 from tubeid.seeds import rng_for
 
-__all__ = ["Study", "Output", "Parameter", "pointwise", "load_study", "study_hash", "Block", "RngFactory"]
+__all__ = ["Study", "Output", "Parameter", "pointwise", "load_study", "load_definition", "study_hash", "Block",
+           "RngFactory", "check_name"]
 
 _PLAIN = (bool, int, float, str, type(None))
 
@@ -44,6 +45,13 @@ def _plain(value, field):
     if not isinstance(value, _PLAIN) or (isinstance(value, float) and not math.isfinite(value)):
         raise SpecificationError(field, value, "must be a plain finite value (bool, int, float, str or a list of them)")
     return value
+
+
+def check_name(field: str, name) -> str:
+    """A study, pipeline or stage name: non-empty, no spaces or slashes, not starting with a dot."""
+    if not isinstance(name, str) or not name or name.startswith(".") or any(c in name for c in "/\\ "):
+        raise SpecificationError(field, name, "must be a non-empty string without spaces or slashes")
+    return name
 
 
 def _scalar(value):
@@ -136,12 +144,13 @@ class Study:
     model: Any = None
     check: Callable | None = None
     description: str = ""
+    summarize: Callable | None = None
+    stream_key: tuple[str, ...] = ()
 
     def __post_init__(self):
         from tubeid import config
 
-        if not isinstance(self.name, str) or not self.name or any(c in self.name for c in "/\\ "):
-            raise SpecificationError("name", self.name, "must be a non-empty string without spaces or slashes")
+        check_name("name", self.name)
         if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
             raise SpecificationError("seed", self.seed, "must be a non-negative integer")
         if not self.axes:
@@ -198,6 +207,12 @@ class Study:
             p = p if isinstance(p, Parameter) else Parameter(p)
             params[name] = dataclasses.replace(p, value=p.check(name, p.value))
         object.__setattr__(self, "parameters", params)
+        if self.summarize is not None and not callable(self.summarize):
+            raise SpecificationError("summarize", self.summarize, "must be callable as summarize(ds) -> dict")
+        key = tuple(self.stream_key)
+        if not all(isinstance(k, str) for k in key):
+            raise SpecificationError("stream_key", key, "must be a tuple of strings")
+        object.__setattr__(self, "stream_key", key)
         self._check_signature()
         if self.check is not None:
             self.check(self)
@@ -264,7 +279,7 @@ class Study:
     @property
     def rng(self) -> "RngFactory":
         """The factory passed to the task: ``rng(**seed-axis coords)`` -> Generator of one point."""
-        return RngFactory(int(self.seed), self.seed_axes)
+        return RngFactory(int(self.seed), self.seed_axes, self.stream_key)
 
     def compute_block(self, block: Block) -> dict[str, np.ndarray]:
         """Run the task on one block; check and cast its outputs."""
@@ -297,6 +312,23 @@ class Study:
         if isinstance(m, (Mapping, list, tuple)):
             return json.dumps(m, default=repr, indent=1)
         return m if isinstance(m, str) else repr(m)
+
+    def fingerprint(self) -> str:
+        """Canonical JSON of everything that defines the results (axes, chunks, seeds, parameters...).
+
+        Equal fingerprints in two processes mean the same sweep; a pipeline hashes it into the
+        stage hash, so any value a stage was built from (e.g. an identified delta_opt passed as a
+        parameter or used in an axis) is part of the stage's identity.
+        """
+        return json.dumps({
+            "name": self.name, "seed": int(self.seed), "stream_key": list(self.stream_key),
+            "axes": {d: a.tolist() for d, a in self.axes.items()}, "chunks": dict(self.chunks),
+            "coords": {d: a.tolist() for d, a in self.coords.items()}, "units": dict(self.units),
+            "seed_axes": list(self.seed_axes), "parameters": self.values,
+            "outputs": {n: dataclasses.asdict(o) for n, o in self.outputs.items()},
+            "model": self.describe_model(), "description": self.description,
+            "task": getattr(self.task, "__qualname__", type(self.task).__name__),
+        }, sort_keys=True)
 
 
 def _short(values, n=6):
@@ -335,7 +367,10 @@ def pointwise(fn: Callable) -> Callable:
 
 @dataclasses.dataclass(frozen=True)
 class RngFactory:
-    """Generators keyed by (study seed, a point's coordinates on the seed axes, optional stream names).
+    """Generators keyed by (study seed, prefix, a point's coordinates on the seed axes, optional stream names).
+
+    The prefix is the study's ``stream_key`` (in a pipeline: the stage name, so stages draw
+    independent streams while keeping common random numbers across a stage's non-seed axes).
 
     ``rng(realisation=3)`` (exactly the seed axes as keywords) or ``rng.at(point)`` (a full point;
     coordinates on other axes are ignored). ``rng("loads", realisation=3)`` gives an independent
@@ -344,11 +379,12 @@ class RngFactory:
 
     seed: int
     seed_axes: tuple[str, ...]
+    prefix: tuple[str, ...] = ()
 
     def __call__(self, *stream, **coords) -> np.random.Generator:
         if set(coords) != set(self.seed_axes):
             raise SpecificationError("rng coordinates", sorted(coords), f"must be exactly the seed axes {list(self.seed_axes)}")
-        return rng_for(self.seed, *(_scalar(coords[d]) for d in self.seed_axes), *stream)
+        return rng_for(self.seed, *self.prefix, *(_scalar(coords[d]) for d in self.seed_axes), *stream)
 
     def at(self, point: Mapping[str, Any], *stream) -> np.random.Generator:
         return self(*stream, **{d: point[d] for d in self.seed_axes})
@@ -361,15 +397,18 @@ def study_hash(source: str, overrides: Mapping[str, Any] | None = None) -> str:
     return h.hexdigest()
 
 
-_CACHE: dict[str, Study] = {}
+_CACHE: dict[str, Any] = {}
 
 
-def load_study(path: str | pathlib.Path | None = None, *, source: str | None = None,
-               overrides: Mapping[str, Any] | None = None) -> tuple[Study, str, str]:
-    """Execute a study file (or its ``source`` text) and return ``(study, source, hash)``.
+def load_definition(path: str | pathlib.Path | None = None, *, source: str | None = None,
+                    overrides: Mapping[str, Any] | None = None):
+    """Execute a study file (or its ``source`` text) and return ``(study or pipeline, source, hash)``.
 
-    Cached per process by hash, so a worker executes each study source once.
+    The file defines a module-level ``study = Study(...)`` or ``study = Pipeline(...)``. Cached per
+    process by hash, so a worker executes each source once.
     """
+    from tubeid.runner.pipeline import Pipeline
+
     if source is None:
         p = pathlib.Path(path)
         if not p.is_file():
@@ -387,7 +426,16 @@ def load_study(path: str | pathlib.Path | None = None, *, source: str | None = N
         sys.modules[module.__name__] = module  # dataclasses and pickling look modules up here
         exec(code, module.__dict__)
         study = getattr(module, "study", None)
-        if not isinstance(study, Study):
-            raise SpecificationError("study", str(path), "must define a module-level `study = Study(...)`")
+        if not isinstance(study, (Study, Pipeline)):
+            raise SpecificationError("study", str(path), "must define a module-level `study = Study(...)` or `Pipeline(...)`")
         _CACHE[key] = study.with_parameters(overrides) if overrides else study
     return _CACHE[key], source, key
+
+
+def load_study(path: str | pathlib.Path | None = None, *, source: str | None = None,
+               overrides: Mapping[str, Any] | None = None) -> tuple[Study, str, str]:
+    """Like ``load_definition`` but the file must define a single ``Study``."""
+    study, source, key = load_definition(path, source=source, overrides=overrides)
+    if not isinstance(study, Study):
+        raise SpecificationError("study", str(path or "<study>"), "must define a `Study` (this file defines a Pipeline)")
+    return study, source, key

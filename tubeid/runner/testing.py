@@ -1,4 +1,4 @@
-"""Helpers for testing the runner (and studies built on it): a small realisation-bound test study, store digests."""
+"""Helpers for testing the runner (and studies built on it): small test studies and pipelines, store digests."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pathlib
 import numpy as np
 import zarr
 
-__all__ = ["STUDY", "write_study", "store_digest", "flags"]
+__all__ = ["STUDY", "PIPELINE", "write_study", "write_pipeline", "store_digest", "flags"]
 
 # A realisation-bound study whose tasks take ~0.1-0.3 s (sleep-free compute loop). The random
 # stream of a point is keyed by its realisation only, and x = delta * (a function of that stream),
@@ -58,23 +58,116 @@ def write_study(directory, name="study.py", *, realisations=16, chunk=2, work=5)
     return path
 
 
+# A 3-stage pipeline. Stage `curve`: a noisy parabola y(x) per realisation (x_opt = argmin of the
+# mean over realisations is stored by `summarize`); stage `around`: a grid of offsets around x_opt
+# (a value derived from stage 1, passed as the parameter `center`); stage `final`: a fixed Study.
+# Every point costs `work` 48x48 tanh-matmul iterations. TUBEID_TEST_FAIL_STAGE / _FAIL_AT
+# (environment) make the block of that stage containing that realisation raise.
+PIPELINE = '''
+import os
+import numpy as np
+from tubeid.runner.pipeline import Pipeline
+from tubeid.runner.study import Output, Parameter, Study
+
+SEED = 11
+SIZES = {"normal": {"curve": CURVE, "around": AROUND}, "quick": {"curve": 4, "around": 4}}
+
+def _busy(g, work):
+    a = g.standard_normal((48, 48))
+    for _ in range(work):
+        a = np.tanh(a @ a.T / 48.0)
+    return a[0, 0]
+
+def _maybe_fail(stage, realisations):
+    if os.environ.get("TUBEID_TEST_FAIL_STAGE") == stage and int(os.environ["TUBEID_TEST_FAIL_AT"]) in realisations:
+        raise RuntimeError("interrupted on purpose")
+
+def curve_task(block, rng, *, work):
+    _maybe_fail("curve", block["realisation"])
+    x, r = block["x"], block["realisation"]
+    y = np.empty((x.size, r.size))
+    for j, real in enumerate(r):
+        g = rng(realisation=real)
+        e = g.standard_normal(2)
+        y[:, j] = (x - 0.3) ** 2 + 0.2 * e[0] * x + 0.1 * e[1] + 0.0 * _busy(g, work)
+    return {"y": y}
+
+def around_task(block, rng, *, center, work):
+    _maybe_fail("around", block["realisation"])
+    o, r = block["offset"], block["realisation"]
+    z = np.empty((o.size, r.size))
+    for j, real in enumerate(r):
+        g = rng(realisation=real)
+        e = g.standard_normal()
+        z[:, j] = center + o + 0.01 * e + 0.0 * _busy(g, work)
+    return {"z": z}
+
+def final_task(block, rng):
+    return {"w": np.array([rng(realisation=r).standard_normal() for r in block["realisation"]])}
+
+def x_opt(ds):
+    return {"x_opt": float(ds.y.mean("realisation").idxmin("x"))}
+
+def curve(results, *, size, work):
+    return Study(name="curve", seed=SEED, axes={"x": np.round(np.linspace(0.0, 0.6, 13), 3),
+                 "realisation": range(SIZES[size]["curve"])}, chunks={"x": 13, "realisation": 2},
+                 seed_axes=("realisation",), task=curve_task, outputs={"y": Output(units="m")},
+                 parameters={"work": work}, summarize=x_opt)
+
+def around(results, *, size, work):
+    center = results["curve"].attrs["x_opt"]
+    return Study(name="around", seed=SEED, axes={"offset": [-0.1, 0.0, 0.1], "realisation": range(SIZES[size]["around"])},
+                 chunks={"offset": 3, "realisation": 2}, seed_axes=("realisation",), task=around_task,
+                 outputs={"z": Output(units="m")}, parameters={"center": center, "work": work},
+                 description=f"offsets around x_opt = {center}")
+
+study = Pipeline(
+    name="pipeline-test",
+    seed=SEED,
+    stages=[curve, around,
+            Study(name="final", seed=SEED, axes={"realisation": range(6)}, chunks={"realisation": 3},
+                  task=final_task, outputs={"w": Output()})],
+    parameters={"size": Parameter("normal", choices=["normal", "quick"]), "work": Parameter(WORK, bounds=(0, 100000))},
+    description="three-stage runner test pipeline",
+)
+'''
+
+
+def write_pipeline(directory, name="pipeline.py", *, curve=8, around=8, work=2) -> pathlib.Path:
+    """Write the test pipeline with ``curve``/``around`` realisations (size "normal") and ``work`` per point."""
+    path = pathlib.Path(directory) / name
+    path.write_text(PIPELINE.replace("CURVE", str(curve)).replace("AROUND", str(around)).replace("WORK", str(work)))
+    return path
+
+
 VOLATILE = {"started", "finished", "runs", "study_file"}
 
 
 def store_digest(path) -> dict:
-    """Byte digest of every file of a store except the root metadata, plus its non-volatile attrs."""
+    """Byte digest of every file of a store except group metadata (root and pipeline stages), plus
+    the non-volatile attributes of every group (``attrs`` for the root, ``attrs:<stage>`` for stages)."""
     root = pathlib.Path(path)
     out = {}
+    groups = []
     for f in sorted(root.rglob("*")):
-        if f.is_file() and f != root / "zarr.json":
-            out[str(f.relative_to(root))] = hashlib.sha256(f.read_bytes()).hexdigest()
-    attrs = dict(zarr.open_group(str(root), mode="r").attrs)
-    out["attrs"] = json.dumps({k: v for k, v in attrs.items() if k not in VOLATILE}, sort_keys=True)
+        if not f.is_file():
+            continue
+        if f.name == "zarr.json" and json.loads(f.read_text()).get("node_type") == "group":
+            groups.append(f.parent)
+            continue
+        out[str(f.relative_to(root))] = hashlib.sha256(f.read_bytes()).hexdigest()
+    for g in groups:
+        attrs = dict(zarr.open_group(str(root), mode="r", path=str(g.relative_to(root)) or None).attrs) if g != root \
+            else dict(zarr.open_group(str(root), mode="r").attrs)
+        label = "attrs" if g == root else f"attrs:{g.relative_to(root)}"
+        out[label] = json.dumps({k: v for k, v in attrs.items() if k not in VOLATILE}, sort_keys=True)
     return out
 
 
-def flags(path) -> np.ndarray:
+def flags(path, group=None) -> np.ndarray:
+    """The completion flags of a store (or of a pipeline stage); empty if not readable yet."""
     try:
-        return np.asarray(zarr.open_group(str(path), mode="r")["block_done"][...])
+        g = zarr.open_group(str(path), mode="r", path=group) if group else zarr.open_group(str(path), mode="r")
+        return np.asarray(g["block_done"][...])
     except Exception:
         return np.zeros(0)
