@@ -22,16 +22,17 @@ def _setting(text: str) -> tuple[str, object]:
 
 
 def register(sub) -> None:
-    p = sub.add_parser("run", help="run or resume a study (a studies/*.py file) into a Zarr store",
-                       description="Run a study as one dask task per block; rerun the same command to resume.")
-    p.add_argument("study", help="study file defining `study = Study(...)`")
+    p = sub.add_parser("run", help="run or resume a study or pipeline (a studies/*.py file) into a Zarr store",
+                       description="Run a study as one dask task per block (a pipeline: its stages in order); "
+                                   "rerun the same command to resume.")
+    p.add_argument("study", help="study file defining `study = Study(...)` or `study = Pipeline(...)`")
     p.add_argument("--store", help="Zarr store path (default: <tubeid.runner.store-root>/<study name>.zarr)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--workers", type=int, help="embedded LocalCluster worker processes (default: one per core; "
                    "0 = sequentially in this process)")
     g.add_argument("--scheduler", help="address of an existing dask scheduler (default: DASK_SCHEDULER_ADDRESS)")
     p.add_argument("--set", dest="overrides", action="append", type=_setting, default=[], metavar="NAME=VALUE",
-                   help="override a study parameter (validated; part of the study's identity)")
+                   help="override a study (or pipeline) parameter (validated; part of the study's identity)")
     s = p.add_mutually_exclusive_group()
     s.add_argument("--new-store", action="store_true",
                    help="if the store holds another study definition, write <store>-<hash>.zarr instead")
@@ -39,7 +40,7 @@ def register(sub) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_run)
 
-    p = sub.add_parser("status", help="blocks done / total of a study store (works while it runs)")
+    p = sub.add_parser("status", help="blocks done / total of a study store, per stage for a pipeline (works while it runs)")
     p.add_argument("store")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.set_defaults(func=_status)
@@ -47,6 +48,7 @@ def register(sub) -> None:
     p = sub.add_parser("show", help="summary of a study store: provenance and labelled results")
     p.add_argument("store")
     p.add_argument("--source", action="store_true", help="also print the study source text")
+    p.add_argument("--stage", action="append", help="pipeline store: show only this stage (repeatable)")
     p.set_defaults(func=_show)
 
     p = sub.add_parser("bench-runner", help="benchmark the runner: speedup 1 -> 2 workers, overhead vs compute")
@@ -70,26 +72,63 @@ def _run(args) -> int:
     return 0
 
 
+def _stage_line(name, st) -> str:
+    if not st["started"]:
+        return f"  {name}: not started"
+    pct = 100.0 * st["done"] / st["total"]
+    state = "complete" if st["complete"] else "incomplete"
+    return f"  {name}: {st['done']}/{st['total']} blocks done ({pct:.1f} %), {state}"
+
+
 def _status(args) -> int:
     from tubeid.runner.store import store_status
 
     st = store_status(args.store)
     a = st["attrs"]
+    keys = ("study_name", "study_hash", "started", "finished")
     if args.json:
-        print(json.dumps({k: st[k] for k in ("done", "total", "complete")} |
-                         {k: a.get(k) for k in ("study_name", "study_hash", "started", "finished")}))
+        extra = {"stages": st["stages"]} if "stages" in st else {}
+        print(json.dumps({k: st[k] for k in ("done", "total", "complete")} | {k: a.get(k) for k in keys} | extra))
         return 0
-    pct = 100.0 * st["done"] / st["total"]
-    state = "complete" if st["complete"] else "incomplete"
-    print(f"{a.get('study_name')}: {st['done']}/{st['total']} blocks done ({pct:.1f} %), {state}")
+    if "stages" in st:
+        n_done = sum(s["complete"] for s in st["stages"].values())
+        state = "complete" if st["complete"] else "incomplete"
+        print(f"pipeline {a.get('study_name')}: {n_done}/{len(st['stages'])} stages complete, {state}")
+        for name, s in st["stages"].items():
+            print(_stage_line(name, s))
+    else:
+        pct = 100.0 * st["done"] / st["total"]
+        state = "complete" if st["complete"] else "incomplete"
+        print(f"{a.get('study_name')}: {st['done']}/{st['total']} blocks done ({pct:.1f} %), {state}")
     print(f"  started {a.get('started')}" + (f", finished {a['finished']}" if a.get("finished") else "")
           + f", runs: {len(a.get('runs', []))}")
     return 0
 
 
-def _show(args) -> int:
-    from tubeid.runner.store import open_results
+def _print_dataset(ds) -> None:
+    """The dataset without its attributes, then summary statistics of each output written so far."""
+    import numpy as np
 
+    shown = ds.copy()
+    shown.attrs = {}
+    print(shown)
+    for name, var in ds.data_vars.items():
+        if var.size <= 50_000_000:
+            v = np.asarray(var.values, dtype=float)
+            ok = np.isfinite(v)
+            stats = f"mean {v[ok].mean():.6g}, min {v[ok].min():.6g}, max {v[ok].max():.6g}" if ok.any() else "no data yet"
+            print(f"  {name} [{var.attrs.get('units', '')}]: {stats} ({ok.mean():.0%} written)")
+
+
+def _show(args) -> int:
+    from tubeid.errors import SpecificationError
+    from tubeid.runner.store import open_results, store_status
+
+    st = store_status(args.store)
+    if "stages" in st:
+        return _show_pipeline(args, st)
+    if args.stage:
+        raise SpecificationError("--stage", args.stage[0], f"{args.store} is a single-study store (it has no stages)")
     ds = open_results(args.store)
     a = ds.attrs
     print(f"study {a.get('study_name')} (file {a.get('study_file')}, hash {str(a.get('study_hash'))[:12]})")
@@ -99,19 +138,39 @@ def _show(args) -> int:
           f"finished {a.get('finished') or '-'}")
     if a.get("model_specification"):
         print("  model specification: " + a["model_specification"].splitlines()[0][:100] + " ...")
-    shown = ds.copy()
-    shown.attrs = {}
-    print(shown)
-    import numpy as np
-
-    for name, var in ds.data_vars.items():
-        if var.size <= 50_000_000:  # summary statistics of what is written so far
-            v = np.asarray(var.values, dtype=float)
-            ok = np.isfinite(v)
-            stats = f"mean {v[ok].mean():.6g}, min {v[ok].min():.6g}, max {v[ok].max():.6g}" if ok.any() else "no data yet"
-            print(f"  {name} [{var.attrs.get('units', '')}]: {stats} ({ok.mean():.0%} written)")
+    if a.get("summary_keys"):
+        print("  summary: " + ", ".join(f"{k} = {a[k]}" for k in a["summary_keys"]))
+    _print_dataset(ds)
     if args.source:
         print("\n# study source\n" + a.get("study_source", ""))
+    return 0
+
+
+def _show_pipeline(args, st) -> int:
+    from tubeid.errors import SpecificationError
+    from tubeid.runner.store import open_results
+
+    a = st["attrs"]
+    for name in args.stage or []:
+        if name not in st["stages"]:
+            raise SpecificationError("--stage", name, f"is not a stage of {args.store} (stages: {list(st['stages'])})")
+    print(f"pipeline {a.get('study_name')} (file {a.get('study_file')}, hash {str(a.get('study_hash'))[:12]})")
+    print(f"  tubeid {a.get('tubeid_version')}, seed {a.get('seed')}, parameters {a.get('parameters')}")
+    print(f"  started {a.get('started')}; finished {a.get('finished') or '-'}; stages:")
+    for name, s in st["stages"].items():
+        print(_stage_line(name, s))
+    for name, s in st["stages"].items():
+        if (args.stage and name not in args.stage) or not s["started"]:
+            continue
+        ds = open_results(args.store, name)
+        sa = ds.attrs
+        print(f"\nstage {name} (hash {str(sa.get('stage_hash'))[:12]}): {sa.get('title')}")
+        print(f"  streams keyed by {sa.get('stream_key')} + {sa.get('seed_axes')}, parameters {sa.get('parameters')}")
+        if sa.get("summary_keys"):
+            print("  summary: " + ", ".join(f"{k} = {sa[k]}" for k in sa["summary_keys"]))
+        _print_dataset(ds)
+    if args.source:
+        print("\n# pipeline source\n" + a.get("study_source", ""))
     return 0
 
 

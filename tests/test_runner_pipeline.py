@@ -1,0 +1,287 @@
+"""Multi-stage studies (pipelines): definition checks, stage-keyed streams, a stage built from an earlier
+stage's derived value, one Zarr group per stage, per-stage resume, stage hashes that refuse mixing,
+parameter overrides, status/show, and real processes (2 local workers vs in-process, runner SIGKILLed
+mid-stage-2 and resumed). Every store comparison is byte-for-byte (chunk files + non-volatile metadata).
+"""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import psutil
+import pytest
+import xarray as xr
+import zarr
+
+from tubeid.errors import SpecificationError
+from tubeid.runner.cli import main as cli
+from tubeid.runner.execute import run
+from tubeid.runner.pipeline import Pipeline
+from tubeid.runner.store import open_pipeline, open_results, store_status
+from tubeid.runner.study import Output, Parameter, Study, load_definition, load_study
+from tubeid.runner.testing import flags, store_digest, write_pipeline
+from tubeid.seeds import rng_for
+
+SEED = 11  # the test pipeline's seed (tubeid.runner.testing.PIPELINE)
+X = np.round(np.linspace(0.0, 0.6, 13), 3)
+OFFSETS = np.array([-0.1, 0.0, 0.1])
+
+
+def _task(block, rng):
+    return {"y": np.zeros(len(block["r"]))}
+
+
+def _study(name="a", seed=1, **kw):
+    return Study(name=name, seed=seed, axes={"r": range(4)}, task=_task, outputs={"y": Output()}, **kw)
+
+
+def a(results, *, size):
+    return _study("a")
+
+
+def b(results, *, size, extra):
+    return _study("b")
+
+
+# -- definitions refused up front ----------------------------------------------------------------------
+@pytest.mark.parametrize("kw, field", [
+    (dict(stages=[]), "stages"),
+    (dict(stages=[_study("a"), _study("a")]), "stages[1].name"),                 # duplicate stage names
+    (dict(stages=[_study("a", seed=2)]), "stages.a.seed"),                       # not the pipeline seed
+    (dict(stages=[a, b]), "stages.b"),                                           # needs an unknown parameter
+    (dict(stages=[_study("x")], parameters={"size": 1}), "parameters.size"),    # no stage takes it
+    (dict(stages=[42]), "stages[0]"),
+    (dict(stages=[a], seed=-1), "seed"),
+    (dict(stages=[a], name="p q"), "name"),
+])
+def test_bad_pipelines_are_refused(kw, field):
+    base = dict(name="p", seed=1, stages=[a], parameters={"size": Parameter("big", choices=["big", "small"])})
+    base.update(kw)
+    with pytest.raises(SpecificationError) as err:
+        Pipeline(**base)
+    assert err.value.field == field
+
+
+def test_stage_functions_must_return_their_study():
+    def named_wrong(results):
+        return _study("other")
+
+    def wrong_seed(results):
+        return _study("wrong_seed", seed=2)
+
+    def not_a_study(results):
+        return {"y": 1}
+
+    for fn, field in ((named_wrong, "stages.named_wrong.name"), (wrong_seed, "stages.wrong_seed.seed"),
+                      (not_a_study, "stages.not_a_study")):
+        p = Pipeline(name="p", seed=1, stages=[fn])
+        with pytest.raises(SpecificationError) as err:
+            p.stage(fn.__name__, {})
+        assert err.value.field == field
+    p = Pipeline(name="p", seed=1, stages=[_study("a"), named_wrong])
+    with pytest.raises(SpecificationError, match="earlier stages"):
+        p.stage("named_wrong", {})
+    assert p.stage("a", {}).stream_key == ("a",)
+
+
+def test_pipeline_overrides_are_validated(tmp_path, capsys):
+    path = write_pipeline(tmp_path)
+    pipe = load_definition(path)[0]
+    assert pipe.with_parameters({"size": "quick"}).values["size"] == "quick"
+    with pytest.raises(SpecificationError, match="must be one of"):
+        pipe.with_parameters({"size": "huge"})
+    with pytest.raises(SpecificationError, match="defines a Pipeline"):
+        load_study(path)
+    store = tmp_path / "p.zarr"
+    assert cli(["run", str(path), "--store", str(store), "--workers", "0", "--set", "size='huge'"]) == 2
+    assert "parameters.size = 'huge': must be one of" in capsys.readouterr().err and not store.exists()
+
+
+# -- results, seeds, derived values ------------------------------------------------------------------------
+def _expected(curve_n, around_n):
+    """The pipeline's outputs recomputed from tubeid.seeds.rng_for(seed, stage name, realisation)."""
+    e = np.array([rng_for(SEED, "curve", r).standard_normal(2) for r in range(curve_n)])
+    y = (X[:, None] - 0.3) ** 2 + 0.2 * e[:, 0] * X[:, None] + 0.1 * e[:, 1]
+    x_opt = float(X[np.argmin(y.mean(axis=1))])
+    e2 = np.array([rng_for(SEED, "around", r).standard_normal() for r in range(around_n)])
+    z = x_opt + OFFSETS[:, None] + 0.01 * e2
+    w = np.array([rng_for(SEED, "final", r).standard_normal() for r in range(6)])
+    return y, x_opt, z, w
+
+
+def test_stages_use_stage_keyed_streams_and_earlier_results(tmp_path):
+    path = write_pipeline(tmp_path, curve=8, around=6)
+    report = run(path, tmp_path / "p.zarr", workers=0, quiet=True)
+    assert {n: (r.total, r.computed) for n, r in report.stages.items()} == {"curve": (4, 4), "around": (3, 3), "final": (2, 2)}
+    res = open_pipeline(tmp_path / "p.zarr")
+    assert list(res) == ["curve", "around", "final"]
+    y, x_opt, z, w = _expected(8, 6)
+    np.testing.assert_array_equal(res["curve"].y.values, y)  # same arithmetic, same streams: bit-identical
+    assert res["curve"].attrs["x_opt"] == x_opt and res["curve"].attrs["summary_keys"] == ["x_opt"]
+    # the second stage was built from the first's derived value: stored as its parameter, used by its task
+    assert json.loads(res["around"].attrs["parameters"])["center"] == x_opt
+    np.testing.assert_array_equal(res["around"].z.values, z)
+    np.testing.assert_array_equal(res["final"].w.values, w)
+    assert res["final"].attrs["stream_key"] == ["final"]
+    # plain xarray opens a stage group; the root summary lists every stage
+    ds = xr.open_zarr(tmp_path / "p.zarr", group="around")
+    assert ds.z.dims == ("offset", "realisation") and ds.z.attrs["units"] == "m"
+    root = open_results(tmp_path / "p.zarr")
+    assert not root.data_vars and root.attrs["stages"] == ["curve", "around", "final"]
+    assert root.attrs["stages_complete"] == ["curve", "around", "final"]
+    assert root.attrs["stage_status"] == {"curve": "complete", "around": "complete", "final": "complete"}
+    assert root.attrs["study_source"] == path.read_text() and root.attrs["study_hash"] == load_definition(path)[2]
+    assert root.attrs["started"] <= root.attrs["finished"]
+    assert run(path, tmp_path / "p.zarr", workers=0, quiet=True).computed == 0  # complete: nothing to do
+
+
+def test_failed_stage_2_resumes_identically_and_a_changed_upstream_value_is_refused(tmp_path, monkeypatch):
+    path = write_pipeline(tmp_path, curve=6, around=8)
+    run(path, tmp_path / "ref.zarr", workers=0, quiet=True)
+    store = tmp_path / "p.zarr"
+    monkeypatch.setenv("TUBEID_TEST_FAIL_STAGE", "around")
+    monkeypatch.setenv("TUBEID_TEST_FAIL_AT", "4")  # blocks run in C order: realisations 0-3 written, then the failure
+    with pytest.raises(RuntimeError, match="on purpose"):
+        run(path, store, workers=0, quiet=True)
+    st = store_status(store)
+    assert {n: (s["done"], s["total"], s["complete"]) for n, s in st["stages"].items()} == \
+        {"curve": (3, 3, True), "around": (2, 4, False), "final": (0, None, False)}
+    assert np.isnan(open_results(store, "around").z.sel(realisation=[4, 5, 6, 7])).all()
+    monkeypatch.delenv("TUBEID_TEST_FAIL_STAGE")
+    partial = store_digest(store)
+    # an upstream result that changed (here: the stored x_opt) gives another stage hash: refused, store untouched
+    g = zarr.open_group(str(store), mode="r+", path="curve")
+    x_opt = g.attrs["x_opt"]
+    g.attrs["x_opt"] = x_opt + 0.05
+    with pytest.raises(SpecificationError, match="stage 'around' built from different inputs"):
+        run(path, store, workers=0, quiet=True)
+    g.attrs["x_opt"] = x_opt
+    assert store_digest(store) == partial
+    report = run(path, store, workers=0, quiet=True)
+    assert {n: (r.computed, r.skipped) for n, r in report.stages.items()} == \
+        {"curve": (0, 3), "around": (2, 2), "final": (2, 0)}
+    assert store_digest(store) == store_digest(tmp_path / "ref.zarr")
+    assert len(store_status(store, "around")["attrs"]["runs"]) == 2
+
+
+def test_parameters_change_sizes_and_the_hash(tmp_path):
+    path = write_pipeline(tmp_path, curve=6, around=6)
+    normal = run(path, tmp_path / "p.zarr", workers=0, quiet=True)
+    before = store_digest(tmp_path / "p.zarr")
+    with pytest.raises(SpecificationError, match="different study definition"):
+        run(path, tmp_path / "p.zarr", workers=0, quiet=True, overrides={"size": "quick"})
+    assert store_digest(tmp_path / "p.zarr") == before
+    quick = run(path, tmp_path / "p.zarr", workers=0, quiet=True, overrides={"size": "quick"}, new_store=True)
+    assert quick.store != normal.store and quick.store.name.startswith("p-")
+    res = open_pipeline(quick.store)
+    assert res["curve"].sizes["realisation"] == 4 and res["around"].sizes["realisation"] == 4
+    qa, na = open_results(quick.store).attrs, open_results(normal.store).attrs
+    assert qa["study_hash"] != na["study_hash"] and json.loads(qa["parameter_overrides"]) == {"size": "quick"}
+    assert res["curve"].attrs["stage_hash"] != open_results(normal.store, "curve").attrs["stage_hash"]
+    # the common realisations of both sizes draw the same numbers (streams keyed by realisation, not size)
+    np.testing.assert_array_equal(res["curve"].y.values, open_results(normal.store, "curve").y.values[:, :4])
+    run(path, tmp_path / "p.zarr", workers=0, quiet=True, overrides={"size": "quick"}, overwrite=True)
+    assert open_results(tmp_path / "p.zarr", "around").sizes["realisation"] == 4
+
+
+def test_status_and_show_list_the_stages(tmp_path, capsys, monkeypatch):
+    path = write_pipeline(tmp_path, curve=4, around=4)
+    store = tmp_path / "p.zarr"
+    monkeypatch.setenv("TUBEID_TEST_FAIL_STAGE", "around")
+    monkeypatch.setenv("TUBEID_TEST_FAIL_AT", "2")
+    with pytest.raises(RuntimeError, match="on purpose"):
+        cli(["run", str(path), "--store", str(store), "--workers", "0", "--no-progress"])
+    capsys.readouterr()
+    assert cli(["status", str(store)]) == 0
+    out = capsys.readouterr().out
+    assert "pipeline pipeline-test: 1/3 stages complete, incomplete" in out
+    assert "curve: 2/2 blocks done (100.0 %), complete" in out and "around: 1/2 blocks done (50.0 %), incomplete" in out
+    assert "final: not started" in out
+    assert cli(["status", str(store), "--json"]) == 0
+    js = json.loads(capsys.readouterr().out)
+    assert js["stages"]["around"] == {"started": True, "done": 1, "total": 2, "complete": False} and not js["complete"]
+    assert cli(["show", str(store)]) == 0
+    out = capsys.readouterr().out
+    assert "stage curve" in out and "x_opt = " in out and "z [m]:" in out and "(50% written)" in out
+    assert cli(["show", str(store), "--stage", "curve"]) == 0
+    assert "z [m]" not in capsys.readouterr().out
+    assert cli(["show", str(store), "--stage", "nope"]) == 2
+    with pytest.raises(SpecificationError, match="not started"):
+        open_results(store, "final")
+    with pytest.raises(SpecificationError, match="not a stage"):
+        open_results(store, "nope")
+
+
+# -- real processes ----------------------------------------------------------------------------------------
+RUNNER = [sys.executable, "-m", "tubeid.runner.cli", "run"]
+# curve: 4 blocks, around: 16 blocks of 2 realisations x ~0.05-0.1 s of compute each (work=3000)
+SIZE = dict(curve=8, around=32, work=3000)
+
+
+def _env():
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    for k in ("DASK_SCHEDULER_ADDRESS", "TUBEID_TEST_FAIL_STAGE", "TUBEID_TEST_FAIL_AT"):
+        env.pop(k, None)
+    return env
+
+
+def _run_cli(args):
+    proc = subprocess.run(RUNNER + [str(x) for x in args] + ["--no-progress"], env=_env(), capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    return proc
+
+
+@pytest.fixture(scope="module")
+def big(tmp_path_factory):
+    return write_pipeline(tmp_path_factory.mktemp("pipeline"), **SIZE)
+
+
+@pytest.fixture(scope="module")
+def reference(big, tmp_path_factory):
+    """The uninterrupted run: embedded LocalCluster with 2 workers."""
+    store = tmp_path_factory.mktemp("ref") / "ref.zarr"
+    _run_cli([big, "--store", store, "--workers", 2])
+    return store_digest(store)
+
+
+@pytest.mark.distributed
+@pytest.mark.timeout(120)
+def test_two_workers_and_in_process_give_identical_stores(big, reference, tmp_path):
+    run(big, tmp_path / "here.zarr", workers=0, quiet=True)
+    assert store_digest(tmp_path / "here.zarr") == reference
+
+
+@pytest.mark.distributed
+@pytest.mark.timeout(120)
+def test_runner_killed_mid_stage_2_resumes_to_the_identical_store(big, reference, tmp_path):
+    store = tmp_path / "killed.zarr"
+    proc = subprocess.Popen(RUNNER + [str(big), "--store", str(store), "--workers", "2", "--no-progress"],
+                            env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        t0 = time.monotonic()
+        while flags(store, "around").sum() < 2:
+            assert proc.poll() is None, "runner ended before the kill point"
+            assert time.monotonic() - t0 < 90, "no progress in stage 2"
+            time.sleep(0.02)
+        children = psutil.Process(proc.pid).children(recursive=True)
+        proc.send_signal(signal.SIGKILL)  # the runner only: its workers must exit by themselves
+        proc.wait(10)
+        done = int(flags(store, "around").sum())
+        _, alive = psutil.wait_procs(children, timeout=20)
+        assert not [p for p in alive if p.status() != psutil.STATUS_ZOMBIE], "workers outlived the runner"
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(10)
+    total = flags(store, "around").size
+    assert 2 <= done < total, "the kill must land mid-stage-2"
+    assert flags(store, "curve").all() and not (store / "final").exists()
+    resumed = _run_cli([big, "--store", store, "--workers", 2])
+    assert "stage curve: complete" in resumed.stderr
+    assert f"stage around: {total - done} of {total} blocks to compute" in resumed.stderr
+    assert store_digest(store) == reference
