@@ -6,6 +6,7 @@ mid-stage-2 and resumed). Every store comparison is byte-for-byte (chunk files +
 
 import json
 import os
+import pathlib
 import signal
 import subprocess
 import sys
@@ -26,6 +27,7 @@ from tubeid.runner.study import Output, Parameter, Study, load_definition, load_
 from tubeid.runner.testing import flags, store_digest, write_pipeline
 from tubeid.seeds import rng_for
 
+REPO = pathlib.Path(__file__).resolve().parents[1]
 SEED = 11  # the test pipeline's seed (tubeid.runner.testing.PIPELINE)
 X = np.round(np.linspace(0.0, 0.6, 13), 3)
 OFFSETS = np.array([-0.1, 0.0, 0.1])
@@ -214,6 +216,24 @@ def test_status_and_show_list_the_stages(tmp_path, capsys, monkeypatch):
         open_results(store, "final")
     with pytest.raises(SpecificationError, match="not a stage"):
         open_results(store, "nope")
+
+
+def test_the_documented_pipeline_runs(tmp_path):
+    """The example of docs/runner.md, run as written (quick size)."""
+    doc = (REPO / "docs/runner.md").read_text()
+    source = doc.split("# studies/two_stage.py\n", 1)[1].split("```", 1)[0]
+    (tmp_path / "two_stage.py").write_text(source)
+    run(tmp_path / "two_stage.py", tmp_path / "t.zarr", workers=0, quiet=True, overrides={"size": "quick"})
+    res = open_pipeline(tmp_path / "t.zarr")
+    j = res["delta"].J.load()
+    assert j.sizes == {"delta": 17, "realisation": 40}
+    d_opt = res["delta"].attrs["delta_opt"]
+    assert d_opt == float(j.delta[int(j.mean("realisation").argmin("delta"))])
+    # J = (delta - 0.45)^2 + noise common to every delta (common random numbers): the minimum is exactly 0.45
+    assert d_opt == 0.45
+    assert json.loads(res["response"].attrs["parameters"]) == {"delta": d_opt}
+    u = np.array([d_opt * rng_for(2008, "response", r).standard_normal() for r in range(40)])
+    np.testing.assert_array_equal(res["response"].u.values, u)
 
 
 # -- real processes ----------------------------------------------------------------------------------------
