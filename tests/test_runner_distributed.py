@@ -245,3 +245,15 @@ def test_ctrl_c_stops_cleanly_and_resumes(study, reference, tmp_path):
     assert 2 <= flags(store).sum() < flags(store).size
     _run([study, "--store", store, "--workers", 2])
     assert store_digest(store) == reference
+
+
+def test_pipeline_on_an_external_scheduler_gives_the_in_process_result(scheduler, tmp_path):
+    """Workers that never saw the pipeline rebuild each stage from its source and the stored earlier results."""
+    from tubeid.runner.execute import run
+    from tubeid.runner.testing import write_pipeline
+
+    pipeline = write_pipeline(tmp_path, curve=4, around=6, work=200)
+    proc = _run([pipeline, "--store", tmp_path / "remote.zarr", "--scheduler", scheduler])
+    assert f"running on {scheduler}" in proc.stderr and "stage around: 3 of 3 blocks to compute" in proc.stderr
+    run(pipeline, tmp_path / "here.zarr", workers=0, quiet=True)
+    assert store_digest(tmp_path / "remote.zarr") == store_digest(tmp_path / "here.zarr")

@@ -218,6 +218,41 @@ def test_status_and_show_list_the_stages(tmp_path, capsys, monkeypatch):
         open_results(store, "nope")
 
 
+SUMMARIZED = """
+import numpy as np
+from tubeid.runner.study import Output, Study
+
+def task(block, rng):
+    return {"y": np.array([rng(r=r).standard_normal() for r in block["r"]])}
+
+study = Study(name="summarized", seed=5, axes={"r": range(10)}, chunks={"r": 4}, task=task,
+              outputs={"y": Output()}, summarize=lambda ds: SUMMARY)
+"""
+
+
+@pytest.mark.parametrize("summary, error", [
+    ('{"y_max": ds.y.max().item(), "argmax": [int(ds.y.argmax("r"))]}', None),
+    ('{"seed": 1}', "summarize = 'seed': must name new attributes"),
+    ('{"m": float("nan")}', "summarize.m = nan: must be a plain finite value"),
+    ('[1]', "summarize = 'list': must return a dict"),
+])
+def test_summarize_of_a_single_study(tmp_path, summary, error):
+    path = tmp_path / "s.py"
+    path.write_text(SUMMARIZED.replace("SUMMARY", summary))
+    if error:
+        with pytest.raises(SpecificationError, match=error):
+            run(path, tmp_path / "s.zarr", workers=0, quiet=True)
+        assert not open_results(tmp_path / "s.zarr").attrs["finished"]  # not marked complete
+        with pytest.raises(SpecificationError, match=error):  # a rerun finalises again (and refuses again)
+            run(path, tmp_path / "s.zarr", workers=0, quiet=True)
+        return
+    run(path, tmp_path / "s.zarr", workers=0, quiet=True)
+    ds = open_results(tmp_path / "s.zarr")
+    y = np.array([rng_for(5, r).standard_normal() for r in range(10)])  # a single study has no stream prefix
+    assert ds.attrs["y_max"] == y.max() and ds.attrs["argmax"] == [int(y.argmax())]
+    assert ds.attrs["summary_keys"] == ["argmax", "y_max"] and ds.attrs["finished"]
+
+
 def test_the_documented_pipeline_runs(tmp_path):
     """The example of docs/runner.md, run as written (quick size)."""
     doc = (REPO / "docs/runner.md").read_text()

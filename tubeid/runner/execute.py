@@ -233,6 +233,8 @@ def run(study_path, store=None, *, workers: int | None = None, scheduler: str | 
     report = RunReport(store=path, total=study.n_blocks, computed=0, skipped=0, workers=0)
     if state == "resume" and block_flags(path).all():
         report.skipped = study.n_blocks
+        if not read_attrs(path).get("finished"):  # every block written, but stopped before the finalisation
+            update_attrs(path, finished=now(), **_summary(study, path))
         _log(f"tubeid: {path} is complete ({study.n_blocks} blocks): nothing to do", quiet)
         return report
     t0 = time.perf_counter()
