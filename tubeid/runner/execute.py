@@ -152,8 +152,9 @@ def _summary(study, store, group=None) -> dict:
     if not isinstance(values, dict):
         raise SpecificationError("summarize", type(values).__name__, "must return a dict {name: plain value}")
     out = {}
+    reserved = (set(attrs) - set(attrs.get("summary_keys", []))) | {"summary_keys", "blocks_done", "blocks_total"}
     for k, v in values.items():
-        if not isinstance(k, str) or (k in attrs and k not in attrs.get("summary_keys", [])) or k in ("summary_keys", "blocks_done", "blocks_total"):
+        if not isinstance(k, str) or k in reserved:
             raise SpecificationError("summarize", k, "must name new attributes (not provenance names)")
         out[k] = _plain(v, f"summarize.{k}")
     out["summary_keys"] = sorted(out)
