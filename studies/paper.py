@@ -1,45 +1,268 @@
-"""Paper stage 1: model-to-model likelihood of the model dispersion δ (paper §2.4, Figure 5).
+"""The paper, end to end (Batou & Soize 2008, sections 2–5): a pipeline of runner stages.
 
-For every (δ, realisation): one random stiffness K_B ∈ SE+ of the simplified model's reduced
-linear subsystem and its J = ∫ ‖Z(ω)⁻¹‖²_F dω (closed form). Germs are keyed by the realisation
-only, so every δ shares common random numbers. Then ``tubeid.identification.likelihood_curve``
-on the stored J gives p_J(J_ref; δ) and δ_opt (see ``tubeid report``).
-Run: ``tubeid run studies/paper.py``.
+The reference model (MODEL.md §1) plays the real bundle: its responses under the paper's 7-point
+load are the experimental data. Stages (one Zarr group each; every realisation and grid point is a
+runner task; random streams keyed by the realisation, so every grid shares common random numbers):
+
+``delta``         J(δ) Monte Carlo of the stochastic simplified model (random K_B ∈ SE+) over a δ
+                  grid → p_J(J_ref; δ), δ_opt (Figure 5).
+``reference``     the "experiment": the reference model and the mean simplified model under the
+                  same 7-point load history → response PSDs at P_obs (Figure 4).
+``response``      the stochastic simplified model at δ_opt under the 7-point load → 95 %
+                  confidence region of the response PSD (Figure 6).
+``load_r``        trial grid over r = (r1, r2) of the (T, M) load at x = 8 m, stochastic model at
+                  δ_opt → D(r) map and r_opt.
+``load_r_fine``   a finer grid around the coarse minimum (beyond the paper).
+``load_delta_f``  J_s over a δ_F grid at (δ_opt, r_opt) → p_Js(J_s,exp; δ_F), δ_F,opt.
+
+Sizes: ``--set size=paper`` (default: 200 realisations per δ, 100 for the confidence region, a
+10 × 10 grid of r) or ``--set size=quick`` (a look in about a minute). ``--set delta=0.45`` imposes δ
+for the later stages instead of δ_opt (e.g. the paper's value). Then ``tubeid report STORE``.
 """
+
+import json
 
 import numpy as np
 
+from tubeid.dynamics.response import ResponseSettings, simulate_responses
+from tubeid.dynamics.spectra import j_s
 from tubeid.identification.delta import default_delta_grid, reference_j
+from tubeid.identification.likelihood import likelihood_curve
 from tubeid.mechanics.library import builtin_spec
-from tubeid.mechanics.spec import spec_to_dict
 from tubeid.mechanics.reduction import J_UNITS, j_functional, reduce
+from tubeid.mechanics.spec import spec_to_dict
+from tubeid.runner.pipeline import Pipeline
 from tubeid.runner.study import Output, Parameter, Study
-from tubeid.uncertainty.random_matrices import Dispersion
+from tubeid.uncertainty.loads import coherent_forces, force_and_moment
+from tubeid.uncertainty.random_matrices import Dispersion, delta_max
 from tubeid.uncertainty.random_models import germs_from_rngs, random_subsystem
 
-SUB = reduce(builtin_spec("paper-simplified")).subsystem
+SIMPLIFIED = reduce(builtin_spec("paper-simplified"))
+REFERENCE = reduce(builtin_spec("paper-reference"))
+SUB = SIMPLIFIED.subsystem
+BAND = 100.0
+
+SIZES = {
+    #            δ grid step, J realisations, response realisations, r grid n, realisations per r, δ_F grid, δ_F realisations, duration (s)
+    "paper": dict(delta_step=0.025, n_j=200, n_response=100, n_r=10, n_per_r=8, n_fine=5, n_delta_f=10, n_per_delta_f=40, duration=220.0),
+    "quick": dict(delta_step=0.05, n_j=60, n_response=12, n_r=4, n_per_r=2, n_fine=3, n_delta_f=5, n_per_delta_f=8, duration=40.0),
+}
+R_RANGE = (1.0, 1000.0)  # N²/Hz and (N·m)²/Hz: the coarse grid spans three decades
 
 
-def j_block(block, rng, *, band_hz):
-    rngs = [rng.at({"realisation": int(r)}) for r in block["realisation"]]
-    germs = germs_from_rngs(SUB.n, rngs)
+def _settings(size):
+    return ResponseSettings(duration=SIZES[size]["duration"], discard=2.0, segment_seconds=8.0)
+
+
+def _frequencies(size):
+    """The stored frequency grid: the Welch bins in the band (computed by the same estimator)."""
+    from tubeid.dynamics.spectra import psd_matrix
+
+    st = _settings(size)
+    f, _ = psd_matrix(np.zeros((int(st.segment_seconds / st.output_dt) + 2, 1)), st.output_dt, segment_seconds=st.segment_seconds)
+    return f[f <= BAND]
+
+
+def _psd_block(model, load, block, rng, *, size, dispersion, load_dispersion=0.0, axis="realisation"):
+    reals = [int(r) for r in block[axis]]
+    rngs = [rng.at({axis: r}) for r in reals]
+    ds = simulate_responses(model, load, reals, rngs=rngs, dispersion=dispersion, load_dispersion=load_dispersion, settings=_settings(size))
+    return ds.psd.real.sel(frequency=ds.frequency <= BAND).values[..., 0, 0]  # one sensor: P_obs
+
+
+# -- stage 1: δ ------------------------------------------------------------------------------------
+def j_block(block, rng, *, size):
+    germs = germs_from_rngs(SUB.n, [rng.at({"realisation": int(r)}) for r in block["realisation"]])
     out = np.empty((len(block["delta"]), len(block["realisation"])))
     for i, d in enumerate(block["delta"]):
         M, D, K = random_subsystem(SUB, Dispersion(stiffness=float(d)), 0, block["realisation"], germs=germs)
-        out[i] = j_functional(M, D, K, SUB.n_c, band_hz)
+        out[i] = j_functional(M, D, K, SUB.n_c, BAND)
     return {"J": out}
 
 
-study = Study(
+def summarize_delta(ds):
+    lik = likelihood_curve(ds.J, reference_j("paper-reference"), ds.delta.values, "delta", n_bootstrap=200, rng=1)
+    return {"J_ref": reference_j("paper-reference"), "delta_opt": lik.attrs["argmax"], "delta_opt_std": lik.attrs["argmax_std"]}
+
+
+def delta(results, *, size, delta):
+    s = SIZES[size]
+    return Study(
+        name="delta",
+        description="J(delta) Monte Carlo of the stochastic simplified model (random K_B)",
+        seed=2008,
+        axes={"delta": np.round(default_delta_grid(SUB.n, s["delta_step"]), 4), "realisation": range(s["n_j"])},
+        chunks={"delta": 64, "realisation": 50},
+        seed_axes=("realisation",),
+        task=j_block,
+        outputs={"J": Output(units=J_UNITS, long_name="J = integral of ||Z(w)^-1||_F^2 over the band")},
+        units={"delta": "1"},
+        parameters={"size": size},
+        model=spec_to_dict(SIMPLIFIED.spec),
+        summarize=summarize_delta,
+    )
+
+
+def _delta_for(results, delta):
+    return float(delta) if delta > 0 else float(results["delta"].attrs["delta_opt"])
+
+
+# -- stage 2: the experiment and the mean model ------------------------------------------------------
+def reference_block(block, rng, *, size):
+    load = coherent_forces()
+    ref = _psd_block(REFERENCE, load, block, rng, size=size, dispersion=Dispersion(), axis="experiment")
+    mean = _psd_block(SIMPLIFIED, load, block, rng, size=size, dispersion=Dispersion(), axis="experiment")
+    return {"psd_reference": ref, "psd_mean": mean}
+
+
+def reference(results, *, size, delta):
+    return Study(
+        name="reference",
+        description="reference model (the experiment) and mean simplified model, same 7-point load history",
+        seed=2008,
+        axes={"experiment": range(1)},
+        task=reference_block,
+        coords={"frequency": _frequencies(size)},
+        outputs={
+            "psd_reference": Output(dims=("frequency",), units="m^2/Hz", long_name="PSD at P_obs, reference model (two-sided)"),
+            "psd_mean": Output(dims=("frequency",), units="m^2/Hz", long_name="PSD at P_obs, mean simplified model (two-sided)"),
+        },
+        units={"frequency": "Hz"},
+        parameters={"size": size},
+        model=spec_to_dict(REFERENCE.spec),
+    )
+
+
+# -- stage 3: confidence region ---------------------------------------------------------------------
+def response_block(block, rng, *, size, delta):
+    return {"psd": _psd_block(SIMPLIFIED, coherent_forces(), block, rng, size=size, dispersion=Dispersion(stiffness=delta))}
+
+
+def response(results, *, size, delta):
+    d = _delta_for(results, delta)
+    return Study(
+        name="response",
+        description=f"stochastic simplified model at delta = {d:.4f} under the 7-point load",
+        seed=2008,
+        axes={"realisation": range(SIZES[size]["n_response"])},
+        chunks={"realisation": 4},
+        task=response_block,
+        coords={"frequency": _frequencies(size)},
+        outputs={"psd": Output(dims=("frequency",), units="m^2/Hz", long_name="PSD at P_obs (two-sided)")},
+        units={"frequency": "Hz"},
+        parameters={"size": size, "delta": d},
+        model=spec_to_dict(SIMPLIFIED.spec),
+    )
+
+
+# -- stage 4: trial grid of r ------------------------------------------------------------------------
+def r_block(block, rng, *, size, delta):
+    out = np.empty((len(block["r1"]), len(block["r2"]), len(block["realisation"]), len(_frequencies(size))))
+    for i, r1 in enumerate(block["r1"]):
+        for j, r2 in enumerate(block["r2"]):
+            out[i, j] = _psd_block(SIMPLIFIED, force_and_moment(float(r1), float(r2), x=8.0, band=BAND), block, rng, size=size, dispersion=Dispersion(stiffness=delta))
+    return {"psd": out}
+
+
+def _r_study(name, r1, r2, size, d):
+    return Study(
+        name=name,
+        description=f"trial grid of r = (r1, r2), (T, M) load at x = 8 m, stochastic model at delta = {d:.4f}",
+        seed=2008,
+        axes={"r1": np.round(r1, 6), "r2": np.round(r2, 6), "realisation": range(SIZES[size]["n_per_r"])},
+        chunks={"r1": 1, "r2": 1},
+        seed_axes=("realisation",),
+        task=r_block,
+        coords={"frequency": _frequencies(size)},
+        outputs={"psd": Output(dims=("frequency",), units="m^2/Hz", long_name="PSD at P_obs (two-sided)")},
+        units={"r1": "N^2/Hz", "r2": "(N m)^2/Hz", "frequency": "Hz"},
+        parameters={"size": size, "delta": d},
+        model=spec_to_dict(SIMPLIFIED.spec),
+    )
+
+
+def load_r(results, *, size, delta):
+    n = SIZES[size]["n_r"]
+    grid = np.geomspace(*R_RANGE, n)
+    return _r_study("load_r", grid, grid, size, _delta_for(results, delta))
+
+
+def _coarse_opt(results):
+    ds = results["load_r"]
+    exp = results["reference"].psd_reference.isel(experiment=0).values
+    D = (ds.psd.mean("realisation") - exp) ** 2
+    D = D.integrate("frequency").values
+    i, j = np.unravel_index(np.argmin(D), D.shape)
+    return float(ds.r1[i]), float(ds.r2[j]), float(ds.r1[1] / ds.r1[0])
+
+
+def load_r_fine(results, *, size, delta):
+    r1, r2, step = _coarse_opt(results)
+    n = SIZES[size]["n_fine"]
+    span = np.geomspace(1 / step, step, n)  # ± one coarse step around the coarse minimum
+    return _r_study("load_r_fine", r1 * span, r2 * span, size, _delta_for(results, delta))
+
+
+# -- stage 5: δ_F -----------------------------------------------------------------------------------
+def delta_f_block(block, rng, *, size, delta, r1, r2, J_s_exp):
+    load = force_and_moment(r1, r2, x=8.0, band=BAND)
+    st = _settings(size)
+    out = np.empty((len(block["delta_F"]), len(block["realisation"])))
+    for i, dF in enumerate(block["delta_F"]):
+        reals = [int(r) for r in block["realisation"]]
+        ds = simulate_responses(SIMPLIFIED, load, reals, rngs=[rng.at({"realisation": r}) for r in reals],
+                                dispersion=Dispersion(stiffness=delta), load_dispersion=float(dF), settings=st)
+        sel = ds.frequency.values <= BAND  # the stored grid of the other stages: J_s over the same bins
+        f = ds.frequency.values[sel]
+        out[i] = [j_s(f, ds.psd.values[k][sel], band=f[-1]) for k in range(len(reals))]
+    return {"J_s": out}
+
+
+def _fine_opt(results):
+    name = "load_r_fine" if "load_r_fine" in results else "load_r"
+    ds = results[name]
+    exp = results["reference"].psd_reference.isel(experiment=0).values
+    D = ((ds.psd.mean("realisation") - exp) ** 2).integrate("frequency").values
+    i, j = np.unravel_index(np.argmin(D), D.shape)
+    return float(ds.r1[i]), float(ds.r2[j])
+
+
+def summarize_delta_f(ds):
+    j_exp = float(json.loads(ds.attrs["parameters"])["J_s_exp"])
+    lik = likelihood_curve(ds.J_s, j_exp, ds.delta_F.values, "delta_F", n_bootstrap=200, rng=1)
+    return {"J_s_exp": j_exp, "delta_F_opt": lik.attrs["argmax"], "delta_F_opt_std": lik.attrs["argmax_std"]}
+
+
+def load_delta_f(results, *, size, delta):
+    r1, r2 = _fine_opt(results)
+    ref = results["reference"]
+    f = ref.frequency.values
+    j_exp = float(j_s(f, ref.psd_reference.isel(experiment=0).values[:, None, None], band=f[-1]))
+    d = _delta_for(results, delta)
+    s = SIZES[size]
+    return Study(
+        name="load_delta_f",
+        description=f"J_s over a delta_F grid at delta = {d:.4f}, r = ({r1:.4g}, {r2:.4g})",
+        seed=2008,
+        axes={"delta_F": np.round(np.linspace(0.02, 0.98 * delta_max(2), s["n_delta_f"]), 4), "realisation": range(s["n_per_delta_f"])},
+        chunks={"delta_F": 1, "realisation": 4},
+        seed_axes=("realisation",),
+        task=delta_f_block,
+        outputs={"J_s": Output(units="(m^2/Hz)^2 rad/s", long_name="J_s = integral of ||S_Z(w)||_F^2 over the band")},
+        units={"delta_F": "1"},
+        parameters={"size": size, "delta": d, "r1": r1, "r2": r2, "J_s_exp": j_exp},
+        model=spec_to_dict(SIMPLIFIED.spec),
+        summarize=summarize_delta_f,
+    )
+
+
+study = Pipeline(
     name="paper",
-    description=f"J(delta) Monte Carlo of the stochastic simplified model; J_ref = {reference_j('paper-reference'):.6e} {J_UNITS}",
     seed=2008,
-    axes={"delta": np.round(default_delta_grid(SUB.n), 4), "realisation": range(200)},
-    chunks={"delta": 35, "realisation": 50},
-    seed_axes=("realisation",),
-    task=j_block,
-    outputs={"J": Output(units=J_UNITS, long_name="J = integral of ||Z(w)^-1||_F^2 over the band")},
-    units={"delta": "1", "realisation": "1"},
-    parameters={"band_hz": Parameter(100.0, bounds=(1e-3, 1e4), units="Hz", doc="band of analysis")},
-    model=spec_to_dict(builtin_spec("paper-simplified")),
+    description=__doc__.splitlines()[0],
+    stages=[delta, reference, response, load_r, load_r_fine, load_delta_f],
+    parameters={
+        "size": Parameter("paper", choices=("paper", "quick"), doc="sample sizes: the paper's, or a quick look"),
+        "delta": Parameter(0.0, bounds=(0.0, 0.87), doc="delta for the later stages; 0 = delta_opt of stage 'delta'"),
+    },
 )

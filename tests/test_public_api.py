@@ -33,8 +33,11 @@ PINNED = {
     ],
     "tubeid.identification": ["identify_delta", "reference_j", "likelihood_curve", "kde_pdf", "silverman_bandwidth"],
     "tubeid.measured": ["read_measurements", "write_measurements", "validate_measurements"],
-    "tubeid.runner": ["Study", "Output", "Parameter", "pointwise", "load_study", "run", "open_results",
-                      "RunReport", "RngFactory", "store_status"],
+    "tubeid.runner": [
+        "Study", "Output", "Parameter", "pointwise", "load_study", "run", "open_results", "RunReport", "RngFactory",
+        "store_status", "Pipeline", "PipelineReport", "open_pipeline", "pipeline_status",
+    ],
+
 }
 
 
