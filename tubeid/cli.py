@@ -13,6 +13,7 @@ COMMAND_MODULES = [
     "tubeid.mechanics.cli",
     "tubeid.bench",
     "tubeid.runner.cli",
+    "tubeid.measured.cli",
 ]
 
 
