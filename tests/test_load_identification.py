@@ -1,0 +1,326 @@
+"""Load identification: D(r) maps, their refined minimiser and bootstrap, and the likelihood of δ_F.
+
+Oracles: closed-form spectra S̄(r) = r1·A(f) + r2·B(f) (D exactly quadratic in r), a direct
+trapezoid integral, repeated independent Monte Carlo experiments (for the bootstrap), the
+SG+ generator for J_s, and an end-to-end recovery with the real response chain.
+"""
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from tubeid.errors import SpecificationError
+from tubeid.identification.loads import delta_f_likelihood, distance_map, refine_grid, relative_weight
+from tubeid.seeds import rng_for
+from tubeid.uncertainty.random_matrices import delta_max, sg_plus, sg_plus_from_germs, sg_plus_germs
+
+F = np.arange(0.0, 120.5, 0.5)  # Hz; 100 Hz is a bin
+R_TRUE = (18.0, 20.0)
+# a ratio-1.2 grid that does not contain the truth
+R1 = 18.0 * 1.07 * 1.2 ** np.arange(-2, 3)
+R2 = 20.0 * 0.95 * 1.2 ** np.arange(-2, 3)
+
+
+def _lorentz(f0, zeta=0.05):
+    return 1.0 / ((1 - (F / f0) ** 2) ** 2 + (2 * zeta * F / f0) ** 2)
+
+
+A = _lorentz(10.0) + 0.3 * _lorentz(40.0)  # "force" shape
+B = _lorentz(25.0) + 0.5 * _lorentz(60.0)  # "moment" shape
+
+
+def _model(n, sigma, seed, r1=R1, r2=R2):
+    """P_k(r) = r1 A (1 + ε_k) + r2 B (1 + η_k): the same ε_k, η_k at every r (common random numbers)."""
+    rng = np.random.default_rng(seed)
+    eps = 1 + sigma * rng.standard_normal((n, F.size))
+    eta = 1 + sigma * rng.standard_normal((n, F.size))
+    P = r1[:, None, None, None] * A * eps + r2[None, :, None, None] * B * eta
+    return xr.DataArray(P, dims=("r1", "r2", "realisation", "frequency"),
+                        coords={"r1": r1, "r2": r2, "frequency": F})
+
+
+EXP = xr.DataArray(R_TRUE[0] * A + R_TRUE[1] * B, dims=("frequency",), coords={"frequency": F})
+
+
+def _rel_err(r):
+    return np.abs(np.asarray(r) / np.asarray(R_TRUE) - 1)
+
+
+# ---------------------------------------------------------------------- D and its minimiser
+def test_distance_is_the_band_integral_over_omega():
+    """D(r) = 2 · 2π ∫_0^100 |S̄ − S_exp|² df (both signs of ω): trapezoid oracle, rel 1e-12."""
+    m = _model(6, 0.2, 1)
+    ds = distance_map(m, EXP, n_bootstrap=0)
+    band = F <= 100.0
+    S_bar = m.mean("realisation").values
+    oracle = 4 * np.pi * np.trapezoid(np.abs(S_bar - EXP.values)[..., band] ** 2, F[band], axis=-1)
+    np.testing.assert_allclose(ds.D.values, oracle, rtol=1e-12)
+    assert ds.D.dims == ("r1", "r2")
+    assert ds.attrs["J_s_exp"] == pytest.approx(4 * np.pi * np.trapezoid(EXP.values[band] ** 2, F[band]), rel=1e-12)
+
+
+@pytest.mark.parametrize("refine", ["spectrum", "distance"])
+def test_noise_free_linear_spectra_give_the_exact_minimiser(refine):
+    """S̄ linear in r and fit in r: both refinements are exact (quadratic surrogate / D exactly quadratic)."""
+    ds = distance_map(_model(3, 0.0, 0), EXP, n_bootstrap=0, fit="linear", refine=refine)
+    np.testing.assert_allclose(ds.attrs["r_opt"], R_TRUE, rtol=1e-8)
+    assert ds.attrs["r_opt_discrete"] != list(R_TRUE)  # the truth is not a grid point
+    assert ds.attrs["r_opt_at_boundary"] == 0
+
+
+def test_log_fit_errors_are_small_and_the_spectral_surrogate_is_better():
+    """fit="log" on a ratio-1.2 grid: S̄ = r·(…) is not quadratic in log r. Measured errors: spectral
+    surrogate 0.03 %, quadratic fit of D 0.8 % / 1.4 %. Tolerances 0.2 % and 2 %."""
+    m = _model(3, 0.0, 0)
+    spec = distance_map(m, EXP, n_bootstrap=0)
+    dist = distance_map(m, EXP, n_bootstrap=0, refine="distance")
+    grid = distance_map(m, EXP, n_bootstrap=0, refine=None)
+    assert np.all(_rel_err(spec.attrs["r_opt"]) < 0.002)
+    assert np.all(_rel_err(dist.attrs["r_opt"]) < 0.02)
+    assert grid.attrs["r_opt"] == grid.attrs["r_opt_discrete"]
+    assert np.max(_rel_err(spec.attrs["r_opt"])) < np.max(_rel_err(dist.attrs["r_opt"])) \
+        < np.max(_rel_err(grid.attrs["r_opt"]))
+
+
+def test_noisy_realisations_recover_r_within_2_percent():
+    """640 realisations with 30 % noise per bin. Measured spread over repetitions of this
+    estimator: 0.6 % (r1), 0.35 % (r2), so 2 % is > 3 standard deviations."""
+    ds = distance_map(_model(640, 0.3, 7), EXP, n_bootstrap=50, rng=3)
+    assert np.all(_rel_err(ds.attrs["r_opt"]) < 0.02), ds.attrs["r_opt"]
+    assert np.all(np.abs(np.asarray(ds.attrs["r_opt"]) - R_TRUE) < 4 * np.asarray(ds.attrs["r_opt_std"]))
+
+
+def test_bootstrap_spread_matches_independent_repetitions_and_shrinks_like_one_over_sqrt_n():
+    """Bootstrap std of r_opt vs the std over 40 independent Monte Carlo repetitions (N = 80): ratio
+    within [0.7, 1.45] (the std of 40 repetitions is itself uncertain by ~11 %, measured ratios 0.93
+    and 1.06). From N = 20 to N = 320 the spread shrinks by ~4 = √16 (measured 4.3, 4.2): [2.5, 6.5]."""
+    boot = distance_map(_model(80, 0.3, 1), EXP, n_bootstrap=200, rng=2)
+    reps = np.array([distance_map(_model(80, 0.3, 100 + k), EXP, n_bootstrap=0).attrs["r_opt"] for k in range(40)])
+    ratio = np.asarray(boot.attrs["r_opt_std"]) / reps.std(axis=0, ddof=1)
+    assert np.all((0.7 < ratio) & (ratio < 1.45)), ratio
+    small = distance_map(_model(20, 0.3, 5), EXP, n_bootstrap=200, rng=2)
+    large = distance_map(_model(320, 0.3, 5), EXP, n_bootstrap=200, rng=2)
+    shrink = np.asarray(small.attrs["r_opt_std"]) / np.asarray(large.attrs["r_opt_std"])
+    assert np.all((2.5 < shrink) & (shrink < 6.5)), shrink
+    # D's bootstrap band brackets D, and the interval of r_opt brackets r_opt
+    assert np.all(large.D_low <= large.D) and np.all(large.D <= large.D_high)
+    for lo, r, hi in zip(large.attrs["r_opt_low"], large.attrs["r_opt"], large.attrs["r_opt_high"]):
+        assert lo <= r <= hi
+    corr = np.asarray(large.attrs["r_opt_corr"])
+    assert corr.shape == (2, 2) and corr[0, 0] == pytest.approx(1.0)
+
+
+def test_bootstrap_is_reproducible_from_the_seed():
+    m = _model(10, 0.3, 1)
+    a = distance_map(m, EXP, n_bootstrap=30, rng=9)
+    b = distance_map(m, EXP, n_bootstrap=30, rng=rng_for(9, "distance_map"))
+    assert a.attrs["r_opt_std"] == b.attrs["r_opt_std"]
+    np.testing.assert_array_equal(a.D_std.values, b.D_std.values)
+
+
+def test_scalar_real_and_one_by_one_complex_psds_agree():
+    m = _model(5, 0.2, 4)
+    mc = m.astype(complex).expand_dims(sensor=["P_obs"], sensor_=["P_obs"], axis=(-2, -1))
+    ec = EXP.astype(complex).expand_dims(sensor=["P_obs"], sensor_=["P_obs"], axis=(-2, -1))
+    a = distance_map(m, EXP, n_bootstrap=20, rng=1)
+    b = distance_map(mc.transpose("realisation", "sensor", "frequency", "r2", "sensor_", "r1"), ec,
+                     n_bootstrap=20, rng=1)
+    assert b.attrs["grid_dims"] == ["r2", "r1"]  # grid axes keep the input's order
+    np.testing.assert_allclose(b.D.transpose("r1", "r2").values, a.D.values, rtol=1e-12)
+    for d in ("r1", "r2"):
+        assert b.attrs[f"{d}_opt"] == pytest.approx(a.attrs[f"{d}_opt"], rel=1e-10)
+        assert b.attrs[f"{d}_opt_std"] == pytest.approx(a.attrs[f"{d}_opt_std"], rel=1e-6)
+
+
+def test_experimental_records_are_averaged_and_resampled():
+    rng = np.random.default_rng(3)
+    records = EXP * (1 + 0.3 * xr.DataArray(rng.standard_normal((12, F.size)), dims=("record", "frequency")))
+    m = _model(40, 0.1, 2)
+    with_records = distance_map(m, records, n_bootstrap=100, rng=1)
+    averaged = distance_map(m, records.mean("record"), n_bootstrap=100, rng=1)
+    np.testing.assert_allclose(with_records.D.values, averaged.D.values, rtol=1e-12)
+    assert with_records.attrs["n_experimental_records"] == 12
+    # the experimental noise (30 % on 12 records) dominates the model's (10 % on 40): larger spread
+    assert np.all(np.asarray(with_records.attrs["r_opt_std"]) > 1.5 * np.asarray(averaged.attrs["r_opt_std"]))
+
+
+def test_weights():
+    m = _model(5, 0.2, 4)
+    ones = xr.DataArray(np.ones(F.size), dims=("frequency",), coords={"frequency": F})
+    a, b = distance_map(m, EXP, n_bootstrap=0), distance_map(m, EXP, n_bootstrap=0, weight=ones)
+    np.testing.assert_allclose(b.D.values, a.D.values, rtol=1e-12)
+    two = distance_map(m, EXP, n_bootstrap=0, weight=2 * ones)
+    np.testing.assert_allclose(two.D.values, 4 * a.D.values, rtol=1e-12)
+    # relative weight of a 2 x 2 PSD: 1/sqrt(S_aa S_bb), 0 where an auto-spectrum vanishes
+    S = np.zeros((3, 2, 2), complex)
+    S[:, 0, 0], S[:, 1, 1], S[:, 0, 1] = [4.0, 1.0, 0.0], [9.0, 4.0, 1.0], 1j
+    S[:, 1, 0] = -1j
+    W = relative_weight(xr.DataArray(S, dims=("frequency", "sensor", "sensor_"),
+                                     coords={"frequency": [0.0, 1.0, 2.0]}))
+    np.testing.assert_allclose(W.values[0], [[1 / 4, 1 / 6], [1 / 6, 1 / 9]])
+    np.testing.assert_allclose(W.values[2], [[0, 0], [0, 1]])
+    assert W.attrs["distance_units"] == "rad/s"
+    # the relative distance of the noise-free closed form still finds the truth
+    rel = distance_map(_model(3, 0.0, 0), EXP, n_bootstrap=0, fit="linear",
+                       weight=relative_weight(EXP))
+    np.testing.assert_allclose(rel.attrs["r_opt"], R_TRUE, rtol=1e-8)
+
+
+def test_one_dimensional_grid_and_boundary_flag():
+    m = _model(3, 0.0, 0).sel(r2=R2[2]).drop_vars("r2")
+    exp = R_TRUE[0] * A + R2[2] * B
+    ds = distance_map(m, xr.DataArray(exp, dims=("frequency",), coords={"frequency": F}), n_bootstrap=0,
+                      fit="linear")
+    assert ds.attrs["grid_dims"] == ["r1"]
+    assert ds.attrs["r1_opt"] == pytest.approx(R_TRUE[0], rel=1e-8)
+    # truth beyond the grid: the minimum sits on the edge and is flagged
+    low = distance_map(_model(3, 0.0, 0, r1=R1 * 2.5), EXP, n_bootstrap=0)
+    assert low.attrs["r_opt_at_boundary"] == 1
+
+
+def test_bad_inputs_are_refused():
+    m = _model(4, 0.1, 0)
+    with pytest.raises(SpecificationError, match="rng"):
+        distance_map(m, EXP, n_bootstrap=10)
+    with pytest.raises(SpecificationError, match="psd_exp.frequency"):
+        distance_map(m, EXP.isel(frequency=slice(0, 100)), n_bootstrap=0)
+    with pytest.raises(SpecificationError, match="psd_model.r1"):
+        distance_map(m.drop_vars("r1"), EXP, n_bootstrap=0)
+    with pytest.raises(SpecificationError, match="must be > 0 for fit='log'"):
+        distance_map(m.assign_coords(r1=R1 - R1[0]), EXP, n_bootstrap=0)
+    with pytest.raises(SpecificationError, match="fit"):
+        distance_map(m, EXP, n_bootstrap=0, fit="cubic")
+    with pytest.raises(SpecificationError, match="refine"):
+        distance_map(m, EXP, n_bootstrap=0, refine="newton")
+    with pytest.raises(SpecificationError, match="band_hz"):
+        distance_map(m, EXP, band_hz=-1, n_bootstrap=0)
+    with pytest.raises(SpecificationError, match="exceeds the grid"):
+        distance_map(m, EXP, band_hz=500, n_bootstrap=0)
+    with pytest.raises(SpecificationError, match="non-finite"):
+        distance_map(m.where(m.realisation != 1), EXP, n_bootstrap=0)
+    with pytest.raises(SpecificationError, match="at most one dimension"):
+        distance_map(m, EXP.expand_dims(a=2, b=2), n_bootstrap=0)
+    with pytest.raises(SpecificationError, match="weight"):
+        distance_map(m, EXP, n_bootstrap=0, weight=-EXP)
+    with pytest.raises(SpecificationError, match="grid dimension"):
+        distance_map(m.isel(r1=0, r2=0, drop=True), EXP, n_bootstrap=0)
+    with pytest.raises(SpecificationError, match="sensor"):
+        distance_map(m, EXP.expand_dims(sensor=1, sensor_=1), n_bootstrap=0)
+    with pytest.raises(SpecificationError, match="DataArray"):
+        distance_map(m.values, EXP, n_bootstrap=0)
+
+
+def test_refine_grid():
+    g = refine_grid({"r1": 18.0, "r2": 20.0}, 1.2, 5)
+    np.testing.assert_allclose(g["r1"], 18.0 * 1.2 ** np.linspace(-1, 1, 5))
+    assert g["r2"][2] == pytest.approx(20.0)
+    t = refine_grid([18.0, 20.0], 1.1, 4)
+    assert isinstance(t, tuple) and len(t) == 2 and t[0].size == 4
+    np.testing.assert_allclose(t[1][[0, -1]], [20 / 1.1, 22.0])
+    for bad in [dict(r_opt=[18.0], factor=1.0, n=3), dict(r_opt=[18.0], factor=2.0, n=1),
+                dict(r_opt=[-1.0], factor=2.0, n=3), dict(r_opt=[], factor=2.0, n=3)]:
+        with pytest.raises(SpecificationError):
+            refine_grid(**bad)
+
+
+# ---------------------------------------------------------------------- δ_F
+def _js_closed_form():
+    """J_s(G) = Σ_f ‖H(f) Lᵀ G L H(f)*‖²_F for a fixed random H (f, 3 sensors, 2 loads), S̄_F = diag(18, 20)."""
+    rng = np.random.default_rng(0)
+    H = rng.standard_normal((40, 3, 2)) + 1j * rng.standard_normal((40, 3, 2))
+    L = np.linalg.cholesky(np.diag([18.0, 20.0])).T
+
+    def js(G):
+        S = np.einsum("fab,...bc,fdc->...fad", H, L.T @ G @ L, np.conj(H))
+        return np.sum(np.abs(S) ** 2, axis=(-3, -2, -1))
+    return js
+
+
+def test_delta_f_is_recovered_from_many_observations():
+    """100 independent observations at δ_F = 0.25, 400 CRN samples per grid value. Measured over 40
+    observation sets: mean 0.240, std 0.021 (kernel smoothing biases low by ~0.01); tolerance 0.07."""
+    js = _js_closed_form()
+    grid = np.round(np.arange(0.05, 0.651, 0.025), 3)
+    normals, uniforms = sg_plus_germs(2, size=(400,), rng=rng_for(1, "germs"))
+    samples = xr.DataArray(np.stack([js(sg_plus_from_germs(2, d, normals, uniforms)) for d in grid]),
+                           dims=("delta_F", "realisation"), coords={"delta_F": grid})
+    obs = js(sg_plus(2, 0.25, size=(100,), rng=rng_for(2, "observations")))
+    ds = delta_f_likelihood(samples, obs, n_bootstrap=100, rng=3)
+    assert abs(ds.attrs["delta_F_opt"] - 0.25) < 0.07, ds.attrs["delta_F_opt"]
+    assert ds.attrs["delta_F_opt_std"] > 0 and ds.attrs["delta_F_opt_low"] <= ds.attrs["delta_F_opt_high"]
+    assert ds.J_s.dims == ("delta_F", "realisation")
+    assert ds.attrs["delta_F_max"] == pytest.approx(np.sqrt(3 / 7))
+    # one observation (the paper's situation): a valid but far less certain estimate
+    one = delta_f_likelihood(samples, float(obs[0]), n_bootstrap=0)
+    assert grid[0] <= one.attrs["delta_F_opt"] <= grid[-1]
+    assert one.attrs["J_s_exp"] == pytest.approx(float(obs[0]))
+
+
+def test_delta_f_likelihood_refuses_inadmissible_grids():
+    s = np.random.default_rng(0).lognormal(size=(3, 20))
+    with pytest.raises(SpecificationError, match="admissible"):
+        delta_f_likelihood(s, 1.0, [0.1, 0.3, 0.7], n_bootstrap=0)
+    with pytest.raises(SpecificationError, match="admissible"):
+        delta_f_likelihood(s, 1.0, [0.0, 0.3, 0.5], n_bootstrap=0)
+    with pytest.raises(SpecificationError, match="grid"):
+        delta_f_likelihood(s, 1.0, n_bootstrap=0)
+    assert delta_max(2) == pytest.approx(np.sqrt(3 / 7))
+
+
+# ---------------------------------------------------------------------- the real response chain
+def _chain_maps(duration, n_model, n_exp, r1, r2, seed):
+    from tubeid.dynamics.response import ResponseSettings, simulate_responses
+    from tubeid.mechanics import builtin_spec, reduce
+    from tubeid.uncertainty.loads import force_and_moment
+
+    model = reduce(builtin_spec("paper-simplified"))
+    s = ResponseSettings(duration=duration, discard=2.0, segment_seconds=4.0)
+    # "experimental" data: the simplified model itself, known r and δ_F = 0.04, independent seeds
+    exp = simulate_responses(model, force_and_moment(*R_TRUE), range(n_exp), seed=seed + 1, load_dispersion=0.04,
+                             settings=s).psd.rename(realisation="record")
+    rows = [[simulate_responses(model, force_and_moment(a, b), range(n_model), seed=seed, settings=s).psd
+             for b in r2] for a in r1]
+    psd = xr.concat([xr.concat(row, "r2") for row in rows], "r1").assign_coords(r1=r1, r2=r2)
+    # relative weight from an independent model run at the grid centre (not from the experiment)
+    centre = simulate_responses(model, force_and_moment(r1[len(r1) // 2], r2[len(r2) // 2]), range(8),
+                                seed=seed + 2, settings=s).psd.mean("realisation")
+    return psd, exp, relative_weight(centre)
+
+
+def test_end_to_end_recovery_of_r_with_the_response_chain():
+    """Real chain (simplified model, stops, Gaussian loads, Welch), truth r = (18, 20) off a 3 × 3
+    grid of ±15 %, 24 model realisations and 24 independent "experimental" records of 50 s
+    (δ_F = 0.04); ~18 s.
+
+    Relative-weighted D: measured bootstrap spread of r_opt (model realisations and records)
+    2.5 % (r1), 2.3 % (r2); over 12 independent model seeds the spread was consistent with the
+    bootstrap. 10 % is 4 of them; the test also requires the spread to stay below 4.5 %.
+    Measured here: r_opt = (18.57, 18.95) ± (0.45, 0.45).
+    The paper's unweighted D is dominated by the first resonance peaks: on the same data its
+    minimum lies on the grid's edge and its r1, r2 trade off along a valley (bootstrap correlation
+    −0.67); hence the fuller slow test below with 4 times more data and a wider grid.
+    """
+    r1 = 18.0 * np.array([0.88, 1.02, 1.18])
+    r2 = 20.0 * np.array([0.85, 0.98, 1.13])
+    psd, exp, W = _chain_maps(50.0, 24, 24, r1, r2, seed=2008)
+    rel = distance_map(psd, exp, n_bootstrap=200, rng=1, weight=W)
+    assert np.all(_rel_err(rel.attrs["r_opt"]) < 0.10), rel.attrs["r_opt"]
+    rel_std = np.asarray(rel.attrs["r_opt_std"]) / np.asarray(R_TRUE)
+    assert np.all(rel_std < 0.045), rel_std  # the precision the 10 % tolerance relies on
+    paper = distance_map(psd, exp, n_bootstrap=200, rng=1)
+    assert paper.attrs["D_units"] == "(m^2/Hz)^2 rad/s"
+    assert np.max(paper.attrs["r_opt_std"]) > 1.5 * np.max(rel.attrs["r_opt_std"])
+
+
+@pytest.mark.slow
+def test_end_to_end_recovery_with_the_papers_distance():
+    """The paper's unweighted D on a 4 × 4 grid of ±25 %, 32 model realisations and 32 records of
+    150 s. Measured spread over seeds at 16 × 50 s: 9 % (r1), 11 % (r2); 6 times the data gives
+    ~3.7 % / 4.5 %, so 10 % is 2.2–2.7 of them, and the estimate must also lie within 4 of its
+    own bootstrap standard deviations."""
+    r1 = 18.0 * np.array([0.8, 0.93, 1.07, 1.24])
+    r2 = 20.0 * np.array([0.78, 0.92, 1.08, 1.27])
+    psd, exp, _ = _chain_maps(150.0, 32, 32, r1, r2, seed=2010)
+    paper = distance_map(psd, exp, n_bootstrap=200, rng=1)
+    assert np.all(_rel_err(paper.attrs["r_opt"]) < 0.10), (paper.attrs["r_opt"], paper.attrs["r_opt_std"])
+    assert np.all(np.abs(np.asarray(paper.attrs["r_opt"]) - R_TRUE) < 4 * np.asarray(paper.attrs["r_opt_std"]))
