@@ -34,7 +34,7 @@ from tubeid.mechanics.spec import spec_to_dict
 from tubeid.runner.pipeline import Pipeline
 from tubeid.runner.study import Output, Parameter, Study
 from tubeid.uncertainty.loads import coherent_forces, force_and_moment
-from tubeid.uncertainty.random_matrices import Dispersion, delta_max
+from tubeid.uncertainty.random_matrices import Dispersion
 from tubeid.uncertainty.random_models import germs_from_rngs, random_subsystem
 
 SIMPLIFIED = reduce(builtin_spec("paper-simplified"))
@@ -43,11 +43,14 @@ SUB = SIMPLIFIED.subsystem
 BAND = 100.0
 
 SIZES = {
-    #            δ grid step, J realisations, response realisations, r grid n, realisations per r, δ_F grid, δ_F realisations, duration (s)
-    "paper": dict(delta_step=0.025, n_j=200, n_response=100, n_r=10, n_per_r=8, n_fine=5, n_delta_f=10, n_per_delta_f=40, duration=220.0),
-    "quick": dict(delta_step=0.05, n_j=60, n_response=12, n_r=4, n_per_r=2, n_fine=3, n_delta_f=5, n_per_delta_f=8, duration=40.0),
+    # δ grid step, J realisations per δ, realisations for the confidence region, r grid size per axis,
+    # realisations per r, fine r grid size, realisations per δ_F, record length (s)
+    "paper": dict(delta_step=0.025, n_j=200, n_response=100, n_r=10, n_per_r=8, n_fine=5, n_per_delta_f=40, duration=220.0),
+    "quick": dict(delta_step=0.05, n_j=60, n_response=12, n_r=4, n_per_r=2, n_fine=3, n_per_delta_f=8, duration=40.0),
 }
-R_RANGE = (1.0, 1000.0)  # N²/Hz and (N·m)²/Hz: the coarse grid spans three decades
+R_RANGE = (1.0, 1000.0)
+# δ_F ∈ (0, √(3/7) = 0.655): dense near 0, where the paper finds 0.04
+DELTA_F_GRID = {"paper": [0.005, 0.01, 0.02, 0.03, 0.04, 0.06, 0.09, 0.14, 0.22, 0.35, 0.5], "quick": [0.01, 0.04, 0.16, 0.4]}  # N²/Hz and (N·m)²/Hz: the coarse grid spans three decades
 
 
 def _settings(size):
@@ -244,7 +247,7 @@ def load_delta_f(results, *, size, delta):
         name="load_delta_f",
         description=f"J_s over a delta_F grid at delta = {d:.4f}, r = ({r1:.4g}, {r2:.4g})",
         seed=2008,
-        axes={"delta_F": np.round(np.linspace(0.02, 0.98 * delta_max(2), s["n_delta_f"]), 4), "realisation": range(s["n_per_delta_f"])},
+        axes={"delta_F": DELTA_F_GRID[size], "realisation": range(s["n_per_delta_f"])},
         chunks={"delta_F": 1, "realisation": 4},
         seed_axes=("realisation",),
         task=delta_f_block,
