@@ -205,6 +205,15 @@ def _warm() -> None:
     import tubeid.runner.store  # noqa: F401  (xarray, zarr)
 
 
+def _record_resume(path, quiet) -> None:
+    """Append this start to the store's runs; warn when another tubeid version started it."""
+    attrs = read_attrs(path)
+    if attrs.get("tubeid_version") != tubeid_version():
+        _log(f"tubeid: warning: {path} was started with tubeid {attrs.get('tubeid_version')}, "
+             f"resuming with {tubeid_version()}; use --overwrite if the results may differ", quiet)
+    update_attrs(path, runs=list(attrs.get("runs", [])) + [now()])
+
+
 def run(study_path, store=None, *, workers: int | None = None, scheduler: str | None = None,
         overrides: dict | None = None, new_store: bool = False, overwrite: bool = False,
         progress: bool | None = None, quiet: bool = False) -> RunReport:
@@ -246,11 +255,7 @@ def run(study_path, store=None, *, workers: int | None = None, scheduler: str | 
             init_store(study, path, source=source, study_hash=key, study_file=str(study_path), overrides=overrides)
             _log(f"tubeid: new store {path} ({study.n_blocks} blocks)", quiet)
         else:
-            attrs = read_attrs(path)
-            if attrs.get("tubeid_version") != tubeid_version():
-                _log(f"tubeid: warning: {path} was started with tubeid {attrs.get('tubeid_version')}, "
-                     f"resuming with {tubeid_version()}; use --overwrite if the results may differ", quiet)
-            update_attrs(path, runs=list(attrs.get("runs", [])) + [now()])
+            _record_resume(path, quiet)
         flags = block_flags(path)
         todo = [b.index for b in study.blocks() if not flags[b.index]]
         report.skipped = study.n_blocks - len(todo)
@@ -290,11 +295,7 @@ def _run_pipeline(pipeline, source, key, study_path, path, state, workers, sched
                                 overrides=overrides)
             _log(f"tubeid: new pipeline store {path} (stages {', '.join(pipeline.stage_names)})", quiet)
         else:
-            attrs = read_attrs(path)
-            if attrs.get("tubeid_version") != tubeid_version():
-                _log(f"tubeid: warning: {path} was started with tubeid {attrs.get('tubeid_version')}, "
-                     f"resuming with {tubeid_version()}; use --overwrite if the results may differ", quiet)
-            update_attrs(path, runs=list(attrs.get("runs", [])) + [now()])
+            _record_resume(path, quiet)
             _log(f"tubeid: resuming pipeline store {path}", quiet)
         if client is not None:
             _describe_cluster(client, scheduler, report, quiet)

@@ -25,13 +25,13 @@ from typing import Any
 import numpy as np
 
 from tubeid.errors import SpecificationError
-from tubeid.runner.study import Parameter, Study, _plain, check_name
+from tubeid.runner.study import Parameter, Parameterised, Study, _plain, check_name
 
 __all__ = ["Pipeline", "stage_hash"]
 
 
 @dataclasses.dataclass(frozen=True)
-class Pipeline:
+class Pipeline(Parameterised):
     """Stages run in order into one Zarr store (one group per stage); see the module docstring.
 
     name: identifier (store file name); seed: non-negative int, the seed of every stage;
@@ -105,20 +105,6 @@ class Pipeline:
             raise SpecificationError(f"parameters.{name}", self.parameters[name].value, "unknown parameter: no stage function accepts it")
 
     # -- parameters ---------------------------------------------------------------------------
-    @property
-    def values(self) -> dict[str, Any]:
-        """The pipeline parameter values."""
-        return {name: p.value for name, p in self.parameters.items()}
-
-    def with_parameters(self, overrides: Mapping[str, Any]) -> "Pipeline":
-        """A copy with some parameter values replaced (unknown names and inadmissible values refused)."""
-        params = dict(self.parameters)
-        for name, value in overrides.items():
-            if name not in params:
-                raise SpecificationError(f"parameters.{name}", value, f"unknown parameter (known: {sorted(params)})")
-            params[name] = dataclasses.replace(params[name], value=params[name].check(name, value))
-        return dataclasses.replace(self, parameters=params)
-
     # -- stages -------------------------------------------------------------------------------
     @property
     def stage_names(self) -> list[str]:

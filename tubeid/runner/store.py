@@ -111,30 +111,34 @@ def check_store(path, study_hash: str) -> str:
     return "resume"
 
 
-def init_store(study, path, *, source: str, study_hash: str, study_file: str = "", overrides=None) -> None:
-    """Create the store: coordinates, empty (lazy) outputs, zero flags and provenance; no data computed."""
+def _fresh_root(path, fmt: str, definition, *, source: str, study_hash: str, study_file: str, overrides) -> tuple[pathlib.Path, dict]:
+    """Remove any store at ``path`` and return it with the provenance shared by study and pipeline roots."""
     p = pathlib.Path(path)
     if p.exists():
         shutil.rmtree(p)
     p.parent.mkdir(parents=True, exist_ok=True)
     t = now()
-    attrs = {
-        "format": FORMAT,
-        "title": study.description or study.name,
+    return p, {
+        "format": fmt,
+        "title": definition.description or definition.name,
         "tubeid_version": tubeid_version(),
-        "study_name": study.name,
+        "study_name": definition.name,
         "study_file": str(study_file),
         "study_hash": study_hash,
         "study_source": source,
-        "seed": int(study.seed),
-        "seed_axes": list(study.seed_axes),
-        "parameters": json.dumps(study.values, sort_keys=True),
+        "seed": int(definition.seed),
+        "parameters": json.dumps(definition.values, sort_keys=True),
         "parameter_overrides": json.dumps(dict(overrides or {}), sort_keys=True),
-        "model_specification": study.describe_model(),
         "started": t,
         "runs": [t],
         "finished": "",
     }
+
+
+def init_store(study, path, *, source: str, study_hash: str, study_file: str = "", overrides=None) -> None:
+    """Create the store: coordinates, empty (lazy) outputs, zero flags and provenance; no data computed."""
+    p, attrs = _fresh_root(path, FORMAT, study, source=source, study_hash=study_hash, study_file=study_file, overrides=overrides)
+    attrs.update(seed_axes=list(study.seed_axes), model_specification=study.describe_model())
     _write_empty(study, p, attrs)
 
 
@@ -168,28 +172,8 @@ def _write_empty(study, p, attrs, group=None) -> None:
 
 def init_pipeline_store(pipeline, path, *, source: str, study_hash: str, study_file: str = "", overrides=None) -> None:
     """Create a pipeline store: the root group and its provenance (stage groups come later)."""
-    p = pathlib.Path(path)
-    if p.exists():
-        shutil.rmtree(p)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    t = now()
-    attrs = {
-        "format": PIPELINE_FORMAT,
-        "title": pipeline.description or pipeline.name,
-        "tubeid_version": tubeid_version(),
-        "study_name": pipeline.name,
-        "study_file": str(study_file),
-        "study_hash": study_hash,
-        "study_source": source,
-        "seed": int(pipeline.seed),
-        "parameters": json.dumps(pipeline.values, sort_keys=True),
-        "parameter_overrides": json.dumps(dict(overrides or {}), sort_keys=True),
-        "stages": pipeline.stage_names,
-        "stage_status": {n: "pending" for n in pipeline.stage_names},
-        "started": t,
-        "runs": [t],
-        "finished": "",
-    }
+    p, attrs = _fresh_root(path, PIPELINE_FORMAT, pipeline, source=source, study_hash=study_hash, study_file=study_file, overrides=overrides)
+    attrs.update(stages=pipeline.stage_names, stage_status={n: "pending" for n in pipeline.stage_names})
     zarr.open_group(str(p), mode="w", zarr_format=3, attributes=attrs)
     _consolidate(p)
 

@@ -116,8 +116,26 @@ class Block:
         return tuple(s.stop - s.start for s in self.slices.values())
 
 
+class Parameterised:
+    """Shared by :class:`Study` and ``Pipeline``: a ``parameters`` mapping of :class:`Parameter`."""
+
+    @property
+    def values(self) -> dict[str, Any]:
+        """The parameter values (passed to the task or to the stage functions)."""
+        return {name: p.value for name, p in self.parameters.items()}
+
+    def with_parameters(self, overrides: Mapping[str, Any]):
+        """A copy with some parameter values replaced (unknown names and inadmissible values refused)."""
+        params = dict(self.parameters)
+        for name, value in overrides.items():
+            if name not in params:
+                raise SpecificationError(f"parameters.{name}", value, f"unknown parameter (known: {sorted(params)})")
+            params[name] = dataclasses.replace(params[name], value=params[name].check(name, value))
+        return dataclasses.replace(self, parameters=params)
+
+
 @dataclasses.dataclass(frozen=True)
-class Study:
+class Study(Parameterised):
     """A parameter sweep run as one dask task per block (see the module docstring).
 
     name: identifier (store file name); seed: non-negative int study seed;
@@ -233,20 +251,6 @@ class Study:
         for name, p in kw.items():
             if p.default is p.empty and p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD) and name not in self.parameters:
                 raise SpecificationError(f"parameters.{name}", None, "required by the task but not given")
-
-    @property
-    def values(self) -> dict[str, Any]:
-        """The parameter values passed to the task."""
-        return {name: p.value for name, p in self.parameters.items()}
-
-    def with_parameters(self, overrides: Mapping[str, Any]) -> "Study":
-        """A copy with some parameter values replaced (unknown names and inadmissible values refused)."""
-        params = dict(self.parameters)
-        for name, value in overrides.items():
-            if name not in params:
-                raise SpecificationError(f"parameters.{name}", value, f"unknown parameter (known: {sorted(params)})")
-            params[name] = dataclasses.replace(params[name], value=params[name].check(name, value))
-        return dataclasses.replace(self, parameters=params)
 
     # -- geometry -----------------------------------------------------------------------------
     @property

@@ -51,7 +51,7 @@ import numpy as np
 import scipy.fft
 
 from tubeid.errors import SpecificationError
-from tubeid.uncertainty.loads import check_psd_matrices, psd_factor
+from tubeid.uncertainty.loads import _positive, check_psd_matrices, psd_factor
 
 __all__ = ["gaussian_loads", "synthesis_grid", "INTERPOLATIONS"]
 
@@ -147,11 +147,3 @@ def _factors(spectrum, fk, m) -> np.ndarray:
     return B if per_bin else B[0]
 
 
-def _positive(name, value, unit) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise SpecificationError(name, value, f"must be a number ({unit})") from None
-    if not np.isfinite(v) or v <= 0:
-        raise SpecificationError(name, value, f"must be > 0 and finite ({unit})")
-    return v
