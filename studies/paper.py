@@ -27,6 +27,7 @@ import numpy as np
 from tubeid.dynamics.response import ResponseSettings, simulate_responses
 from tubeid.dynamics.spectra import j_s
 from tubeid.identification.delta import default_delta_grid, reference_j
+from tubeid.identification.loads import distance_map
 from tubeid.identification.likelihood import likelihood_curve
 from tubeid.mechanics.library import builtin_spec
 from tubeid.mechanics.reduction import J_UNITS, j_functional, reduce
@@ -190,17 +191,17 @@ def load_r(results, *, size, delta):
     return _r_study("load_r", grid, grid, size, _delta_for(results, delta))
 
 
-def _coarse_opt(results):
-    ds = results["load_r"]
-    exp = results["reference"].psd_reference.isel(experiment=0).values
-    D = (ds.psd.mean("realisation") - exp) ** 2
-    D = D.integrate("frequency").values
-    i, j = np.unravel_index(np.argmin(D), D.shape)
-    return float(ds.r1[i]), float(ds.r2[j]), float(ds.r1[1] / ds.r1[0])
+def _r_opt(results, name, refine):
+    """r_opt of a trial-grid stage against the experiment (``tubeid.identification.loads.distance_map``)."""
+    ds, ref = results[name], results["reference"]
+    exp = ref.psd_reference.isel(experiment=0)
+    dm = distance_map(ds.psd, exp, band_hz=float(ref.frequency[-1]), n_bootstrap=0, refine=refine)
+    return dm.attrs["r_opt"] if refine else dm.attrs["r_opt_discrete"]
 
 
 def load_r_fine(results, *, size, delta):
-    r1, r2, step = _coarse_opt(results)
+    r1, r2 = _r_opt(results, "load_r", refine=None)
+    step = float(results["load_r"].r1[1] / results["load_r"].r1[0])
     n = SIZES[size]["n_fine"]
     span = np.geomspace(1 / step, step, n)  # ± one coarse step around the coarse minimum
     return _r_study("load_r_fine", r1 * span, r2 * span, size, _delta_for(results, delta))
@@ -221,15 +222,6 @@ def delta_f_block(block, rng, *, size, delta, r1, r2, J_s_exp):
     return {"J_s": out}
 
 
-def _fine_opt(results):
-    name = "load_r_fine" if "load_r_fine" in results else "load_r"
-    ds = results[name]
-    exp = results["reference"].psd_reference.isel(experiment=0).values
-    D = ((ds.psd.mean("realisation") - exp) ** 2).integrate("frequency").values
-    i, j = np.unravel_index(np.argmin(D), D.shape)
-    return float(ds.r1[i]), float(ds.r2[j])
-
-
 def summarize_delta_f(ds):
     j_exp = float(json.loads(ds.attrs["parameters"])["J_s_exp"])
     lik = likelihood_curve(ds.J_s, j_exp, ds.delta_F.values, "delta_F", n_bootstrap=200, rng=1)
@@ -237,7 +229,7 @@ def summarize_delta_f(ds):
 
 
 def load_delta_f(results, *, size, delta):
-    r1, r2 = _fine_opt(results)
+    r1, r2 = (float(v) for v in _r_opt(results, "load_r_fine", refine="spectrum"))
     ref = results["reference"]
     f = ref.frequency.values
     j_exp = float(j_s(f, ref.psd_reference.isel(experiment=0).values[:, None, None], band=f[-1]))
