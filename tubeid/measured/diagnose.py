@@ -91,7 +91,8 @@ class DiagnoseSettings:
     dispersion of B's stiffness; ``load_dispersion``: δ_F. ``load_x`` [m]: position of the
     force-and-moment load on the non-linear tube. ``r0``: starting r (N²/Hz, (N·m)²/Hz).
     ``level_iterations``, ``ratio_factors``: trial method of r (see :func:`identify_load`).
-    ``n_fit``: leading candidates whose parameters are fitted. ``grid_points``: points per trial
+    ``n_fit``: leading candidates whose parameters are fitted (those whose signature score is
+    below ``min_relative_score`` × the best score are not). ``grid_points``: points per trial
     grid. ``penalty``: an effect with k fitted parameters must bring the held-out error below
     error_before × (1 − penalty)^k. ``null_quantile``, ``null_margin``: the `none` rule.
     ``discard`` [s]: transient dropped from every simulation. ``dt_load_max`` [s]: load sampling
@@ -113,6 +114,7 @@ class DiagnoseSettings:
     level_iterations: int = 3
     ratio_factors: tuple[float, ...] = (0.25, 4.0)
     n_fit: int = 2
+    min_relative_score: float = 0.2
     grid_points: int = 4
     penalty: float = 0.1
     null_quantile: float = 0.95
@@ -150,6 +152,7 @@ class DiagnoseSettings:
         num("delta", strict=False, hi=1.0)
         num("load_dispersion", strict=False, hi=1.0)
         num("penalty", strict=False, hi=1.0)
+        num("min_relative_score", strict=False, hi=1.0)
         num("null_margin", lo=1.0, strict=False)
         num("discard", strict=False)
         n_r = 2 if self.load == "force_and_moment" else 1
@@ -463,15 +466,36 @@ def _fit_candidate(name, estimate, spec, r, meas, settings, *, tube, stop_stiffn
             d, off = _level_free(meas.fit, P.mean(axis=0), sel)
             trials.append((e, d, off))
 
+    amplitudes = None
+    if name == "tone":
+        amplitudes = _tone_amplitudes(estimate, spec, r, meas, settings, tube, sel)
     run(candidate_grid(name, estimate, tube=tube, load_x=settings.load_x, stop_stiffness=stop_stiffness,
-                       sensor_rms=rms, points=settings.grid_points))
-    if name == "tone":  # refine the amplitude around the coarse optimum
-        a = min(trials, key=lambda t: t[1])[0].amplitude
-        run(candidate_grid(name, estimate, tube=tube, load_x=settings.load_x, stop_stiffness=stop_stiffness,
-                           sensor_rms=rms, points=settings.grid_points,
-                           tone_amplitudes=a * 10.0 ** np.array([-0.5, -0.25, 0.25, 0.5])))
+                       sensor_rms=rms, points=settings.grid_points, tone_amplitudes=amplitudes))
     best = min(trials, key=lambda t: t[1])
     return best[0], best[2], trials
+
+
+TONE_PROBE_N = 10.0  # N: amplitude of the probe simulation that scales a tone's first guess
+
+
+def _tone_amplitudes(estimate, spec, r, meas, settings, tube, sel):
+    """Amplitude grid of a tone: one probe simulation at TONE_PROBE_N, the excess power it adds
+    within ±2 bins of f0 (against the same simulation without the tone: common random numbers)
+    compared with the measured excess over the band median; a line's power is ∝ A² in a linear
+    model, so A0 = probe · √(measured / probe excess); grid A0 · 10^[−0.5, 0.5]."""
+    from tubeid.mechanics.effects import Tone
+
+    f = meas.frequency
+    k = int(np.argmin(np.abs(f - estimate["frequency_hz"])))
+    win = slice(max(1, k - 2), k + 3)
+    reals = range(settings.fit_realisations)
+    probe = Tone(frequency_hz=estimate["frequency_hz"], amplitude=TONE_PROBE_N, tube=tube, x=settings.load_x)
+    P1, _ = simulate_blocks(spec, r, [probe], meas, meas.n_fit_blocks, reals, settings, stochastic=False)
+    P0, _ = simulate_blocks(spec, r, [], meas, meas.n_fit_blocks, reals, settings, stochastic=False)
+    added = float(np.sum(np.clip(P1.mean(0)[win] - P0.mean(0)[win], 0, None)))
+    wanted = float(np.sum(np.clip(meas.fit[win] - P0.mean(0)[win], 0, None)))
+    a0 = TONE_PROBE_N * math.sqrt(wanted / added) if added > 0 and wanted > 0 else TONE_PROBE_N
+    return a0 * 10.0 ** np.linspace(-0.5, 0.5, settings.grid_points)
 
 
 def _scaled_r(r, offset, settings):
@@ -528,7 +552,11 @@ def diagnose(data, model="paper-simplified", settings: DiagnoseSettings = Diagno
     if not explained:
         # 4. fit the leading candidates; held-out error of each best fit
         best_pen = err_before
+        top = sig[ranked[0]]["score"]
         for name in ranked[: settings.n_fit]:
+            if sig[name]["score"] < settings.min_relative_score * top or sig[name]["score"] <= 0:
+                candidates[name]["not_fitted"] = "signature too weak"
+                continue
             effect, off, trials = _fit_candidate(name, sig[name]["estimate"], spec, ident["r"], meas, settings,
                                                  tube=tube, stop_stiffness=stop_k)
             r_c = _scaled_r(ident["r"], off, settings)

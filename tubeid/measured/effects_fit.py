@@ -138,7 +138,7 @@ def candidate_grid(name: str, estimate: dict, *, tube: str, load_x: float, stop_
                    sensor_rms, points: int, tone_amplitudes=None) -> list:
     """The trial effects of one candidate around its signature estimate (``points`` per grid).
 
-    tone: amplitudes [N] log-spaced over 10^0 … 10^3 unless ``tone_amplitudes`` is given;
+    tone: ``tone_amplitudes`` [N] (default: log-spaced over 10^0 … 10^3);
     sensor_noise: level × 4^[−1, 1]; added_mass: factor from 0.5× to 3× the stretch estimate
     (≥ 0.02); damping: ratio × 3^[−1, 1] (log grid); stop: gap = RMS at the sensor × 4^[−1.5, 0.5].
     """
