@@ -289,20 +289,20 @@ def _chain_maps(duration, n_model, n_exp, r1, r2, seed):
 
 def test_end_to_end_recovery_of_r_with_the_response_chain():
     """Real chain (simplified model, stops, Gaussian loads, Welch), truth r = (18, 20) off a 3 × 3
-    grid of ±15 %, 24 model realisations and 24 independent "experimental" records of 50 s
-    (δ_F = 0.04); ~18 s.
+    grid of ±15 %, 20 model realisations and 20 independent "experimental" records of 50 s
+    (δ_F = 0.04); ~16 s.
 
-    Relative-weighted D: measured bootstrap spread of r_opt (model realisations and records)
-    2.5 % (r1), 2.3 % (r2); over 12 independent model seeds the spread was consistent with the
-    bootstrap. 10 % is 4 of them; the test also requires the spread to stay below 4.5 %.
-    Measured here: r_opt = (18.57, 18.95) ± (0.45, 0.45).
-    The paper's unweighted D is dominated by the first resonance peaks: on the same data its
-    minimum lies on the grid's edge and its r1, r2 trade off along a valley (bootstrap correlation
-    −0.67); hence the fuller slow test below with 4 times more data and a wider grid.
+    Relative-weighted D (weight from an independent model run): measured r_opt = (18.48, 19.38)
+    with bootstrap spread (model realisations and records) 0.50, 0.53, i.e. 2.8 %, 2.7 %; over 12
+    independent model seeds (8 realisations) the spread of r_opt agreed with the bootstrap. 10 % is
+    3.6 of them; the test also requires the spread to stay below 4.5 %.
+    The paper's unweighted D is dominated by the first resonance peaks: on the same data r1 and r2
+    trade off along a valley of D (bootstrap correlation −0.85) and its spread is 2.7 times larger
+    (1.36, 1.87), its minimum reaching the grid's edge; see the slow test below.
     """
     r1 = 18.0 * np.array([0.88, 1.02, 1.18])
     r2 = 20.0 * np.array([0.85, 0.98, 1.13])
-    psd, exp, W = _chain_maps(50.0, 24, 24, r1, r2, seed=2008)
+    psd, exp, W = _chain_maps(50.0, 20, 20, r1, r2, seed=2008)
     rel = distance_map(psd, exp, n_bootstrap=200, rng=1, weight=W)
     assert np.all(_rel_err(rel.attrs["r_opt"]) < 0.10), rel.attrs["r_opt"]
     rel_std = np.asarray(rel.attrs["r_opt_std"]) / np.asarray(R_TRUE)
@@ -314,13 +314,21 @@ def test_end_to_end_recovery_of_r_with_the_response_chain():
 
 @pytest.mark.slow
 def test_end_to_end_recovery_with_the_papers_distance():
-    """The paper's unweighted D on a 4 × 4 grid of ±25 %, 32 model realisations and 32 records of
-    150 s. Measured spread over seeds at 16 × 50 s: 9 % (r1), 11 % (r2); 6 times the data gives
-    ~3.7 % / 4.5 %, so 10 % is 2.2–2.7 of them, and the estimate must also lie within 4 of its
-    own bootstrap standard deviations."""
+    """Paper's unweighted D and the relative D on a 4 × 4 grid of ±25 %, 32 model realisations and
+    32 records of 150 s (~100 s).
+
+    Measured: paper's D r_opt = (17.07, 21.59) ± (0.73, 1.24) (4.1 %, 6.2 %; correlation −0.93),
+    relative D (17.86, 19.82) ± (0.20, 0.21) (1.1 %). The paper's D cannot be held to 10 % at 3σ
+    with this much data (r2 would need ~3.5 times more), so it is checked against its own bootstrap
+    (within 4σ, spread below 8 %), and the relative D against 10 % (9 of its σ) and 4σ.
+    """
     r1 = 18.0 * np.array([0.8, 0.93, 1.07, 1.24])
     r2 = 20.0 * np.array([0.78, 0.92, 1.08, 1.27])
-    psd, exp, _ = _chain_maps(150.0, 32, 32, r1, r2, seed=2010)
-    paper = distance_map(psd, exp, n_bootstrap=200, rng=1)
-    assert np.all(_rel_err(paper.attrs["r_opt"]) < 0.10), (paper.attrs["r_opt"], paper.attrs["r_opt_std"])
-    assert np.all(np.abs(np.asarray(paper.attrs["r_opt"]) - R_TRUE) < 4 * np.asarray(paper.attrs["r_opt_std"]))
+    psd, exp, W = _chain_maps(150.0, 32, 32, r1, r2, seed=2010)
+    for weight in (None, W):
+        ds = distance_map(psd, exp, n_bootstrap=200, rng=1, weight=weight)
+        r, std = np.asarray(ds.attrs["r_opt"]), np.asarray(ds.attrs["r_opt_std"])
+        assert np.all(np.abs(r - R_TRUE) < 4 * std), (r, std)
+        assert np.all(std / np.asarray(R_TRUE) < 0.08), std
+        if weight is not None:
+            assert np.all(_rel_err(r) < 0.10), r

@@ -14,6 +14,7 @@ COMMAND_MODULES = [
     "tubeid.bench",
     "tubeid.runner.cli",
     "tubeid.measured.cli",
+    "tubeid.report",
 ]
 
 
