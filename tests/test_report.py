@@ -212,3 +212,14 @@ def test_j_s_exp_falls_back_to_the_reference_psd(tmp_path):
 def test_unknown_store_is_a_clean_error(tmp_path, capsys):
     assert main(["report", str(tmp_path / "nope.zarr")]) == 2
     assert "no such Zarr store" in capsys.readouterr().err
+
+
+def test_a_short_stochastic_response_is_noted_not_fatal(tmp_path):
+    groups = _groups()
+    sto = groups["response"]["psd_stochastic"]
+    groups["response"]["psd_stochastic"] = sto.where(sto.realisation < 1)  # one complete realisation only
+    store = _write(tmp_path / "short.zarr", {"response": groups["response"]})
+    assert _run(store, tmp_path / "out") == 0
+    s = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert s["stages"]["response"] == "ok" and s["figures"] == ["fig4_mean_model.png"]
+    assert any("psd_stochastic not used" in n for n in s["notes"])

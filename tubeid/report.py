@@ -235,61 +235,72 @@ def _stage_response(store, out, sensor, written, notes) -> dict:
     f = ref_auto["frequency"].values
     details: dict = {"sensor": name, "band_hz": band, "delta_opt_used": ds.attrs.get("delta_opt"),
                      "n_reference_records": int(ref.sizes["realisation_ref"])}
-    if "psd_mean" in found:
-        mean = found["psd_mean"]
-        extra = [d for d in mean.dims if d not in ("frequency",) + _SENSOR_DIMS]
-        for d in extra:
-            mean = _complete(mean, d, f"response.psd_mean ({d})", notes, 1)
-        mean_auto = _in_band(_auto(mean, sensor), band)
-        if extra:
-            mean_auto = mean_auto.mean(extra)
-        if mean_auto.sizes["frequency"] != f.size or not np.allclose(mean_auto["frequency"].values, f):
-            notes.append("response.psd_mean is on another frequency grid than psd_reference: Figure 4 not drawn")
-        else:
-            fig = _figure()
-            ax = fig.add_subplot()
-            ax.semilogy(f, ref_auto, lw=0.8, color="C0", label="reference model (\"experimental\")")
-            ax.semilogy(f, mean_auto, lw=1.8, color="C3", label="mean simplified model")
-            ax.set_xlim(0, band)
-            ax.set_xlabel("frequency [Hz]")
-            ax.set_ylabel(f"PSD of the displacement at {name} [m²/Hz] (two-sided)")
-            ax.set_title("Reference vs mean simplified model (Figure 4)")
-            ax.legend(fontsize=8)
-            _save(fig, out, "fig4_mean_model.png", written)
-            pos = (f > 0) & (ref_auto.values > 0) & (mean_auto.values > 0)
-            lr = np.abs(np.log10(mean_auto.values[pos] / ref_auto.values[pos]))
-            fp = f[pos]
-            details["mean_model_log10_error_0_35_hz"] = float(np.mean(lr[fp < 35])) if np.any(fp < 35) else None
-            details["mean_model_log10_error_35_100_hz"] = float(np.mean(lr[fp >= 35])) if np.any(fp >= 35) else None
-    if "psd_stochastic" in found:
-        sto = _complete(found["psd_stochastic"], "realisation", "response.psd_stochastic", notes, 2)
-        sto_auto = _in_band(_auto(sto, sensor), band)
-        if sto_auto.sizes["frequency"] != f.size or not np.allclose(sto_auto["frequency"].values, f):
-            notes.append("response.psd_stochastic is on another frequency grid than psd_reference: "
-                         "Figure 6 not drawn")
-        else:
-            cb = confidence_band(sto_auto, 0.95, dim="realisation")
-            fig = _figure()
-            ax = fig.add_subplot()
-            ax.fill_between(f, cb.lower, cb.upper, color="C1", alpha=0.35, lw=0,
-                            label=f"95 % region, stochastic simplified model ({sto.sizes['realisation']} realisations)")
-            ax.semilogy(f, cb.lower, lw=0.6, color="C1")
-            ax.semilogy(f, cb.upper, lw=0.6, color="C1")
-            ax.semilogy(f, ref_auto, lw=1.6, color="C0", label="reference model")
-            ax.set_yscale("log")
-            ax.set_xlim(0, band)
-            ax.set_xlabel("frequency [Hz]")
-            ax.set_ylabel(f"PSD of the displacement at {name} [m²/Hz] (two-sided)")
-            dopt = ds.attrs.get("delta_opt")
-            ax.set_title("Confidence region of the response (Figure 6)"
-                         + (f", δ = {float(dopt):.3g}" if dopt is not None else ""))
-            ax.legend(fontsize=8)
-            _save(fig, out, "fig6_confidence_region.png", written)
-            sel = f > 0
-            inside = (ref_auto.values >= cb.lower.values) & (ref_auto.values <= cb.upper.values)
-            details["confidence_region_coverage"] = float(np.mean(inside[sel]))
-            details["n_stochastic_realisations"] = int(sto.sizes["realisation"])
+    for part, draw in (("psd_mean", _figure4), ("psd_stochastic", _figure6)):
+        if part in found:
+            try:
+                draw(found[part], ds, f, ref_auto, name, band, sensor, out, written, notes, details)
+            except _StageMissing as exc:
+                notes.append(f"response.{part} not used: {exc}")
     return {"details": details}
+
+
+def _figure4(mean, ds, f, ref_auto, name, band, sensor, out, written, notes, details) -> None:
+    """Figure 4: reference vs mean simplified model at the sensor; log10 errors below/above 35 Hz."""
+    extra = [d for d in mean.dims if d not in ("frequency",) + _SENSOR_DIMS]
+    for d in extra:
+        mean = _complete(mean, d, f"response.psd_mean ({d})", notes, 1)
+    mean_auto = _in_band(_auto(mean, sensor), band)
+    if extra:
+        mean_auto = mean_auto.mean(extra)
+    if mean_auto.sizes["frequency"] != f.size or not np.allclose(mean_auto["frequency"].values, f):
+        notes.append("response.psd_mean is on another frequency grid than psd_reference: Figure 4 not drawn")
+    else:
+        fig = _figure()
+        ax = fig.add_subplot()
+        ax.semilogy(f, ref_auto, lw=0.8, color="C0", label="reference model (\"experimental\")")
+        ax.semilogy(f, mean_auto, lw=1.8, color="C3", label="mean simplified model")
+        ax.set_xlim(0, band)
+        ax.set_xlabel("frequency [Hz]")
+        ax.set_ylabel(f"PSD of the displacement at {name} [m²/Hz] (two-sided)")
+        ax.set_title("Reference vs mean simplified model (Figure 4)")
+        ax.legend(fontsize=8)
+        _save(fig, out, "fig4_mean_model.png", written)
+        pos = (f > 0) & (ref_auto.values > 0) & (mean_auto.values > 0)
+        lr = np.abs(np.log10(mean_auto.values[pos] / ref_auto.values[pos]))
+        fp = f[pos]
+        details["mean_model_log10_error_0_35_hz"] = float(np.mean(lr[fp < 35])) if np.any(fp < 35) else None
+        details["mean_model_log10_error_35_100_hz"] = float(np.mean(lr[fp >= 35])) if np.any(fp >= 35) else None
+
+
+def _figure6(sto, ds, f, ref_auto, name, band, sensor, out, written, notes, details) -> None:
+    """Figure 6: 95 % region of the stochastic simplified model vs the reference; coverage."""
+    sto = _complete(sto, "realisation", "response.psd_stochastic", notes, 2)
+    sto_auto = _in_band(_auto(sto, sensor), band)
+    if sto_auto.sizes["frequency"] != f.size or not np.allclose(sto_auto["frequency"].values, f):
+        notes.append("response.psd_stochastic is on another frequency grid than psd_reference: "
+                     "Figure 6 not drawn")
+    else:
+        cb = confidence_band(sto_auto, 0.95, dim="realisation")
+        fig = _figure()
+        ax = fig.add_subplot()
+        ax.fill_between(f, cb.lower, cb.upper, color="C1", alpha=0.35, lw=0,
+                        label=f"95 % region, stochastic simplified model ({sto.sizes['realisation']} realisations)")
+        ax.semilogy(f, cb.lower, lw=0.6, color="C1")
+        ax.semilogy(f, cb.upper, lw=0.6, color="C1")
+        ax.semilogy(f, ref_auto, lw=1.6, color="C0", label="reference model")
+        ax.set_yscale("log")
+        ax.set_xlim(0, band)
+        ax.set_xlabel("frequency [Hz]")
+        ax.set_ylabel(f"PSD of the displacement at {name} [m²/Hz] (two-sided)")
+        dopt = ds.attrs.get("delta_opt")
+        ax.set_title("Confidence region of the response (Figure 6)"
+                     + (f", δ = {float(dopt):.3g}" if dopt is not None else ""))
+        ax.legend(fontsize=8)
+        _save(fig, out, "fig6_confidence_region.png", written)
+        sel = f > 0
+        inside = (ref_auto.values >= cb.lower.values) & (ref_auto.values <= cb.upper.values)
+        details["confidence_region_coverage"] = float(np.mean(inside[sel]))
+        details["n_stochastic_realisations"] = int(sto.sizes["realisation"])
 
 
 def _stage_load_r(store, out, n_bootstrap, seed, sensor, written, notes) -> dict:

@@ -22,8 +22,9 @@ coordinates u = log r (``fit="log"``: a ratio grid r·c^k is evenly spaced) or u
 * ``refine="spectrum"`` (default): every value of the mean model spectrum S̄(ω, r) (each bin and
   sensor pair) is fitted by a full quadratic in u by least squares on the block, and the distance
   of that surrogate spectrum to S_exp (same integration rule as D) is minimised over the block
-  (damped Newton; projected Newton from the best point of a dense grid if Newton leaves the block). S̄ is smooth and nearly linear
-  in r while D is a squared norm with a curved valley, so this is far more accurate than fitting D:
+  (damped Newton; projected Newton from the best point of a dense grid if Newton leaves the
+  block). S̄ is smooth and nearly linear in r while D is a squared norm with a curved valley, so
+  this is far more accurate than fitting D:
   with S̄ linear in r and ``fit="linear"`` it is exact, and with ``fit="log"`` on a grid of ratio
   1.2 its error is 0.03 % where a quadratic fit of D errs by 1–1.5 %.
 * ``refine="distance"``: a full quadratic in u fitted to D itself on the block; its stationary
@@ -125,8 +126,10 @@ def _surrogate_hessian(Q, b, x) -> np.ndarray:
     r = 2.0 * Q @ ph - 2.0 * b  # ∂f/∂φ
     H = 2.0 * J.T @ Q @ J
     for n, (a, c) in enumerate((a, c) for a in range(q) for c in range(a, q)):  # the x_a x_c columns
-        H[a, c] += r[1 + q + n]
-        if a != c:
+        if a == c:
+            H[a, a] += 2.0 * r[1 + q + n]  # ∂²(x_a²)/∂x_a² = 2
+        else:
+            H[a, c] += r[1 + q + n]
             H[c, a] += r[1 + q + n]
     return H
 
