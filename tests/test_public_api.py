@@ -31,7 +31,10 @@ PINNED = {
         "ResponseSettings", "simulate_responses",
         "psd_matrix", "psd_dataset", "variance_from_psd", "confidence_band", "j_s", "distance",
     ],
-    "tubeid.identification": ["identify_delta", "reference_j", "likelihood_curve", "kde_pdf", "silverman_bandwidth"],
+    "tubeid.identification": [
+        "identify_delta", "reference_j", "likelihood_curve", "kde_pdf", "silverman_bandwidth",
+        "distance_map", "relative_weight", "refine_grid", "delta_f_likelihood",
+    ],
     "tubeid.measured": ["read_measurements", "write_measurements", "validate_measurements"],
     "tubeid.runner": [
         "Study", "Output", "Parameter", "pointwise", "load_study", "run", "open_results", "RunReport", "RngFactory",

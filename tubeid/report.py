@@ -115,6 +115,28 @@ def _open_group(store: str, name: str) -> xr.Dataset:
         raise _StageMissing(f"group '{name}' could not be opened ({type(exc).__name__}: {exc})") from None
 
 
+def _open_response(store: str) -> xr.Dataset:
+    """The response data, from ``studies/paper.py``'s layout (group ``reference`` with
+    ``psd_reference``/``psd_mean`` on ``experiment``, group ``response`` with ``psd``) or from a
+    single ``response`` group holding ``psd_reference``, ``psd_mean`` and ``psd_stochastic``."""
+    try:
+        ref = _open_group(store, "reference")
+    except _StageMissing:
+        return _open_group(store, "response")
+    data = {}
+    if "psd_reference" in ref.data_vars:
+        data["psd_reference"] = ref.psd_reference.rename(experiment="realisation_ref") if "experiment" in ref.psd_reference.dims else ref.psd_reference
+    if "psd_mean" in ref.data_vars:
+        data["psd_mean"] = ref.psd_mean
+    try:
+        resp = _open_group(store, "response")
+        if "psd" in resp.data_vars:
+            data["psd_stochastic"] = resp.psd
+    except _StageMissing:
+        pass
+    return xr.Dataset(data, attrs=ref.attrs)
+
+
 def _variable(ds: xr.Dataset, group: str, name: str) -> xr.DataArray:
     if name not in ds.data_vars:
         raise _StageMissing(f"variable '{name}' missing from group '{group}'")
@@ -221,7 +243,7 @@ def _stage_delta(store, out, n_bootstrap, seed, written, notes) -> dict:
 
 
 def _stage_response(store, out, sensor, written, notes) -> dict:
-    ds = _open_group(store, "response")
+    ds = _open_response(store)
     band = float(ds.attrs.get("band_hz", 100.0))
     found = {v: ds[v] for v in ("psd_reference", "psd_mean", "psd_stochastic") if v in ds.data_vars}
     if "psd_reference" not in found:
@@ -304,15 +326,19 @@ def _figure6(sto, ds, f, ref_auto, name, band, sensor, out, written, notes, deta
 
 
 def _stage_load_r(store, out, n_bootstrap, seed, sensor, written, notes) -> dict:
-    ds = _open_group(store, "load_r")
-    psd = _variable(ds, "load_r", "psd")
+    try:  # the refined grid around the coarse minimum, when the study made one
+        ds, grid_name = _open_group(store, "load_r_fine"), "load_r_fine"
+    except _StageMissing:
+        ds, grid_name = _open_group(store, "load_r"), "load_r"
+    psd = _variable(ds, grid_name, "psd")
     try:
-        resp = _open_group(store, "response")
+        resp = _open_response(store)
         ref = _variable(resp, "response", "psd_reference")
     except _StageMissing as exc:
         raise _StageMissing(f"load_r needs the experimental PSD response.psd_reference: {exc}") from None
     band = float(ds.attrs.get("band_hz", resp.attrs.get("band_hz", 100.0)))
-    psd = _complete(psd, "realisation", "load_r.psd", notes, 2)
+    band = min(band, float(psd.frequency.values[-1]))  # a stored grid may stop one bin short of the band
+    psd = _complete(psd, "realisation", f"{grid_name}.psd", notes, 2)
     ref = _complete(ref, "realisation_ref", "response.psd_reference", notes, 1)
     try:
         dm = distance_map(psd, ref, band_hz=band, n_bootstrap=n_bootstrap, rng=rng_for(seed, "report", "load_r"))
@@ -409,7 +435,7 @@ def _stage_load_delta_f(store, out, n_bootstrap, seed, written, notes) -> dict:
     source = "attribute J_s_exp of group 'load_delta_f'"
     if js_exp is None:
         try:
-            ref = _variable(_open_group(store, "response"), "response", "psd_reference")
+            ref = _variable(_open_response(store), "response", "psd_reference")
             ref = _complete(ref, "realisation_ref", "response.psd_reference", notes, 1).mean("realisation_ref")
             sel = ref.transpose("frequency", ...)
             js_exp = float(j_s(sel["frequency"].values, sel.values, float(ds.attrs.get("band_hz", 100.0))))

@@ -1,6 +1,10 @@
-"""Identification: likelihood curves (KDE, bootstrap) and the maximum likelihood of δ."""
+"""Identification: likelihood curves (KDE, bootstrap), δ by maximum likelihood, the load (r, δ_F)."""
 
 from tubeid.identification.delta import identify_delta, reference_j
 from tubeid.identification.likelihood import kde_pdf, likelihood_curve, silverman_bandwidth
+from tubeid.identification.loads import delta_f_likelihood, distance_map, refine_grid, relative_weight
 
-__all__ = ["identify_delta", "reference_j", "likelihood_curve", "kde_pdf", "silverman_bandwidth"]
+__all__ = [
+    "identify_delta", "reference_j", "likelihood_curve", "kde_pdf", "silverman_bandwidth",
+    "distance_map", "relative_weight", "refine_grid", "delta_f_likelihood",
+]
