@@ -15,6 +15,10 @@ runner task; random streams keyed by the realisation, so every grid shares commo
 ``load_r_fine``   a finer grid around the coarse minimum (beyond the paper).
 ``load_delta_f``  J_s over a δ_F grid at (δ_opt, r_opt) → p_Js(J_s,exp; δ_F), δ_F,opt.
 
+Proof of identification: ``--set experiment=synthetic`` replaces the reference model by the
+stochastic simplified model itself with known TRUTH (δ = 0.3 for the J observations, r = (18, 20),
+δ_F = 0.04, 8 experimental records): the report then compares what is identified with the truth.
+
 Sizes: ``--set size=paper`` (default: 200 realisations per δ, 100 for the confidence region, a
 10 × 10 grid of r) or ``--set size=quick`` (a look in about a minute). ``--set delta=0.45`` imposes δ
 for the later stages instead of δ_opt (e.g. the paper's value). Then ``tubeid report STORE``.
@@ -49,6 +53,9 @@ SIZES = {
     "paper": dict(delta_step=0.025, n_j=200, n_response=100, n_r=10, n_per_r=8, n_fine=5, n_per_delta_f=40, duration=220.0),
     "quick": dict(delta_step=0.05, n_j=60, n_response=12, n_r=4, n_per_r=2, n_fine=3, n_per_delta_f=8, duration=40.0),
 }
+TRUTH = {"delta": 0.3, "r1": 18.0, "r2": 20.0, "delta_F": 0.04}  # the synthetic experiment
+N_RECORDS = {"reference": 1, "synthetic": 8}  # experimental records (the paper has one)
+N_J_OBSERVATIONS = 30  # synthetic J observations for the model-to-model step
 R_RANGE = (1.0, 1000.0)
 # δ_F ∈ (0, √(3/7) = 0.655): dense near 0, where the paper finds 0.04
 DELTA_F_GRID = {"paper": [0.005, 0.01, 0.02, 0.03, 0.04, 0.06, 0.09, 0.14, 0.22, 0.35, 0.5], "quick": [0.01, 0.04, 0.16, 0.4]}  # N²/Hz and (N·m)²/Hz: the coarse grid spans three decades
@@ -75,7 +82,7 @@ def _psd_block(model, load, block, rng, *, size, dispersion, load_dispersion=0.0
 
 
 # -- stage 1: δ ------------------------------------------------------------------------------------
-def j_block(block, rng, *, size):
+def j_block(block, rng, *, size, experiment):
     germs = germs_from_rngs(SUB.n, [rng.at({"realisation": int(r)}) for r in block["realisation"]])
     out = np.empty((len(block["delta"]), len(block["realisation"])))
     for i, d in enumerate(block["delta"]):
@@ -84,12 +91,22 @@ def j_block(block, rng, *, size):
     return {"J": out}
 
 
+def _j_observed(experiment):
+    """J_ref of the reference model, or J observations of the synthetic experiment (joint likelihood)."""
+    if experiment == "reference":
+        return reference_j("paper-reference")
+    from tubeid.uncertainty.random_models import random_j
+
+    return [float(v) for v in random_j(SUB, Dispersion(stiffness=TRUTH["delta"]), 7, range(10**6, 10**6 + N_J_OBSERVATIONS), BAND)]
+
+
 def summarize_delta(ds):
-    lik = likelihood_curve(ds.J, reference_j("paper-reference"), ds.delta.values, "delta", n_bootstrap=200, rng=1)
-    return {"J_ref": reference_j("paper-reference"), "delta_opt": lik.attrs["argmax"], "delta_opt_std": lik.attrs["argmax_std"]}
+    j_obs = _j_observed(json.loads(ds.attrs["parameters"])["experiment"])
+    lik = likelihood_curve(ds.J, j_obs, ds.delta.values, "delta", n_bootstrap=200, rng=1)
+    return {"J_ref": j_obs, "delta_opt": lik.attrs["argmax"], "delta_opt_std": lik.attrs["argmax_std"]}
 
 
-def delta(results, *, size, delta):
+def delta(results, *, size, delta, experiment):
     s = SIZES[size]
     return Study(
         name="delta",
@@ -101,7 +118,7 @@ def delta(results, *, size, delta):
         task=j_block,
         outputs={"J": Output(units=J_UNITS, long_name="J = integral of ||Z(w)^-1||_F^2 over the band")},
         units={"delta": "1"},
-        parameters={"size": size},
+        parameters={"size": size, "experiment": experiment},
         model=spec_to_dict(SIMPLIFIED.spec),
         summarize=summarize_delta,
     )
@@ -112,19 +129,35 @@ def _delta_for(results, delta):
 
 
 # -- stage 2: the experiment and the mean model ------------------------------------------------------
-def reference_block(block, rng, *, size):
-    load = coherent_forces()
-    ref = _psd_block(REFERENCE, load, block, rng, size=size, dispersion=Dispersion(), axis="experiment")
+def _experiment_load(experiment):
+    return coherent_forces() if experiment == "reference" else force_and_moment(TRUTH["r1"], TRUTH["r2"], x=8.0, band=BAND)
+
+
+def reference_block(block, rng, *, size, experiment):
+    load = _experiment_load(experiment)
+    if experiment == "reference":
+        ref = _psd_block(REFERENCE, load, block, rng, size=size, dispersion=Dispersion(), axis="experiment")
+    else:
+        ref = _psd_block(SIMPLIFIED, load, block, rng, size=size, dispersion=Dispersion(stiffness=TRUTH["delta"]),
+                         load_dispersion=TRUTH["delta_F"], axis="experiment")
     mean = _psd_block(SIMPLIFIED, load, block, rng, size=size, dispersion=Dispersion(), axis="experiment")
     return {"psd_reference": ref, "psd_mean": mean}
 
 
-def reference(results, *, size, delta):
+def summarize_reference(ds):
+    """In a synthetic experiment, the truth the later stages must recover (read by ``tubeid report``)."""
+    if json.loads(ds.attrs["parameters"])["experiment"] != "synthetic":
+        return {}
+    return {"truth_delta_opt": TRUTH["delta"], "truth_r1_opt": TRUTH["r1"], "truth_r2_opt": TRUTH["r2"], "truth_delta_F_opt": TRUTH["delta_F"]}
+
+
+def reference(results, *, size, delta, experiment):
     return Study(
         name="reference",
-        description="reference model (the experiment) and mean simplified model, same 7-point load history",
+        description=("reference model (the experiment) and mean simplified model, same 7-point load history" if experiment == "reference"
+                     else f"synthetic experiment: stochastic simplified model with known {TRUTH}; mean simplified model, same load history"),
         seed=2008,
-        axes={"experiment": range(1)},
+        axes={"experiment": range(N_RECORDS[experiment])},
         task=reference_block,
         coords={"frequency": _frequencies(size)},
         outputs={
@@ -132,17 +165,18 @@ def reference(results, *, size, delta):
             "psd_mean": Output(dims=("frequency",), units="m^2/Hz", long_name="PSD at P_obs, mean simplified model (two-sided)"),
         },
         units={"frequency": "Hz"},
-        parameters={"size": size},
-        model=spec_to_dict(REFERENCE.spec),
+        parameters={"size": size, "experiment": experiment},
+        model=spec_to_dict(REFERENCE.spec if experiment == "reference" else SIMPLIFIED.spec),
+        summarize=summarize_reference,
     )
 
 
 # -- stage 3: confidence region ---------------------------------------------------------------------
-def response_block(block, rng, *, size, delta):
-    return {"psd": _psd_block(SIMPLIFIED, coherent_forces(), block, rng, size=size, dispersion=Dispersion(stiffness=delta))}
+def response_block(block, rng, *, size, delta, experiment):
+    return {"psd": _psd_block(SIMPLIFIED, _experiment_load(experiment), block, rng, size=size, dispersion=Dispersion(stiffness=delta))}
 
 
-def response(results, *, size, delta):
+def response(results, *, size, delta, experiment):
     d = _delta_for(results, delta)
     return Study(
         name="response",
@@ -154,7 +188,7 @@ def response(results, *, size, delta):
         coords={"frequency": _frequencies(size)},
         outputs={"psd": Output(dims=("frequency",), units="m^2/Hz", long_name="PSD at P_obs (two-sided)")},
         units={"frequency": "Hz"},
-        parameters={"size": size, "delta": d},
+        parameters={"size": size, "delta": d, "experiment": experiment},
         model=spec_to_dict(SIMPLIFIED.spec),
     )
 
@@ -194,7 +228,7 @@ def load_r(results, *, size, delta):
 def _r_opt(results, name, refine):
     """r_opt of a trial-grid stage against the experiment (``tubeid.identification.loads.distance_map``)."""
     ds, ref = results[name], results["reference"]
-    exp = ref.psd_reference.isel(experiment=0)
+    exp = ref.psd_reference.rename(experiment="record")  # several records: averaged and bootstrapped
     dm = distance_map(ds.psd, exp, band_hz=float(ref.frequency[-1]), n_bootstrap=0, refine=refine)
     return dm.attrs["r_opt"] if refine else dm.attrs["r_opt_discrete"]
 
@@ -223,16 +257,16 @@ def delta_f_block(block, rng, *, size, delta, r1, r2, J_s_exp):
 
 
 def summarize_delta_f(ds):
-    j_exp = float(json.loads(ds.attrs["parameters"])["J_s_exp"])
+    j_exp = json.loads(ds.attrs["parameters"])["J_s_exp"]
     lik = likelihood_curve(ds.J_s, j_exp, ds.delta_F.values, "delta_F", n_bootstrap=200, rng=1)
-    return {"J_s_exp": j_exp, "delta_F_opt": lik.attrs["argmax"], "delta_F_opt_std": lik.attrs["argmax_std"]}
+    return {"J_s_exp": j_exp[0] if len(j_exp) == 1 else j_exp, "delta_F_opt": lik.attrs["argmax"], "delta_F_opt_std": lik.attrs["argmax_std"]}
 
 
 def load_delta_f(results, *, size, delta):
     r1, r2 = (float(v) for v in _r_opt(results, "load_r_fine", refine="spectrum"))
     ref = results["reference"]
     f = ref.frequency.values
-    j_exp = float(j_s(f, ref.psd_reference.isel(experiment=0).values[:, None, None], band=f[-1]))
+    j_exp = [float(j_s(f, rec[:, None, None], band=f[-1])) for rec in ref.psd_reference.values]  # one per record
     d = _delta_for(results, delta)
     s = SIZES[size]
     return Study(
@@ -259,5 +293,6 @@ study = Pipeline(
     parameters={
         "size": Parameter("paper", choices=("paper", "quick"), doc="sample sizes: the paper's, or a quick look"),
         "delta": Parameter(0.0, bounds=(0.0, 0.87), doc="delta for the later stages; 0 = delta_opt of stage 'delta'"),
+        "experiment": Parameter("reference", choices=("reference", "synthetic"), doc="the paper's reference model, or the simplified model with known TRUTH"),
     },
 )

@@ -95,6 +95,8 @@ def _jsonable(obj):
 
 
 def _fmt(v, digits=3):
+    if isinstance(v, (list, tuple)):  # several observations
+        return f"{len(v)} observations, mean {_fmt(float(np.mean(v)), digits)}"
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "n/a"
     return f"{v:.{digits}g}"
@@ -473,8 +475,18 @@ def _stage_load_delta_f(store, out, n_bootstrap, seed, written, notes) -> dict:
 
 
 # ---------------------------------------------------------------------- summary
-def _comment(key: str, q: dict, corr=None) -> str:
-    paper = PAPER_VALUES[key]
+def _targets(store: str) -> tuple[dict, str]:
+    """What identified values are compared with: the truth of a synthetic experiment, else the paper."""
+    try:
+        attrs = _open_group(store, "reference").attrs
+    except _StageMissing:
+        return PAPER_VALUES, "paper"
+    truth = {k: float(attrs[f"truth_{k}"]) for k in PAPER_VALUES if f"truth_{k}" in attrs}
+    return (truth, "truth") if len(truth) == len(PAPER_VALUES) else (PAPER_VALUES, "paper")
+
+
+def _comment(key: str, q: dict, corr=None, targets=PAPER_VALUES, label="paper") -> str:
+    paper = targets[key]
     v, s = q.get("value"), q.get("std")
     if v is None or not math.isfinite(v):
         return "Not identified."
@@ -483,10 +495,12 @@ def _comment(key: str, q: dict, corr=None) -> str:
     if s is not None and math.isfinite(s) and s > 0:
         z = abs(diff) / s
         if z <= 2.0:
-            return f"Agrees with the paper within the Monte Carlo uncertainty ({z:.1f} σ).{edge}"
+            return f"Agrees with the {label} within the Monte Carlo uncertainty ({z:.1f} σ).{edge}"
         zs = f" ({z:.1f} σ of the Monte Carlo uncertainty)"
     else:
         zs = " (no Monte Carlo uncertainty available)"
+    if label != "paper":
+        return f"Differs from the {label} by {diff / paper:+.0%}{zs}.{edge}"
     cause = _CAUSES["r" if key in ("r1_opt", "r2_opt") else key]
     if "{corr}" in cause:
         cause = cause.format(corr=f"{corr:+.2f}" if corr is not None and math.isfinite(corr) else "n/a")
@@ -499,20 +513,20 @@ def _markdown(summary: dict) -> str:
              "`tubeid` study store. Monte Carlo uncertainty: bootstrap over realisations "
              f"({summary['n_bootstrap']} replicates, seed {summary['seed']}); ± is one standard deviation, "
              "the interval is the bootstrap 95 % percentile interval.", "",
-             "| quantity | identified | ± MC std | 95 % interval | paper | units | comment |",
+             f"| quantity | identified | ± MC std | 95 % interval | {summary['target_label']} | units | comment |",
              "|---|---|---|---|---|---|---|"]
     for key in ("delta_opt", "r1_opt", "r2_opt", "delta_F_opt"):
         q = summary["quantities"].get(key)
         if q is None:
-            lines.append(f"| {_LABELS[key]} | missing | | | {PAPER_VALUES[key]:g} | {_UNITS[key]} | stage not available |")
+            lines.append(f"| {_LABELS[key]} | missing | | | {summary['target_values'][key]:g} | {_UNITS[key]} | stage not available |")
             continue
         lines.append(f"| {_LABELS[key]} | {_fmt(q['value'], 4)} | {_fmt(q['std'], 2)} | "
-                     f"[{_fmt(q['low'])}, {_fmt(q['high'])}] | {PAPER_VALUES[key]:g} | {_UNITS[key]} | {q['comment']} |")
+                     f"[{_fmt(q['low'])}, {_fmt(q['high'])}] | {summary['target_values'][key]:g} | {_UNITS[key]} | {q['comment']} |")
     lines.append("")
     det = summary["details"]
     if "delta" in det:
         lines.append(f"- J_ref = {_fmt(det['delta']['J_ref'], 6)} {det['delta']['J_units']} "
-                     "(reference model, band ±100 Hz).")
+                     + ("(reference model, band ±100 Hz)." if summary["target_label"] == "paper" else "(synthetic experiment).")
     if "response" in det:
         r = det["response"]
         if r.get("mean_model_log10_error_0_35_hz") is not None:
@@ -598,14 +612,16 @@ def make_report(store, out=None, *, n_bootstrap: int = 200, seed: int = 2008, se
     corr = None
     if "load_r" in details and len(details["load_r"].get("r_opt_corr", [])) > 1:
         corr = details["load_r"]["r_opt_corr"][0][1]
+    targets, label = _targets(store)
     for key, q in quantities.items():
         if key in PAPER_VALUES:
             q["paper"] = PAPER_VALUES[key]
+            q[label] = targets[key]
             q["units"] = _UNITS[key]
-            q["comment"] = _comment(key, q, corr)
+            q["comment"] = _comment(key, q, corr, targets, label)
     summary = _jsonable({
         "store": store, "generated_by": "tubeid report", "seed": seed, "n_bootstrap": n_bootstrap,
-        "paper_values": PAPER_VALUES, "stages": stages, "missing": missing, "notes": notes,
+        "paper_values": PAPER_VALUES, "target_values": targets, "target_label": label, "stages": stages, "missing": missing, "notes": notes,
         "quantities": quantities, "details": details, "figures": written,
     })
     (out / "summary.json").write_text(json.dumps(summary, indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
@@ -621,7 +637,7 @@ def _run(args) -> int:
     for key in ("delta_opt", "r1_opt", "r2_opt", "delta_F_opt"):
         q = s["quantities"].get(key)
         if q is not None:
-            print(f"  {key:12s} {_fmt(q['value'], 4):>10s} ± {_fmt(q['std'], 2):<8s} (paper {PAPER_VALUES[key]:g})")
+            print(f"  {key:12s} {_fmt(q['value'], 4):>10s} ± {_fmt(q['std'], 2):<8s} ({s['target_label']} {s['target_values'][key]:g})")
     for m in s["missing"]:
         print(f"  missing: {m}")
     return 0
