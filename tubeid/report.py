@@ -526,7 +526,7 @@ def _markdown(summary: dict) -> str:
     det = summary["details"]
     if "delta" in det:
         lines.append(f"- J_ref = {_fmt(det['delta']['J_ref'], 6)} {det['delta']['J_units']} "
-                     + ("(reference model, band ±100 Hz)." if summary["target_label"] == "paper" else "(synthetic experiment).")
+                     + ("(reference model, band ±100 Hz)." if summary["target_label"] == "paper" else "(synthetic experiment)."))
     if "response" in det:
         r = det["response"]
         if r.get("mean_model_log10_error_0_35_hz") is not None:
