@@ -254,8 +254,8 @@ def test_summarize_of_a_single_study(tmp_path, summary, error):
 
 
 def test_the_documented_pipeline_runs(tmp_path):
-    """The example of docs/runner.md, run as written (quick size)."""
-    doc = (REPO / "docs/runner.md").read_text()
+    """The pipeline example of README.md, run as written (quick size)."""
+    doc = (REPO / "README.md").read_text()
     source = doc.split("# studies/two_stage.py\n", 1)[1].split("```", 1)[0]
     (tmp_path / "two_stage.py").write_text(source)
     run(tmp_path / "two_stage.py", tmp_path / "t.zarr", workers=0, quiet=True, overrides={"size": "quick"})
