@@ -21,14 +21,21 @@
    Time-domain statistics (RMS, skewness, excess kurtosis per sensor) are compared with the
    model's realisations as z-scores.
 4. **Tracing and fitting** (:mod:`tubeid.measured.effects_fit`): candidate effects of the catalog
-   ranked by signature, the leading ones fitted by small trial grids, each scored by its error on
+   ranked by signature (computed on the *fitting* blocks against the same band, so nothing of the
+   held-out blocks enters a fit), the leading ones fitted by small trial grids, each scored by its error on
    the held-out segments; the choice penalises parameters.
 5. **Re-identification** of r with the chosen effect and the final held-out error.
 
 ``none`` is answered when the held-out error before is within what the model's own realisations
 show (leave-one-out null: each realisation compared with the band of the others; the threshold is
 their ``null_quantile`` quantile times ``null_margin``), or when no candidate improves the error
-by the required factor.
+by the required factor. ``explained_after`` says whether the final error is within the null of the
+augmented model; when it is not, the residual is only partly explained (report.md warns).
+
+Choice of the declared model matters: ``paper-simplified`` seen from sensors at x = 2, 6, 10 m on
+reference-model data leaves 60–80 % of the bins outside the δ = 0.2 band (error ≈ 0.65 decades,
+null ≈ 0.1) — model uncertainty that no single catalog effect explains; the tool then answers
+``none`` with ``explained_before = explained_after = false`` rather than inventing an effect.
 """
 
 from __future__ import annotations
@@ -180,7 +187,8 @@ class MeasuredSpectra:
     """Welch auto-PSDs of the fitting and held-out blocks of a record (two-sided, m²/Hz).
 
     ``frequency`` (F,) Hz; ``fit``, ``held_out`` (F, m); ``held_out_blocks`` (n_h, F, m) per block;
-    ``stats`` (m, 3): RMS [m], skewness, excess kurtosis of the held-out samples; ``dt`` [s];
+    ``stats``, ``fit_stats`` (m, 3): RMS [m], skewness, excess kurtosis of the held-out resp.
+    fitting samples; ``dt`` [s];
     ``block_samples``: samples per block; ``sensors``: names; ``x``, ``tube`` per sensor.
     """
 
@@ -189,6 +197,7 @@ class MeasuredSpectra:
     held_out: np.ndarray
     held_out_blocks: np.ndarray
     stats: np.ndarray
+    fit_stats: np.ndarray
     dt: float
     block_samples: int
     n_fit_blocks: int
@@ -238,8 +247,9 @@ def measured_spectra(data: xr.Dataset, settings: DiagnoseSettings = DiagnoseSett
     f, P_fit = _auto_psd(fit, dt, settings.segment_seconds)
     _, P_held = _auto_psd(held, dt, settings.segment_seconds)
     stats = time_statistics(held.reshape(-1, y.shape[1]))
+    fit_stats = time_statistics(fit.reshape(-1, y.shape[1]))
     return MeasuredSpectra(
-        frequency=f, fit=P_fit.mean(axis=0), held_out=P_held.mean(axis=0), held_out_blocks=P_held, stats=stats,
+        frequency=f, fit=P_fit.mean(axis=0), held_out=P_held.mean(axis=0), held_out_blocks=P_held, stats=stats, fit_stats=fit_stats,
         dt=dt, block_samples=L, n_fit_blocks=fit.shape[0], n_held_out_blocks=held.shape[0],
         sensors=tuple(str(s) for s in data["sensor"].values), x=tuple(float(v) for v in data["x"].values),
         tube=tuple(str(v) for v in data["tube"].values))
@@ -261,14 +271,21 @@ def simulate_blocks(spec: BundleSpec, r, effects, meas: MeasuredSpectra, n_block
     blocks of the data's block length, and time statistics (R, m, 3).
 
     ``stochastic``: with the model dispersion δ and load dispersion δ_F of ``settings`` (the
-    band), else the mean model. Common random numbers: realisation r always uses the streams
-    ``rng_for(settings.seed, "response", r)``.
+    band), else the mean model (then the R "realisations" are consecutive stretches of one record
+    of realisation ``realisations[0]``). Common random numbers: realisation r always uses the
+    streams ``rng_for(settings.seed, "response", r)``.
     """
     full = apply_effects(spec, effects)
     model = reduce(full)
     tube = full.a_tube or full.tubes[0].name
     load = load_spectrum(full, r, settings)
     dt = meas.dt
+    realisations = np.atleast_1d(np.asarray(realisations, dtype=int))
+    R = realisations.size
+    if not stochastic:
+        # The mean model has no random matrices: one long realisation cut into R × n_blocks blocks
+        # has the same estimator scatter as R realisations and builds the solver tables once.
+        n_blocks, realisations = n_blocks * R, realisations[:1]
     n_out = n_blocks * meas.block_samples
     duration = settings.discard + (n_out + 2) * dt
     rs = ResponseSettings(duration=duration, dt_load=_dt_load(dt, settings.dt_load_max), output_dt=dt,
@@ -278,6 +295,9 @@ def simulate_blocks(spec: BundleSpec, r, effects, meas: MeasuredSpectra, n_block
     ds = simulate_responses(model, load, realisations, seed=settings.seed, dispersion=disp,
                             load_dispersion=settings.load_dispersion if stochastic else 0.0, settings=rs)
     y = ds["displacement"].transpose("realisation", "time", "sensor").values[:, :n_out, :]
+    if not stochastic:
+        n_blocks //= R
+        y = y.reshape(R, n_blocks * meas.block_samples, y.shape[2])
     blocks = y.reshape(y.shape[0], n_blocks, meas.block_samples, y.shape[2])
     _, P = _auto_psd(blocks, dt, settings.segment_seconds)
     return P.mean(axis=1), time_statistics(y)
@@ -316,14 +336,15 @@ def analysis_bins(f: np.ndarray) -> np.ndarray:
 
 
 def identify_load(spec: BundleSpec, meas: MeasuredSpectra, settings: DiagnoseSettings, effects=()) -> dict:
-    """Trial method for r = (r1, r2) of the force-and-moment load, on the fitting blocks.
+    """Trial method for the load parameters r (one level for ``distributed``, (r1, r2) for
+    ``force_and_moment``) on the fitting blocks, with ``effects`` switched on.
 
     Distance: mean over sensors and 0 < f ≤ band of (log10 S̄_model(r) − log10 S_fit)², with S̄_model
     the mean PSD of ``fit_realisations`` realisations of the mean model (δ = δ_F = 0, common
     random numbers for every trial). Level: r ← r · 10^(mean log ratio), ``level_iterations``
-    times (exact in one step for a linear model; the stop makes it converge in a few). Ratio:
-    r2/r1 multiplied by each of ``ratio_factors`` and re-levelled once; the best trial wins.
-    Returns {"r": (r1, r2), "distance": decades², "trials": [(r1, r2, distance), ...]}.
+    times (exact in one step for a linear model; the stop makes it converge in a few). Ratio
+    (force_and_moment only): r2/r1 multiplied by each of ``ratio_factors`` and re-levelled once.
+    The best trial wins. Returns {"r": r, "distance": decades², "trials": [(*r, distance), ...]}.
     """
     band = analysis_bins(meas.frequency) & (meas.frequency <= spec.band_hz)
     target = _log(meas.fit[band])
@@ -457,7 +478,7 @@ def _fit_candidate(name, estimate, spec, r, meas, settings, *, tube, stop_stiffn
 
     sel = analysis_bins(meas.frequency)
     reals = range(settings.fit_realisations)
-    rms = np.sqrt(np.maximum(meas.stats[:, 0] ** 2, 0))
+    rms = meas.fit_stats[:, 0]
     trials = []
 
     def run(grid):
@@ -536,11 +557,11 @@ def diagnose(data, model="paper-simplified", settings: DiagnoseSettings = Diagno
     err_before = held_out_error(meas.held_out, before.lower, before.upper, f)
     threshold = float(np.quantile(before.null, settings.null_quantile) * settings.null_margin)
 
-    # 3. signatures
-    z = (meas.stats - before.stats.mean(axis=0)) / np.maximum(before.stats.std(axis=0, ddof=1), 1e-300)
+    # 3. signatures, on the fitting blocks (the held-out ones only score and choose)
+    z = (meas.fit_stats - before.stats.mean(axis=0)) / np.maximum(before.stats.std(axis=0, ddof=1), 1e-300)
     sensor_tubes = sorted(set(meas.tube))
     tube = spec.a_tube if spec.a_tube in sensor_tubes else sensor_tubes[0]
-    sig = signature_scores(f, meas.held_out, before.lower, before.upper, before.median, z, sel,
+    sig = signature_scores(f, meas.fit, before.lower, before.upper, before.median, z, sel,
                            np.asarray(meas.x), spec.tube(tube).damping_ratio)
     ranked = sorted(CATALOG, key=lambda n: -sig[n]["score"])
     stop_k = spec.stops[0].stiffness if spec.stops else 1e8
@@ -548,6 +569,7 @@ def diagnose(data, model="paper-simplified", settings: DiagnoseSettings = Diagno
                       "parameters": PARAMETER_COUNT[n]} for n in ranked}
 
     explained = err_before <= threshold
+    threshold_after = threshold
     chosen, after, err_after, r_after = None, None, err_before, ident["r"]
     if not explained:
         # 4. fit the leading candidates; held-out error of each best fit
@@ -574,6 +596,7 @@ def diagnose(data, model="paper-simplified", settings: DiagnoseSettings = Diagno
             r_after = ident_after["r"]
             after = model_band(spec, r_after, [chosen], meas, settings)
             err_after = held_out_error(meas.held_out, after.lower, after.upper, f)
+            threshold_after = float(np.quantile(after.null, settings.null_quantile) * settings.null_margin)
 
     for n in candidates:
         c = candidates[n]
@@ -587,7 +610,9 @@ def diagnose(data, model="paper-simplified", settings: DiagnoseSettings = Diagno
         "metric": ERROR_METRIC + f"; {meas.n_held_out_blocks} held-out blocks of {meas.block_samples * meas.dt:.4g} s "
                   f"not used for fitting; band level {settings.level}, {settings.realisations} realisations.",
         "explained_before": bool(explained),
+        "explained_after": bool(err_after <= threshold_after),
         "null_threshold": threshold,
+        "null_threshold_after": threshold_after,
         "candidates": [dict(name=n, **candidates[n]) for n in ranked],
         "score_rule": ("candidates are ranked by signature_score (fraction of the residual energy their cheap "
                        "signature removes); the fitted ones are scored by held-out error / (1 - penalty)^k, k = "
@@ -606,6 +631,10 @@ def diagnose(data, model="paper-simplified", settings: DiagnoseSettings = Diagno
 def _markdown(rep: dict) -> str:
     lines = [f"# Diagnosis of measured data against `{rep['model']}`", "",
              f"**Effect: `{rep['effect']}`**", ""]
+    if not rep["explained_after"]:
+        lines += ["**Warning:** the held-out error stays above what the model's own realisations show: the "
+                  "residual is not (fully) explained by one catalog effect — consider the model uncertainty "
+                  "(δ), the load model, or several effects.", ""]
     if rep["parameters"]:
         lines += ["| parameter | value | units |", "|---|---|---|"]
         lines += [f"| {k} | {v['value']:.4g} | {v['units']} |" if isinstance(v["value"], float) else f"| {k} | {v['value']} | {v['units']} |"
@@ -613,7 +642,8 @@ def _markdown(rep: dict) -> str:
         lines.append("")
     lines += [f"- error before: {rep['error_before']:.4g} decades; after: {rep['error_after']:.4g} decades",
               f"- metric: {rep['metric']}",
-              f"- explained within the band before (error <= null threshold {rep['null_threshold']:.4g}): {rep['explained_before']}",
+              f"- explained within the band before (error <= null threshold {rep['null_threshold']:.4g}): {rep['explained_before']}; "
+              f"after (null threshold {rep['null_threshold_after']:.4g}): {rep['explained_after']}",
               f"- load ({rep['load']['model']}): r before {rep['load']['r_before']}, after {rep['load']['r_after']} {rep['load']['units']}; "
               f"δ = {rep['load']['delta']}, δ_F = {rep['load']['load_dispersion']}", "",
               "| candidate | signature score | held-out error | penalised |", "|---|---|---|---|"]
