@@ -14,7 +14,6 @@ paper's δ covers, not a missing effect.
 """
 
 import json
-import math
 
 import numpy as np
 import pytest

@@ -43,7 +43,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -52,7 +52,7 @@ import xarray as xr
 from tubeid.dynamics.response import ResponseSettings, simulate_responses
 from tubeid.dynamics.spectra import psd_matrix
 from tubeid.errors import SpecificationError
-from tubeid.mechanics.effects import apply_effects, effect_to_dict
+from tubeid.mechanics.effects import apply_effects
 from tubeid.mechanics.library import resolve_spec
 from tubeid.mechanics.reduction import reduce
 from tubeid.mechanics.spec import BundleSpec, SensorSpec
@@ -69,9 +69,14 @@ __all__ = [
     "model_band",
     "band_residual",
     "held_out_error",
+    "time_statistics",
+    "simulate_blocks",
+    "load_spectrum",
+    "analysis_bins",
     "identify_load",
     "diagnose",
     "ERROR_METRIC",
+    "LOAD_MODELS",
 ]
 
 #: Identification load models: ``distributed`` — the declared model's force points on the
@@ -277,7 +282,6 @@ def simulate_blocks(spec: BundleSpec, r, effects, meas: MeasuredSpectra, n_block
     """
     full = apply_effects(spec, effects)
     model = reduce(full)
-    tube = full.a_tube or full.tubes[0].name
     load = load_spectrum(full, r, settings)
     dt = meas.dt
     realisations = np.atleast_1d(np.asarray(realisations, dtype=int))
@@ -519,7 +523,7 @@ def _tone_amplitudes(estimate, spec, r, meas, settings, tube, sel):
     return a0 * 10.0 ** np.linspace(-0.5, 0.5, settings.grid_points)
 
 
-def _scaled_r(r, offset, settings):
+def _scaled_r(r, offset):
     """r moved by a log offset of the response PSD (linear-model level step)."""
     return tuple(float(v) * 10.0**offset for v in r)
 
@@ -581,7 +585,7 @@ def diagnose(data, model="paper-simplified", settings: DiagnoseSettings = Diagno
                 continue
             effect, off, trials = _fit_candidate(name, sig[name]["estimate"], spec, ident["r"], meas, settings,
                                                  tube=tube, stop_stiffness=stop_k)
-            r_c = _scaled_r(ident["r"], off, settings)
+            r_c = _scaled_r(ident["r"], off)
             band_c = model_band(spec, r_c, [effect], meas, settings)
             e_c = held_out_error(meas.held_out, band_c.lower, band_c.upper, f)
             k = PARAMETER_COUNT[name]

@@ -164,14 +164,14 @@ def effect_parameters(effect) -> dict:
     """Parameters of an effect with units, as reported: {name: {"value": v, "units": u}}."""
     if isinstance(effect, Tone):
         return {"frequency_hz": {"value": effect.frequency_hz, "units": "Hz"}, "amplitude": {"value": effect.amplitude, "units": "N"},
-                "tube": {"value": effect.tube, "units": ""}, "x": {"value": effect.x, "units": "m", "fitted": False}}
+                "tube": {"value": effect.tube, "units": "", "fitted": False}, "x": {"value": effect.x, "units": "m", "fitted": False}}
     if isinstance(effect, SensorNoise):
         return {"level": {"value": effect.level, "units": "m^2/Hz (two-sided)"}}
     if isinstance(effect, AddedMass):
-        return {"tube": {"value": effect.tube, "units": ""}, "factor": {"value": effect.factor, "units": "1"}}
+        return {"tube": {"value": effect.tube, "units": "", "fitted": False}, "factor": {"value": effect.factor, "units": "1"}}
     if isinstance(effect, Damping):
-        return {"tube": {"value": effect.tube, "units": ""}, "ratio": {"value": effect.ratio, "units": "1"}}
+        return {"tube": {"value": effect.tube, "units": "", "fitted": False}, "ratio": {"value": effect.ratio, "units": "1"}}
     if isinstance(effect, ExtraStop):
-        return {"tube": {"value": effect.tube, "units": ""}, "x": {"value": effect.x, "units": "m"},
+        return {"tube": {"value": effect.tube, "units": "", "fitted": False}, "x": {"value": effect.x, "units": "m"},
                 "gap": {"value": effect.gap, "units": "m"}, "stiffness": {"value": effect.stiffness, "units": "N/m", "fitted": False}}
     return {}
