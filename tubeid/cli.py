@@ -29,9 +29,14 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     from tubeid.errors import SpecificationError
 
+    from threadpoolctl import threadpool_limits
+
     args = build_parser().parse_args(argv)
     try:
-        return int(args.func(args) or 0)
+        # the hot paths are many small matrices (N ≈ 20–50): BLAS threads only contend with the
+        # worker processes and with each other; dask workers are pinned to 1 thread by their nanny
+        with threadpool_limits(limits=1):
+            return int(args.func(args) or 0)
     except SpecificationError as exc:
         print(f"tubeid: error: {exc}", file=sys.stderr)
         return 2

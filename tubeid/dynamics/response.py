@@ -103,8 +103,10 @@ def simulate_responses(
     sub = model.subsystem
     dispersion.check(sub.n)
     germs = germs_from_rngs(sub.n, [s[0] for s in streams])
-    MB, DB, KB = random_subsystem(sub, dispersion, 0, realisations, germs=germs)
-    M, D, K = model.matrices(MB, DB, KB)
+    if dispersion.is_deterministic:  # one model for every realisation: the solver builds its tables once
+        M, D, K = model.mean_matrices
+    else:
+        M, D, K = model.matrices(*random_subsystem(sub, dispersion, 0, realisations, germs=germs))
     m = len(load.names)
     loads = np.empty((len(realisations), int(round(settings.duration / settings.dt_load)) + 1, m))
     for i, s in enumerate(streams):
