@@ -21,7 +21,7 @@ STUDY = pathlib.Path(__file__).resolve().parents[1] / "studies" / "paper.py"
 @pytest.fixture(scope="module")
 def store(tmp_path_factory):
     path = tmp_path_factory.mktemp("paper") / "paper.zarr"
-    run(STUDY, path, workers=0, quiet=True, overrides={"size": "quick", "experiment": "synthetic"})
+    run(STUDY, path, workers=0, quiet=True, overrides={"size": "quick", "experiment": "synthetic", "distance": "relative"})
     return path
 
 
