@@ -223,25 +223,36 @@ def _stage_delta(store, out, n_bootstrap, seed, written, notes) -> dict:
     curve = likelihood_curve(J, j_ref, J["delta"].values, "delta", n_bootstrap=n_bootstrap,
                              rng=rng_for(seed, "report", "delta"))
     a = curve.attrs
-    fig = _figure()
-    ax = fig.add_subplot()
     d = curve["delta"].values
-    if n_bootstrap > 0:
-        ax.fill_between(d, curve.likelihood_low, curve.likelihood_high, alpha=0.3, color="C0",
-                        label=f"bootstrap {100 * a['confidence']:g} % band")
-    ax.plot(d, curve.likelihood, "o-", color="C0", ms=3, label="p_J(J_ref; δ) (Gaussian KDE)")
-    ax.axvline(a["argmax"], color="C3", label=f"δ_opt = {a['argmax']:.3f}")
-    ax.axvline(PAPER_VALUES["delta_opt"], color="k", ls="--", label="paper: δ_opt = 0.45")
-    ax.set_xlabel("dispersion δ of K_B (dimensionless)")
-    ax.set_ylabel(f"p_J(J_ref; δ)  [1/({units})]")
-    ax.set_title(f"Likelihood of δ (Figure 5), {J.sizes['realisation']} realisations per δ")
-    ax.legend(fontsize=8)
-    _save(fig, out, "fig5_delta_likelihood.png", written)
+    _likelihood_figure(store, curve, "delta", "delta_opt", a["argmax"], n_bootstrap, "C0",
+                       "dispersion δ of K_B (dimensionless)", f"p_J(J_ref; δ)  [1/({units})]",
+                       f"Likelihood of δ (Figure 5), {J.sizes['realisation']} realisations per δ",
+                       out, "fig5_delta_likelihood.png", written)
     q = {"value": a["argmax"], "std": a["argmax_std"], "low": a["argmax_low"], "high": a["argmax_high"],
          "discrete": a["argmax_discrete"], "at_boundary": bool(a["argmax_at_boundary"]),
          "n_realisations": int(J.sizes["realisation"])}
     return {"quantities": {"delta_opt": q}, "details": {"J_ref": j_ref, "J_units": units,
                                                          "grid": [float(d[0]), float(d[-1]), int(d.size)]}}
+
+
+def _likelihood_figure(store, curve, dim, key, optimum, n_bootstrap, color, xlabel, ylabel, title, out, name, written):
+    """A likelihood curve with its bootstrap band, the optimum and the value it is compared with."""
+    targets, label = _targets(store)
+    symbol = {"delta_opt": "δ_opt", "delta_F_opt": "δ_F,opt"}[key]
+    fig = _figure()
+    ax = fig.add_subplot()
+    d = curve[dim].values
+    if n_bootstrap > 0:
+        ax.fill_between(d, curve.likelihood_low, curve.likelihood_high, alpha=0.3, color=color,
+                        label=f"bootstrap {100 * curve.attrs['confidence']:g} % band")
+    ax.plot(d, curve.likelihood, "o-", color=color, ms=3, label=f"{ylabel.split('  ')[0]} (Gaussian KDE)")
+    ax.axvline(optimum, color="C3", label=f"{symbol} = {optimum:.3f}")
+    ax.axvline(targets[key], color="k", ls="--", label=f"{label}: {symbol} = {targets[key]:g}")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.legend(fontsize=8)
+    _save(fig, out, name, written)
 
 
 def _stage_response(store, out, sensor, written, notes) -> dict:
@@ -371,11 +382,11 @@ def _stage_load_r(store, out, n_bootstrap, seed, sensor, written, notes) -> dict
                                    "at_boundary": bool(ra["r_opt_at_boundary"])}
         except SpecificationError as exc:
             notes.append(f"relative-weighted D not computed: {exc}")
-    _plot_d_map(dm, out, written)
+    _plot_d_map(dm, out, written, _targets(store))
     return {"quantities": quantities, "details": details}
 
 
-def _plot_d_map(dm: xr.Dataset, out: Path, written: list) -> None:
+def _plot_d_map(dm: xr.Dataset, out: Path, written: list, target: tuple[dict, str]) -> None:
     dims = dm.attrs["grid_dims"]
     units = dm.attrs["D_units"]
     axis_units = {"r1": "N²/Hz", "r2": "(N·m)²/Hz"}
@@ -409,8 +420,9 @@ def _plot_d_map(dm: xr.Dataset, out: Path, written: list) -> None:
         rd = dm.attrs["r_opt_discrete"]
         ax.plot([rd[0]], [rd[1]], "s", mfc="none", color="w", label="grid minimum")
         if (d1, d2) == ("r1", "r2"):
-            ax.plot([PAPER_VALUES["r1_opt"]], [PAPER_VALUES["r2_opt"]], "*", color="k", ms=12,
-                    label="paper: r_opt = (18, 20)")
+            targets, label = target
+            ax.plot([targets["r1_opt"]], [targets["r2_opt"]], "*", color="k", ms=12,
+                    label=f"{label}: r_opt = ({targets['r1_opt']:g}, {targets['r2_opt']:g})")
         ax.set_xlabel(f"{d1} [{axis_units.get(d1, '')}]")
         ax.set_ylabel(f"{d2} [{axis_units.get(d2, '')}]")
         ax.legend(fontsize=8, loc="best")
@@ -453,20 +465,10 @@ def _stage_load_delta_f(store, out, n_bootstrap, seed, written, notes) -> dict:
     except SpecificationError as exc:
         raise _StageMissing(f"likelihood of δ_F could not be computed: {exc}") from None
     a = lk.attrs
-    fig = _figure()
-    ax = fig.add_subplot()
-    d = lk["delta_F"].values
-    if n_bootstrap > 0:
-        ax.fill_between(d, lk.likelihood_low, lk.likelihood_high, alpha=0.3, color="C2",
-                        label=f"bootstrap {100 * a['confidence']:g} % band")
-    ax.plot(d, lk.likelihood, "o-", ms=3, color="C2", label="p_Js(J_s,exp; δ_F) (Gaussian KDE)")
-    ax.axvline(a["delta_F_opt"], color="C3", label=f"δ_F,opt = {a['delta_F_opt']:.3f}")
-    ax.axvline(PAPER_VALUES["delta_F_opt"], color="k", ls="--", label="paper: δ_F,opt = 0.04")
-    ax.set_xlabel("load dispersion δ_F (dimensionless)")
-    ax.set_ylabel(f"p_Js(J_s,exp; δ_F)  [1/({units})]")
-    ax.set_title(f"Likelihood of δ_F, {Js.sizes['realisation']} realisations per δ_F")
-    ax.legend(fontsize=8)
-    _save(fig, out, "delta_f_likelihood.png", written)
+    _likelihood_figure(store, lk, "delta_F", "delta_F_opt", a["delta_F_opt"], n_bootstrap, "C2",
+                       "load dispersion δ_F (dimensionless)", f"p_Js(J_s,exp; δ_F)  [1/({units})]",
+                       f"Likelihood of δ_F, {Js.sizes['realisation']} realisations per δ_F",
+                       out, "delta_f_likelihood.png", written)
     q = {"value": a["delta_F_opt"], "std": a["delta_F_opt_std"], "low": a["delta_F_opt_low"],
          "high": a["delta_F_opt_high"], "discrete": a["argmax_discrete"], "at_boundary": bool(a["argmax_at_boundary"]),
          "n_realisations": int(Js.sizes["realisation"])}
