@@ -336,3 +336,17 @@ def test_bad_effects_are_refused(effect, field):
 
     with pytest.raises(SpecificationError, match=field):
         apply_effects(builtin_spec("paper-simplified"), [effect])
+
+
+def test_numbers_given_as_text_are_refused():
+    d = spec_to_dict(builtin_spec("paper-simplified"))
+    d["tubes"][0]["length"] = "16"
+    with pytest.raises(SpecificationError, match=r"tubes\[0\]\.length.*must be a number"):
+        spec_from_dict(d)
+    d = spec_to_dict(builtin_spec("paper-simplified"))
+    d["tubes"][0]["damping_ratio"] = "high"
+    with pytest.raises(SpecificationError, match=r"tubes\[0\]\.damping_ratio"):
+        spec_from_dict(d)
+    d = spec_to_dict(builtin_spec("paper-simplified"))
+    d["links"] = None  # `links:` left empty in YAML
+    assert spec_from_dict(d).links == ()

@@ -271,3 +271,14 @@ def test_slurm_job_script_has_single_threaded_workers():
     out = subprocess.run([sys.executable, str(REPO / "cluster/slurm/run_study.py"), "x.py", "--print-job-script"],
                          capture_output=True, text=True, check=True).stdout
     assert "#SBATCH --cpus-per-task=8" in out and "--nthreads 1" in out and "--nworkers 8" in out
+
+
+def test_overwrite_never_deletes_a_directory_that_is_not_a_store(tmp_path):
+    from tubeid.cli import main
+
+    precious = tmp_path / "precious"
+    precious.mkdir()
+    (precious / "important.txt").write_text("keep me")
+    study = pathlib.Path(__file__).resolve().parents[1] / "studies" / "example_pi.py"
+    assert main(["run", str(study), "--store", str(precious), "--overwrite", "--workers", "0", "--no-progress"]) == 2
+    assert (precious / "important.txt").read_text() == "keep me"

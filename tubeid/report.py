@@ -450,10 +450,13 @@ def _stage_load_delta_f(store, out, n_bootstrap, seed, written, notes) -> dict:
     if js_exp is None:
         try:
             ref = _variable(_open_response(store), "response", "psd_reference")
-            ref = _complete(ref, "realisation_ref", "response.psd_reference", notes, 1).mean("realisation_ref")
-            sel = ref.transpose("frequency", ...)
-            js_exp = float(j_s(sel["frequency"].values, sel.values, float(ds.attrs.get("band_hz", 100.0))))
-            source = "computed from response.psd_reference (mean over its records)"
+            ref = _complete(ref, "realisation_ref", "response.psd_reference", notes, 1)
+            band = float(ds.attrs.get("band_hz", 100.0))
+            recs = [r.transpose("frequency", ...) for _, r in ref.groupby("realisation_ref", squeeze=False)]
+            # one J_s per record, like the model samples (J_s of an averaged PSD would be biased low)
+            js_exp = [float(j_s(r["frequency"].values, r.squeeze("realisation_ref", drop=True).values, band)) for r in recs]
+            js_exp = js_exp[0] if len(js_exp) == 1 else js_exp
+            source = "computed from response.psd_reference (one value per record)"
         except (_StageMissing, SpecificationError) as exc:
             raise _StageMissing(f"attribute J_s_exp missing from group 'load_delta_f' and not computable: {exc}") \
                 from None

@@ -171,6 +171,8 @@ class DiagnoseSettings:
         if self.r0 is not None and (len(self.r0) != n_r or not all(
                 isinstance(v, (int, float)) and math.isfinite(v) and v > 0 for v in self.r0)):
             raise SpecificationError("settings.r0", self.r0, f"must be {n_r} number(s) > 0 for the {self.load} load")
+        if not all(isinstance(v, (int, float)) and math.isfinite(v) and v > 0 for v in self.ratio_factors):
+            raise SpecificationError("settings.ratio_factors", self.ratio_factors, "must be numbers > 0")
 
     @property
     def start_r(self) -> tuple[float, ...]:
@@ -178,8 +180,6 @@ class DiagnoseSettings:
         if self.r0 is not None:
             return tuple(float(v) for v in self.r0)
         return (18.0, 20.0) if self.load == "force_and_moment" else (1.3,)
-        if not all(isinstance(v, (int, float)) and math.isfinite(v) and v > 0 for v in self.ratio_factors):
-            raise SpecificationError("settings.ratio_factors", self.ratio_factors, "must be numbers > 0")
 
 
 # ----------------------------------------------------------------------------------------------

@@ -41,6 +41,8 @@ _NODE_TOL = 1e-9  # m: a position closer than this to a node is that node
 
 
 def _positive(field_name: str, value, *, allow_zero: bool = False) -> float:
+    if isinstance(value, (str, bool)):
+        raise SpecificationError(field_name, value, "must be a number")
     try:
         v = float(value)
     except (TypeError, ValueError):
@@ -81,7 +83,7 @@ class TubeSpec:
             raise SpecificationError(f"{where}.n_elements", self.n_elements, "must be an integer >= 1")
         if len(self.ends) != 2 or any(e not in END_CONDITIONS for e in self.ends):
             raise SpecificationError(f"{where}.ends", self.ends, f"must be two of {END_CONDITIONS}")
-        if not 0.0 <= float(self.damping_ratio) < 1.0:
+        if _positive(f"{where}.damping_ratio", self.damping_ratio, allow_zero=True) >= 1.0:
             raise SpecificationError(f"{where}.damping_ratio", self.damping_ratio, "must be in [0, 1)")
 
     @property
@@ -331,7 +333,7 @@ def spec_from_dict(data: Mapping[str, Any]) -> BundleSpec:
         if key not in known:
             raise SpecificationError(key, data[key], f"unknown field; known fields are {sorted(known)}")
     for key, cls in _CLASSES.items():
-        items = data.get(key, [])
+        items = data.get(key) or []  # an empty YAML list reads as None
         if not isinstance(items, (list, tuple)):
             raise SpecificationError(key, items, "must be a list")
         data[key] = tuple(_build(cls, item, f"{key}[{i}]") for i, item in enumerate(items))

@@ -111,11 +111,27 @@ def check_store(path, study_hash: str) -> str:
     return "resume"
 
 
+def _remove_store(p: pathlib.Path) -> None:
+    """Delete ``p`` only if it is empty or a tubeid store: ``--overwrite`` never deletes anything else."""
+    if not p.exists():
+        return
+    if p.is_dir() and any(p.iterdir()):
+        try:
+            fmt = read_attrs(p).get("format")
+        except Exception:  # not a zarr group at all
+            fmt = None
+        if fmt not in (FORMAT, PIPELINE_FORMAT):
+            raise SpecificationError("store", str(p), "exists and is not a tubeid store: refusing to delete it (choose another --store)")
+    if p.is_dir():
+        shutil.rmtree(p)
+    else:
+        raise SpecificationError("store", str(p), "is a file, not a store directory")
+
+
 def _fresh_root(path, fmt: str, definition, *, source: str, study_hash: str, study_file: str, overrides) -> tuple[pathlib.Path, dict]:
     """Remove any store at ``path`` and return it with the provenance shared by study and pipeline roots."""
     p = pathlib.Path(path)
-    if p.exists():
-        shutil.rmtree(p)
+    _remove_store(p)
     p.parent.mkdir(parents=True, exist_ok=True)
     t = now()
     return p, {
