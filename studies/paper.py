@@ -59,9 +59,9 @@ SIZES = {
 TRUTH = {"delta": 0.3, "r1": 18.0, "r2": 20.0, "delta_F": 0.04}  # the synthetic experiment
 N_RECORDS = {"reference": 1, "synthetic": 8}  # experimental records (the paper has one)
 N_J_OBSERVATIONS = 30  # synthetic J observations for the model-to-model step
-R_RANGE = (1.0, 1000.0)
+R_RANGE = (1.0, 1000.0)  # N²/Hz and (N·m)²/Hz: the coarse grid spans three decades
 # δ_F ∈ (0, √(3/7) = 0.655): dense near 0, where the paper finds 0.04
-DELTA_F_GRID = {"paper": [0.005, 0.01, 0.02, 0.03, 0.04, 0.06, 0.09, 0.14, 0.22, 0.35, 0.5], "quick": [0.01, 0.04, 0.16, 0.4]}  # N²/Hz and (N·m)²/Hz: the coarse grid spans three decades
+DELTA_F_GRID = {"paper": [0.005, 0.01, 0.02, 0.03, 0.04, 0.06, 0.09, 0.14, 0.22, 0.35, 0.5], "quick": [0.01, 0.04, 0.16, 0.4]}
 
 
 def _settings(size):

@@ -291,7 +291,7 @@ def benchmark_solver(M=None, D=None, K=None, stops=None, B=None, C=None, loads=N
     t_fast, _ = _best(lambda: run(opened, loads), repeat)
     n_b = int(round(baseline_window / dt_load)) + 1
     t_base_win, (_, h_b) = _best(lambda: simulate_baseline(M, D, K, stops, B, C, loads[:n_b], dt_load,
-                                                           output_dt=output_dt), 1)
+                                                           output_dt=output_dt), repeat)
     t_base = t_base_win * duration / baseline_window
     steps = (n_t - 1) * ns
     steps_b = int(round(duration / h_b))

@@ -11,13 +11,14 @@ Realisation r of the stochastic simplified model (paper §2.5, §3, MODEL.md §3
 5. by default only the response PSD matrix at the sensors (Welch: Hann window, 50 % overlap,
    ``segment_seconds`` segments; two-sided per Hz) and summary statistics are kept.
 
-The three streams of realisation r are children (``Generator.spawn``) of one generator keyed by
+The four streams of realisation r are children (``Generator.spawn``) of one generator keyed by
 (seed, r) — or of the generator the runner gives for that realisation — so a realisation is the
 same whatever its batch, and grids over δ, r or δ_F share common random numbers.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -134,6 +135,8 @@ def simulate_responses(
     if noise > 0:  # two-sided white PSD `noise` [m²/Hz] sampled at output_dt: variance noise/output_dt
         sigma = np.sqrt(noise / settings.output_dt)
         y = y.copy(data=y.values + sigma * np.stack([s[3].standard_normal(y.shape[1:]) for s in streams]))
+        rms = np.sqrt(np.mean(y.values**2, axis=1))  # the noisy signal, like the PSD
+        res = dataclasses.replace(res, rms=res.rms.copy(data=rms.reshape(res.rms.shape)))
     f, S = psd_matrix(y.values, settings.output_dt, segment_seconds=settings.segment_seconds)
     ds = xr.Dataset(
         {

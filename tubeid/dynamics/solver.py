@@ -1508,7 +1508,7 @@ def simulate_baseline(M, D, K, stops, B, C, loads, dt_load, *, output_dt=3e-3, d
     """Straightforward reference implementation for benchmarks: symplectic Euler, one numpy
     matrix-vector product per step in a Python loop (single realisation, shared matrices).
 
-    Returns the observation series (n_out, n_obs) at output_dt from t = 0. dt=None uses the
+    Returns ``(series, h)``: the observation series (n_out, n_obs) at output_dt from t = 0 and the step h. dt=None uses the
     symplectic-Euler default rule of :func:`choose_step`.
     """
     (Ms, Ds, Ks, stops_all, stops_nl, Bm, Cm, L, R, N, dt_load, output_dt, duration,

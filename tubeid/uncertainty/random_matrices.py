@@ -83,16 +83,8 @@ def sg_plus(n: int, delta: float, size=(), *, rng) -> np.ndarray:
     d = _check_delta(delta, n)
     shape = _check_shape(size)
     gen = _as_rng(rng, "sg_plus")
-    sigma = d / math.sqrt(n + 1)
-    j = np.arange(1, n + 1)  # j counted from 1 (counting from 0 biases E[G] by δ²/(n+1))
-    gamma_shape = (n + 1) / (2.0 * d * d) + (1.0 - j) / 2.0
-    iu = np.triu_indices(n, k=1)
-    L = np.zeros(shape + (n, n))
-    L[..., iu[0], iu[1]] = sigma * gen.standard_normal(shape + (iu[0].size,))
-    V = gen.standard_gamma(gamma_shape, size=shape + (n,))
-    L[..., j - 1, j - 1] = sigma * np.sqrt(2.0 * V)
-    G = np.swapaxes(L, -1, -2) @ L
-    return 0.5 * (G + np.swapaxes(G, -1, -2))  # exact symmetry (round-off only)
+    # one construction: germs (normals, uniforms) → G, so a δ grid with the same seed is smooth
+    return sg_plus_from_germs(n, d, *sg_plus_germs(n, shape, rng=gen))
 
 
 def sg_plus_germs(n: int, size=(), *, rng) -> tuple[np.ndarray, np.ndarray]:
