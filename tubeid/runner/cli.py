@@ -181,17 +181,10 @@ def _bench(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Stand-alone entry point (``python -m tubeid.runner.cli run ...``)."""
-    from tubeid.errors import SpecificationError
+    """Stand-alone entry point (``python -m tubeid.runner.cli run ...``): the ``tubeid`` command itself."""
+    from tubeid.cli import main as tubeid_main
 
-    parser = argparse.ArgumentParser(prog="tubeid")
-    register(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(argv)
-    try:
-        return int(args.func(args) or 0)
-    except SpecificationError as exc:
-        print(f"tubeid: error: {exc}", file=sys.stderr)
-        return 2
+    return tubeid_main(argv)
 
 
 if __name__ == "__main__":
