@@ -72,6 +72,8 @@ def test_cli_refuses_bad_override_before_creating_a_store(tmp_path, capsys):
     assert cli(["run", str(study), "--store", str(store), "--workers", "0", "--set", "wrok=3"]) == 2
     assert "parameters.wrok = 3: unknown parameter" in capsys.readouterr().err
     assert cli(["run", str(study), "--store", str(store), "--workers", "0", "--set", "label='z'"]) == 2
+    assert cli(["run", str(study), "--store", str(store), "--workers", "0", "--set", "work={1}"]) == 2  # a set: not plain
+    assert "parameters.work = {1}: must be a plain finite value" in capsys.readouterr().err
     assert not store.exists()
     # the SG+ example refuses a delta grid outside SG+'s admissible range for the requested n
     assert cli(["run", str(REPO / "studies/example_sgplus.py"), "--store", str(store), "--workers", "0",
@@ -228,6 +230,46 @@ def test_configuration_env_overrides_and_default_chunk(tmp_path):
     env = dict(os.environ, TUBEID_RUNNER__DEFAULT_CHUNK="3", TUBEID_RUNNER__WORKERS="5")
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
     assert out.split() == ["3", "5"]
+
+
+DEFAULT_CHUNK_STUDY = """
+import numpy as np
+from tubeid.runner.study import Output, Study
+study = Study(name="dc", seed=3, axes={"r": range(12)}, outputs={"y": Output()},
+              task=lambda block, rng: {"y": np.asarray(block["r"], float) * 2.0})
+"""
+
+
+def test_resume_with_another_default_chunk_is_refused(tmp_path, monkeypatch):
+    """The block layout comes from the configuration when a study gives no chunks: a resume (or a
+    worker) with another default chunk would write the wrong regions, so it is refused by name."""
+    import dask.config
+    import zarr
+
+    import tubeid.runner.study as study_module
+    from tubeid.runner.store import write_block
+
+    path = tmp_path / "dc.py"
+    path.write_text(DEFAULT_CHUNK_STUDY)
+    store = tmp_path / "dc.zarr"
+    with dask.config.set({"tubeid.runner.default-chunk": 4}):
+        run(path, store, workers=0, quiet=True)
+        four = load_study(path)[0]
+    flags = zarr.open_group(str(store), mode="r+")["block_done"]
+    flags[1] = 0  # as if interrupted before block 1 finished
+    monkeypatch.setattr(study_module, "_CACHE", {})  # a fresh process would rebuild the definition
+    with dask.config.set({"tubeid.runner.default-chunk": 3}):
+        three = load_study(path)[0]
+        assert three.chunks == {"r": 3}
+        with pytest.raises(SpecificationError, match=r"chunks = \{'r': 3\}: .* blocks of \{'r': 4\}"):
+            run(path, store, workers=0, quiet=True)
+        with pytest.raises(SpecificationError, match="chunks"):  # the worker-side guard
+            write_block(store, three, three.block((1,)), {"y": np.zeros(3)})
+    monkeypatch.setattr(study_module, "_CACHE", {})
+    with dask.config.set({"tubeid.runner.default-chunk": 4}):
+        run(path, store, workers=0, quiet=True)  # the store's own layout resumes
+    np.testing.assert_array_equal(open_results(store).y.values, 2.0 * np.arange(12))
+    assert four.chunks == {"r": 4}
 
 
 def test_example_studies_load_and_pi_runs(tmp_path):

@@ -24,7 +24,7 @@ import time
 from tubeid import config
 from tubeid.errors import SpecificationError
 from tubeid.runner.pipeline import Pipeline, stage_hash
-from tubeid.runner.store import (block_flags, check_stage, check_store, init_pipeline_store, init_stage, init_store, now,
+from tubeid.runner.store import (block_flags, check_blocks, check_stage, check_store, init_pipeline_store, init_stage, init_store, now,
                                  prepare_path, read_attrs, tubeid_version, update_attrs, write_block)
 from tubeid.runner.study import _plain, load_definition, load_study
 
@@ -241,6 +241,8 @@ def run(study_path, store=None, *, workers: int | None = None, scheduler: str | 
         return _run_pipeline(study, source, key, study_path, path, state, workers, scheduler, overrides, progress, quiet)
 
     report = RunReport(store=path, total=study.n_blocks, computed=0, skipped=0, workers=0)
+    if state == "resume":
+        check_blocks(path, study)
     if state == "resume" and block_flags(path).all():
         report.skipped = study.n_blocks
         if not read_attrs(path).get("finished"):  # every block written, but stopped before the finalisation
@@ -324,6 +326,7 @@ def _run_stage(pipeline, name, source, key, path, overrides, client, show, quiet
     state = check_stage(path, name, shash)
     report = RunReport(store=path, total=study.n_blocks, computed=0, skipped=0, workers=0)
     if state == "resume":
+        check_blocks(path, study, name)
         attrs = read_attrs(path, name)
         if block_flags(path, name).all() and attrs.get("finished"):
             report.skipped = study.n_blocks

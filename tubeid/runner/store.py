@@ -33,7 +33,7 @@ import zarr
 
 from tubeid.errors import SpecificationError
 
-__all__ = ["init_store", "init_pipeline_store", "init_stage", "check_store", "check_stage", "block_flags",
+__all__ = ["init_store", "init_pipeline_store", "init_stage", "check_store", "check_stage", "check_blocks", "block_flags",
            "write_block", "update_attrs", "read_attrs", "open_results", "open_pipeline", "store_status",
            "pipeline_status", "is_pipeline", "prepare_path", "FLAG", "now"]
 
@@ -255,13 +255,33 @@ def block_flags(path, group=None) -> np.ndarray:
     return np.asarray(_group(path, group)[FLAG][...])
 
 
+def _check_blocks(path, study, flag_array, group=None) -> None:
+    stored = [int(c) for c in flag_array.attrs.get("chunks", [])]
+    now_ = [int(study.chunks[d]) for d in study.axes]
+    if stored != now_:
+        where = f"{path}" + (f" (stage {group})" if group else "")
+        raise SpecificationError(
+            "chunks", dict(zip(study.axes, now_)),
+            f"{where} was written in blocks of {dict(zip(study.axes, stored))}; a block layout that differs "
+            "(e.g. another tubeid.runner.default-chunk / TUBEID_RUNNER__DEFAULT_CHUNK here or on a worker) "
+            "would write the wrong regions: use the store's configuration, or --new-store / --overwrite")
+
+
+def check_blocks(path, study, group=None) -> None:
+    """Refuse to resume ``path`` (or its stage ``group``) with a block layout other than the one it was written with."""
+    _check_blocks(path, study, _group(path, group)[FLAG], group)
+
+
 def write_block(path, study, block, outputs, group=None) -> None:
     """Write one block's outputs into their own region (whole chunks), then its completion flag.
 
     Written with zarr directly into the arrays xarray created (same bytes as an xarray region
     write: no scale/offset encodings are used), which costs a few ms per block instead of ~10.
+    The block layout is checked against the store's first (a worker with another default chunk
+    size would otherwise write the wrong region).
     """
     g = _group(path, group, mode="r+")
+    _check_blocks(path, study, g[FLAG], group)
     region = tuple(block.slices.values())
     for name, arr in outputs.items():
         g[name][region] = arr

@@ -396,8 +396,9 @@ class RngFactory:
 
 def study_hash(source: str, overrides: Mapping[str, Any] | None = None) -> str:
     """SHA-256 of the study source text and the parameter overrides (the study's identity)."""
+    plain = {str(k): _plain(v, f"parameters.{k}") for k, v in dict(overrides or {}).items()}
     h = hashlib.sha256(source.encode())
-    h.update(b"\0" + json.dumps(dict(overrides or {}), sort_keys=True).encode())
+    h.update(b"\0" + json.dumps(plain, sort_keys=True).encode())
     return h.hexdigest()
 
 
