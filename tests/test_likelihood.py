@@ -193,3 +193,22 @@ def test_refusals():
     _raises(lambda: silverman_bandwidth([1.0]), "at least 2 samples")
     _raises(lambda: kde_pdf(s, np.zeros(3)), "x = array of shape (3,)", "broadcast")
     _raises(lambda: kde_pdf(s[0], 0.1, bandwidth=0.0), "bandwidth = 0.0", "> 0")
+
+
+def test_bootstrap_with_several_observations_includes_their_sampling_error():
+    # 10 observations of X(0.37) = 0.37 + 0.1 Z: the joint-likelihood argmax is close to their mean,
+    # whose sampling sd is 0.1/√10 = 0.032 (the model's own Monte Carlo error, N = 200, is ~4x smaller).
+    # Over 40 independent (observations, model) sets the true sd of the argmax must match the mean
+    # bootstrap sd: ratio in [0.6, 1.6] as in the single-observation test (relative SE of a sd from
+    # 40 replicates ≈ 11 %; measured 0.88). Resampling only the model would give a ratio near 0.25.
+    grid = np.linspace(0.1, 0.6, 26)
+    arg, arg_sd = [], []
+    for seed in range(40):
+        obs = X_REF + 0.1 * rng_for(seed, "obs").standard_normal(10)
+        ds = likelihood_curve(_crn_samples(200, 500 + seed, grid), obs, grid, grid_name="theta",
+                              n_bootstrap=60, rng=rng_for(seed, "boot"))
+        arg.append(ds.attrs["argmax"])
+        arg_sd.append(ds.attrs["argmax_std"])
+    true_sd = np.std(arg, ddof=1)
+    assert 0.6 < np.mean(arg_sd) / true_sd < 1.6, (np.mean(arg_sd), true_sd)
+    assert true_sd == pytest.approx(0.1 / np.sqrt(10), rel=0.35)  # the observations dominate

@@ -153,7 +153,9 @@ def likelihood_curve(samples, x_ref, grid, grid_name: str = "delta", n_bootstrap
     ``argmax`` (parabola-refined if ``refine``), ``argmax_discrete``, ``argmax_std``,
     ``argmax_low``, ``argmax_high``, ``argmax_at_boundary`` (0/1) and the settings used.
     Bootstrap replicates resample realisation indices jointly across the grid; each replicate
-    recomputes its Silverman bandwidth. Without bootstrap, the bootstrap fields are NaN.
+    recomputes its Silverman bandwidth. With several observations each replicate also resamples
+    them (with replacement), so ``argmax_std`` includes the sampling error of the observations, not
+    only the Monte Carlo error of the model. Without bootstrap, the bootstrap fields are NaN.
     """
     # ---- validation (all up front) ----
     if not isinstance(grid_name, str) or not grid_name:
@@ -219,7 +221,13 @@ def likelihood_curve(samples, x_ref, grid, grid_name: str = "delta", n_bootstrap
             b = min(chunk, n_bootstrap - start)
             idx = gen.integers(0, N, size=(b, N))
             res = np.moveaxis(s[:, idx], 0, 1)  # (b, G, N), same indices for every grid value
-            lb = joint(res, _silverman(res))
+            h_b = _silverman(res)
+            if xs.size > 1:  # the observations are a finite sample too: resample them with replacement
+                per_obs = np.stack([_log_kde(res, float(x), h_b) for x in xs])  # (n_obs, b, G)
+                pick = gen.integers(0, xs.size, size=(b, xs.size))
+                lb = per_obs[pick.T, np.arange(b)[None, :], :].sum(axis=0)
+            else:
+                lb = joint(res, h_b)
             boot_p.append(np.exp(lb - log_scale))
             d_b, r_b = _refine_argmax(g, lb)
             boot_arg.append(r_b if refine else d_b)
@@ -260,7 +268,8 @@ def likelihood_curve(samples, x_ref, grid, grid_name: str = "delta", n_bootstrap
             "confidence": float(confidence),
             "kernel": "gaussian, Silverman h = 1.06 sigma N^(-1/5), sigma with ddof=1, per grid value",
             "bootstrap": "realisation indices resampled jointly across the grid (common random numbers kept); "
-                         "bandwidth recomputed per replicate; percentile intervals",
+                         "bandwidth recomputed per replicate; percentile intervals"
+                         + ("; observations resampled with replacement" if xs.size > 1 else ""),
         },
     )
     return ds
