@@ -10,7 +10,8 @@ import pytest
 import xarray as xr
 
 from tubeid.errors import SpecificationError
-from tubeid.identification.loads import delta_f_likelihood, distance_map, refine_grid, relative_weight
+from tubeid.identification.loads import (delta_f_likelihood, distance_map, log_band_distance_map, refine_grid,
+                                        relative_weight)
 from tubeid.seeds import rng_for
 from tubeid.uncertainty.random_matrices import delta_max, sg_plus, sg_plus_from_germs, sg_plus_germs
 
@@ -354,3 +355,59 @@ def test_surrogate_derivatives_match_finite_differences():
         ph = _design(x[None])[0]
         np.testing.assert_allclose(_design_grad(x).T @ (2 * Q @ ph - 2 * b), g_fd, rtol=1e-6, atol=1e-6 * np.abs(g_fd).max())
         np.testing.assert_allclose(_surrogate_hessian(Q, b, x), H_fd, rtol=1e-6, atol=1e-6 * np.abs(H_fd).max())
+
+
+# ---------------------------------------------------------------------- log band energies (GLS)
+def _records(n, sigma, seed):
+    """Records drawn like _model's realisations at R_TRUE (independent of the model's when seeds differ)."""
+    rng = np.random.default_rng(seed)
+    eps = 1 + sigma * rng.standard_normal((n, F.size))
+    eta = 1 + sigma * rng.standard_normal((n, F.size))
+    return xr.DataArray(R_TRUE[0] * A * eps + R_TRUE[1] * B * eta, dims=("record", "frequency"), coords={"frequency": F})
+
+
+def test_log_band_distance_is_the_weighted_sum_and_exact_records_give_the_truth():
+    m, rec = _model(8, 0.3, 1), _records(8, 0.3, 1)  # same draws: records = the model's realisations at R_TRUE
+    ds = log_band_distance_map(m, rec, n_bootstrap=0)
+    # oracle: log band energies by hand, 5 Hz bands (0, 5], …, (95, 100]
+    edges = np.arange(0, 100.1, 5.0)
+    def lev(P):
+        return np.stack([np.log(P[..., (F > a) & (F <= b)].sum(-1) * 0.5) for a, b in zip(edges[:-1], edges[1:])], -1)
+    Lm, Le = lev(m.values), lev(rec.values).mean(0)
+    i = np.unravel_index(np.argmin(((Lm.mean(2) - Le) ** 2).sum(-1)), (5, 5))
+    w = 1 / (Lm[i].var(0, ddof=1) * (1 / 8 + 1 / 8))
+    np.testing.assert_allclose(ds.D.values, (w * (Lm.mean(2) - Le) ** 2).sum(-1), rtol=1e-12)
+    # the truth is off the grid; the quadratic surrogate of the log levels finds it within 0.5 %
+    assert np.all(_rel_err(ds.attrs["r_opt"]) < 0.005), ds.attrs["r_opt"]
+    assert ds.attrs["n_levels"] == 20 and ds.D.attrs["units"] == "1"
+
+
+def test_log_band_distance_is_unbiased_tighter_than_the_papers_and_its_bootstrap_is_calibrated():
+    """20 independent (model, records) sets, 16 realisations, 8 records, 50 % noise per bin.
+    Measured: GLS sd (0.73, 0.42) vs the paper's D (1.8, 1.3); bootstrap sd (0.77, 0.41).
+    Checks: |mean − truth| < 3 % (bias), GLS sd < 0.6 × the paper's sd, bootstrap/true sd in [0.6, 1.6]
+    (a sd from 20 sets has relative SE ≈ 16 %)."""
+    gls, paper, boot = [], [], []
+    for seed in range(20):
+        m, rec = _model(16, 0.5, 100 + seed), _records(8, 0.5, 500 + seed)
+        d = log_band_distance_map(m, rec, n_bootstrap=30, rng=seed)
+        gls.append(d.attrs["r_opt"])
+        boot.append(d.attrs["r_opt_std"])
+        paper.append(distance_map(m, rec, n_bootstrap=0).attrs["r_opt"])
+    gls, paper = np.array(gls), np.array(paper)
+    assert np.all(_rel_err(gls.mean(0)) < 0.03), gls.mean(0)
+    assert np.all(gls.std(0, ddof=1) < 0.6 * paper.std(0, ddof=1)), (gls.std(0, ddof=1), paper.std(0, ddof=1))
+    ratio = np.mean(boot, 0) / gls.std(0, ddof=1)
+    assert np.all((ratio > 0.6) & (ratio < 1.6)), ratio
+
+
+def test_log_band_distance_refusals():
+    m = _model(4, 0.2, 1)
+    with pytest.raises(SpecificationError, match="band_width_hz"):
+        log_band_distance_map(m, EXP, band_width_hz=0.1, n_bootstrap=0)  # narrower than a bin
+    with pytest.raises(SpecificationError, match="refine"):
+        log_band_distance_map(m, EXP, refine="spectrum", n_bootstrap=0)
+    with pytest.raises(SpecificationError, match="realisation"):
+        log_band_distance_map(m.isel(realisation=[0]), EXP, n_bootstrap=0)
+    with pytest.raises(SpecificationError, match="energy > 0"):
+        log_band_distance_map(m.where(m.frequency > 10, 0.0), EXP, n_bootstrap=0)

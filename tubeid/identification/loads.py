@@ -59,7 +59,7 @@ from tubeid.identification.likelihood import likelihood_curve
 from tubeid.seeds import rng_for
 from tubeid.uncertainty.random_matrices import delta_max
 
-__all__ = ["distance_map", "relative_weight", "refine_grid", "delta_f_likelihood", "D_UNITS", "JS_UNITS"]
+__all__ = ["distance_map", "log_band_distance_map", "relative_weight", "refine_grid", "delta_f_likelihood", "D_UNITS", "JS_UNITS"]
 
 #: Unit of D(r) and of J_s for PSDs of displacements in m²/Hz.
 D_UNITS = "(m^2/Hz)^2 rad/s"
@@ -289,35 +289,8 @@ def _band_slice(f: np.ndarray, band: float) -> slice:
     return slice(0, n)
 
 
-def distance_map(psd_model, psd_exp, band_hz: float = 100.0, n_bootstrap: int = 200, rng=None, *,
-                 dim: str = "realisation", confidence: float = 0.95, fit: str = "log",
-                 refine: str | None = "spectrum", weight=None) -> xr.Dataset:
-    """D(r) = ∫_B ‖S̄(ω, r) − S_exp(ω)‖²_F dω on a parameter grid, its minimiser and their bootstrap.
-
-    ``psd_model``: DataArray with dims (*grid, ``dim``, "frequency"[, "sensor", "sensor_"]) in any
-    order, two-sided per Hz (complex, or real for auto-spectra); every other dimension is a grid
-    axis and needs a strictly increasing numeric coordinate (positive for ``fit="log"``), e.g.
-    r1 [N²/Hz] and r2 [(N·m)²/Hz]. Realisation k should use the same random germs at every grid
-    point (common random numbers). ``psd_exp``: DataArray ("frequency"[, "sensor", "sensor_"]) on the
-    same frequencies (Hz, from 0) and sensors; one extra dimension is taken as independent
-    experimental records: they are averaged, and resampled in the bootstrap. ``band_hz``: B =
-    2π[−band, band] rad/s. ``rng``: Generator or seed, required if ``n_bootstrap > 0``. ``fit``,
-    ``refine``: refinement of the minimiser (module docstring). ``weight``: None (the paper's D) or
-    a fixed DataArray W over ("frequency"[, "sensor", "sensor_"]) (e.g. :func:`relative_weight`):
-    D_W = ∫_B ‖W ⊙ (S̄ − S_exp)‖²_F dω.
-
-    Returns a Dataset on the grid: ``D`` (units of the PSD squared × rad/s, e.g. (m²/Hz)²·rad/s;
-    with a weight, the ``distance_units`` attribute of W, else "([W][S])^2 rad/s"), bootstrap
-    ``D_std``, ``D_low``, ``D_high`` (percentile interval of probability ``confidence``), and
-    ``D_relative`` = D / J_s,exp (J_s of the (weighted) experimental PSD; dimensionless).
-    Attributes: ``grid_dims``; ``r_opt`` (refined minimiser), ``r_opt_discrete`` (grid minimiser),
-    bootstrap ``r_opt_std``, ``r_opt_low``, ``r_opt_high`` (lists in ``grid_dims`` order, refined
-    minimiser per replicate) and ``r_opt_corr`` (their correlation matrix, list of lists),
-    ``r_opt_at_boundary`` (1 if the grid minimum lies on the grid's edge: widen the grid),
-    per-axis copies ``<dim>_opt`` and ``<dim>_opt_std``, ``D_min``, ``J_s_exp`` and the settings.
-    The bootstrap covers the Monte Carlo error of the model realisations and, when given as
-    records, of the experimental PSD.
-    """
+def _grid_inputs(psd_model, psd_exp, band_hz, n_bootstrap, rng, dim, fit, confidence, key):
+    """Validate the inputs of the trial-grid maps; returns a namespace of arrays and settings."""
     # ---- validation, all up front ----
     psd_model = _as_psd(psd_model, "psd_model")
     psd_exp = _as_psd(psd_exp, "psd_exp")
@@ -325,8 +298,6 @@ def distance_map(psd_model, psd_exp, band_hz: float = 100.0, n_bootstrap: int = 
         raise SpecificationError("dim", dim, f"must be a dimension of psd_model {tuple(psd_model.dims)}")
     if fit not in ("log", "linear"):
         raise SpecificationError("fit", fit, "must be 'log' or 'linear'")
-    if refine not in _REFINE:
-        raise SpecificationError("refine", refine, f"must be one of {_REFINE}")
     try:
         band = float(band_hz)
     except (TypeError, ValueError):
@@ -374,6 +345,62 @@ def distance_map(psd_model, psd_exp, band_hz: float = 100.0, n_bootstrap: int = 
                                      f"must equal psd_model's {list(psd_model[d].values)}")
         if psd_model.sizes[d] != psd_exp.sizes[d]:
             raise SpecificationError(f"psd_exp.{d}", psd_exp.sizes[d], f"must have {psd_model.sizes[d]} entries")
+    N = psd_model.sizes[dim]
+    if N < 1 or (n_bootstrap > 0 and N < 2):
+        raise SpecificationError(dim, N, "need at least 2 model realisations for the bootstrap (1 without)")
+    if n_bootstrap > 0:
+        gen = _generator(rng, key)
+    sl = _band_slice(f, band)
+    # distance() checks the grid (starts at 0 Hz, increasing, reaches the band)
+    P = psd_model.transpose(*grid_dims, dim, "frequency", *sensor_dims).isel(frequency=sl).values
+    E = psd_exp.transpose(*exp_extra, "frequency", *sensor_dims).isel(frequency=sl).values
+    if not np.all(np.isfinite(P)):
+        raise SpecificationError("psd_model", _Desc(f"{int(np.sum(~np.isfinite(P)))} non-finite values in the band"),
+                                 "must be finite (drop incomplete realisations first)")
+    if not np.all(np.isfinite(E)):
+        raise SpecificationError("psd_exp", _Desc(f"{int(np.sum(~np.isfinite(E)))} non-finite values in the band"),
+                                 "must be finite")
+    gen = _generator(rng, key) if n_bootstrap > 0 else None
+    return dict(psd_model=psd_model, grid_dims=grid_dims, axes=axes, sensor_dims=sensor_dims, exp_extra=exp_extra,
+                f=f, band=band, n_bootstrap=n_bootstrap, confidence=confidence, N=N, gen=gen, sl=sl, P=P, E=E)
+
+
+def distance_map(psd_model, psd_exp, band_hz: float = 100.0, n_bootstrap: int = 200, rng=None, *,
+                 dim: str = "realisation", confidence: float = 0.95, fit: str = "log",
+                 refine: str | None = "spectrum", weight=None) -> xr.Dataset:
+    """D(r) = ∫_B ‖S̄(ω, r) − S_exp(ω)‖²_F dω on a parameter grid, its minimiser and their bootstrap.
+
+    ``psd_model``: DataArray with dims (*grid, ``dim``, "frequency"[, "sensor", "sensor_"]) in any
+    order, two-sided per Hz (complex, or real for auto-spectra); every other dimension is a grid
+    axis and needs a strictly increasing numeric coordinate (positive for ``fit="log"``), e.g.
+    r1 [N²/Hz] and r2 [(N·m)²/Hz]. Realisation k should use the same random germs at every grid
+    point (common random numbers). ``psd_exp``: DataArray ("frequency"[, "sensor", "sensor_"]) on the
+    same frequencies (Hz, from 0) and sensors; one extra dimension is taken as independent
+    experimental records: they are averaged, and resampled in the bootstrap. ``band_hz``: B =
+    2π[−band, band] rad/s. ``rng``: Generator or seed, required if ``n_bootstrap > 0``. ``fit``,
+    ``refine``: refinement of the minimiser (module docstring). ``weight``: None (the paper's D) or
+    a fixed DataArray W over ("frequency"[, "sensor", "sensor_"]) (e.g. :func:`relative_weight`):
+    D_W = ∫_B ‖W ⊙ (S̄ − S_exp)‖²_F dω.
+
+    Returns a Dataset on the grid: ``D`` (units of the PSD squared × rad/s, e.g. (m²/Hz)²·rad/s;
+    with a weight, the ``distance_units`` attribute of W, else "([W][S])^2 rad/s"), bootstrap
+    ``D_std``, ``D_low``, ``D_high`` (percentile interval of probability ``confidence``), and
+    ``D_relative`` = D / J_s,exp (J_s of the (weighted) experimental PSD; dimensionless).
+    Attributes: ``grid_dims``; ``r_opt`` (refined minimiser), ``r_opt_discrete`` (grid minimiser),
+    bootstrap ``r_opt_std``, ``r_opt_low``, ``r_opt_high`` (lists in ``grid_dims`` order, refined
+    minimiser per replicate) and ``r_opt_corr`` (their correlation matrix, list of lists),
+    ``r_opt_at_boundary`` (1 if the grid minimum lies on the grid's edge: widen the grid),
+    per-axis copies ``<dim>_opt`` and ``<dim>_opt_std``, ``D_min``, ``J_s_exp`` and the settings.
+    The bootstrap covers the Monte Carlo error of the model realisations and, when given as
+    records, of the experimental PSD.
+    """
+    # ---- validation, all up front ----
+    if refine not in _REFINE:
+        raise SpecificationError("refine", refine, f"must be one of {_REFINE}")
+    g_ = _grid_inputs(psd_model, psd_exp, band_hz, n_bootstrap, rng, dim, fit, confidence, "distance_map")
+    psd_model, grid_dims, axes, sensor_dims, exp_extra, f, band, n_bootstrap, confidence, N, gen, sl, P, E = (
+        g_[k] for k in ("psd_model", "grid_dims", "axes", "sensor_dims", "exp_extra", "f", "band", "n_bootstrap",
+                        "confidence", "N", "gen", "sl", "P", "E"))
     if weight is not None:
         if not isinstance(weight, xr.DataArray) or not set(weight.dims) <= {"frequency", *sensor_dims} \
                 or "frequency" not in weight.dims:
@@ -386,21 +413,6 @@ def distance_map(psd_model, psd_exp, band_hz: float = 100.0, n_bootstrap: int = 
         wv = weight.transpose("frequency", *[d for d in sensor_dims if d in weight.dims]).values
         if np.iscomplexobj(wv) or not np.all(np.isfinite(wv)) or np.any(wv < 0):
             raise SpecificationError("weight", _Desc("values"), "must be real, finite and >= 0")
-    N = psd_model.sizes[dim]
-    if N < 1 or (n_bootstrap > 0 and N < 2):
-        raise SpecificationError(dim, N, "need at least 2 model realisations for the bootstrap (1 without)")
-    if n_bootstrap > 0:
-        gen = _generator(rng, "distance_map")
-    sl = _band_slice(f, band)
-    # distance() checks the grid (starts at 0 Hz, increasing, reaches the band)
-    P = psd_model.transpose(*grid_dims, dim, "frequency", *sensor_dims).isel(frequency=sl).values
-    E = psd_exp.transpose(*exp_extra, "frequency", *sensor_dims).isel(frequency=sl).values
-    if not np.all(np.isfinite(P)):
-        raise SpecificationError("psd_model", _Desc(f"{int(np.sum(~np.isfinite(P)))} non-finite values in the band"),
-                                 "must be finite (drop incomplete realisations first)")
-    if not np.all(np.isfinite(E)):
-        raise SpecificationError("psd_exp", _Desc(f"{int(np.sum(~np.isfinite(E)))} non-finite values in the band"),
-                                 "must be finite")
     if weight is not None:  # the weight multiplies S̄ − S_exp, hence (linearly) both spectra
         Wt = weight.transpose("frequency", *[d for d in sensor_dims if d in weight.dims])
         Wt = Wt.expand_dims({d: psd_model.sizes[d] for d in sensor_dims if d not in Wt.dims}).transpose(
@@ -551,6 +563,155 @@ def relative_weight(psd) -> xr.DataArray:
     return xr.DataArray(W, dims=dims, coords=coords, name="weight",
                         attrs={"units": f"1/({units})", "distance_units": "rad/s",
                                "long_name": "relative weight 1/sqrt(S_aa S_bb) of a reference PSD"})
+
+
+
+def _log_band_energies(P: np.ndarray, f: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """log of Σ_{f in (a, b]} S(f) Δf per band and auto-spectrum: P (..., F, m, m) → (..., B·m)."""
+    auto = np.real(np.diagonal(P, axis1=-2, axis2=-1))  # (..., F, m)
+    df = float(f[1] - f[0])
+    cols = [auto[..., (f > a) & (f <= b), :].sum(axis=-2) * df for a, b in zip(edges[:-1], edges[1:])]
+    e = np.stack(cols, axis=-2)  # (..., B, m)
+    with np.errstate(divide="ignore"):
+        return np.log(e.reshape(e.shape[:-2] + (-1,)))
+
+
+def log_band_distance_map(psd_model, psd_exp, band_hz: float = 100.0, band_width_hz: float = 5.0,
+                          n_bootstrap: int = 200, rng=None, *, dim: str = "realisation",
+                          confidence: float = 0.95, refine: bool = True) -> xr.Dataset:
+    """Trial-grid identification by a weighted least-squares distance of log band energies (beyond the paper).
+
+    For each auto-spectrum a (sensor) and frequency band b = (k w, (k + 1) w] ⊂ (0, band] (w =
+    ``band_width_hz``), the band energy e = Σ_b S_aa Δf [m²] of each model realisation and of each
+    experimental record is taken in log. With L̄(r) the mean over realisations at grid point r, L̄_exp
+    the mean over records and σ²_ab the variance of one realisation's log energy (model, at the grid
+    point of the unweighted minimum),
+
+        D(r) = Σ_ab (L̄_ab(r) − L̄_exp,ab)² / (σ²_ab (1/N + 1/n_exp)),
+
+    the generalised least squares of the band levels: each band counts by its own precision, so the
+    bands where r shows (e.g. antisymmetric modes for a moment) are not drowned by the first resonance
+    peaks or by bands that fluctuate from one random system to the next, as with the paper's D.
+    ``D_relative`` = D / (B·m): the mean squared standardised residual (about 1 near r_opt when the
+    experiment is a draw of the model class, plus the grid's discreteness; much larger: the model
+    does not explain the experiment). The variance comes from the model, never from the experiment
+    (a single record gives none; the experiment is assumed a draw
+    of the model class). Inputs, bootstrap (realisations resampled jointly across the grid, records
+    independently) and the returned Dataset are those of :func:`distance_map` (``D`` dimensionless);
+    the refinement is its ``"spectrum"`` method applied to the log band energies, in log r.
+    """
+    if not isinstance(refine, (bool, np.bool_)):
+        raise SpecificationError("refine", refine, "must be True or False")
+    try:
+        width = float(band_width_hz)
+    except (TypeError, ValueError):
+        raise SpecificationError("band_width_hz", band_width_hz, "must be a number (Hz)") from None
+    g_ = _grid_inputs(psd_model, psd_exp, band_hz, n_bootstrap, rng, dim, "log", confidence, "log_band_distance_map")
+    grid_dims, axes, sensor_dims, exp_extra, f, band, N, gen = (
+        g_[k] for k in ("grid_dims", "axes", "sensor_dims", "exp_extra", "f", "band", "N", "gen"))
+    n_bootstrap, confidence, P, E = g_["n_bootstrap"], g_["confidence"], g_["P"], g_["E"]
+    fb = f[g_["sl"]]
+    df = float(fb[1] - fb[0]) if fb.size > 1 else 0.0
+    if not (math.isfinite(width) and width > 0) or width < df or width > band:
+        raise SpecificationError("band_width_hz", band_width_hz, f"must lie between the bin width {df:g} Hz and the band {band:g} Hz")
+    if N < 2:
+        raise SpecificationError(dim, N, "needs at least 2 model realisations (the variance of the band levels)")
+    if not sensor_dims:
+        P, E = P[..., None, None], E[..., None, None]
+    n_bands = int(math.floor(band / width + 1e-9))
+    edges = width * np.arange(n_bands + 1)
+    Lm = _log_band_energies(P, fb, edges)  # (*grid, N, K)
+    Le = _log_band_energies(E, fb, edges)  # ([n_exp,] K)
+    if not (np.all(np.isfinite(Lm)) and np.all(np.isfinite(Le))):
+        raise SpecificationError("psd", _Desc("band energies"), f"every band of width {width:g} Hz must hold energy > 0 "
+                                 "in every realisation and record (widen the bands or drop empty channels)")
+    shape = tuple(a.size for a in axes)
+    n_exp = Le.shape[0] if exp_extra else 1
+    Le_mean = Le.mean(axis=0) if exp_extra else Le
+    gax = len(grid_dims)
+    Lbar = Lm.mean(axis=gax)  # (*grid, K)
+    D0 = np.sum((Lbar - Le_mean) ** 2, axis=-1)
+    i0 = np.unravel_index(np.argmin(D0), shape)
+    var = Lm[i0].var(axis=0, ddof=1)  # (K,) at the unweighted minimum
+    var = np.maximum(var, 1e-12 * max(float(np.max(var)), 1e-300))
+    w = 1.0 / (var * (1.0 / N + 1.0 / n_exp))
+
+    def dmap(Lb, Le_):
+        return np.sum(w * (Lb - Le_) ** 2, axis=-1)
+
+    def argmin(Dm, Lb, Le_):
+        return _refine_argmin(axes, Dm, True, "spectrum" if refine else None, Lb, Le_, w)
+
+    D = dmap(Lbar, Le_mean)
+    discrete, refined = argmin(D, Lbar, Le_mean)
+    tail = 50.0 * (1.0 - confidence)
+    nan_map = np.full(shape, np.nan)
+    D_std = D_low = D_high = nan_map
+    k = len(grid_dims)
+    r_std = r_low = r_high = [math.nan] * k
+    r_corr = np.full((k, k), np.nan).tolist()
+    if n_bootstrap > 0:
+        D_boot, r_boot = [], []
+        for _ in range(n_bootstrap):
+            idx = gen.integers(0, N, size=N)
+            Lb = np.take(Lm, idx, axis=gax).mean(axis=gax)
+            Le_b = Le[gen.integers(0, n_exp, size=n_exp)].mean(axis=0) if exp_extra else Le_mean
+            Db = dmap(Lb, Le_b)
+            D_boot.append(Db)
+            r_boot.append(argmin(Db, Lb, Le_b)[1])
+        Dbs, rb = np.asarray(D_boot), np.asarray(r_boot)
+        if n_bootstrap > 1:
+            D_std = Dbs.std(axis=0, ddof=1)
+            r_std = list(np.std(rb, axis=0, ddof=1))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                r_corr = np.atleast_2d(np.corrcoef(rb, rowvar=False)).tolist()
+        D_low, D_high = np.percentile(Dbs, [tail, 100.0 - tail], axis=0)
+        r_low, r_high = (list(v) for v in np.percentile(rb, [tail, 100.0 - tail], axis=0))
+    K = w.size
+    i_min = np.unravel_index(np.argmin(D), shape)
+    dims = tuple(grid_dims)
+    psd_model = g_["psd_model"]
+    coords = {d: (d, a, dict(psd_model[d].attrs)) for d, a in zip(grid_dims, axes)}
+    long = "D(r) = sum over bands and sensors of (mean log band energy, model - experiment)^2 / its variance"
+    ds = xr.Dataset(
+        {"D": (dims, D, {"long_name": long, "units": "1"}),
+         "D_std": (dims, D_std, {"long_name": "bootstrap standard deviation of D", "units": "1"}),
+         "D_low": (dims, D_low, {"long_name": f"bootstrap {100 * confidence:g} % interval of D, low", "units": "1"}),
+         "D_high": (dims, D_high, {"long_name": f"bootstrap {100 * confidence:g} % interval of D, high", "units": "1"}),
+         "D_relative": (dims, D / K, {"long_name": "D / number of band levels (mean squared standardised residual)",
+                                      "units": "1"})},
+        coords=coords,
+        attrs={
+            "grid_dims": list(grid_dims),
+            "r_opt": [float(v) for v in refined],
+            "r_opt_discrete": [float(v) for v in discrete],
+            "r_opt_std": [float(v) for v in r_std],
+            "r_opt_low": [float(v) for v in r_low],
+            "r_opt_high": [float(v) for v in r_high],
+            "r_opt_corr": [[float(v) for v in row] for row in r_corr],
+            "r_opt_at_boundary": int(any(j in (0, n - 1) for j, n in zip(i_min, shape))),
+            "r_opt_method": ("quadratic surrogate in log r of every mean log band energy on the 3^k grid points around "
+                             "the grid minimum, its distance minimised within them" if refine else "grid minimum"),
+            "weight": "log band energies, inverse model variance (generalised least squares)",
+            "band_width_hz": width,
+            "n_bands": n_bands,
+            "D_min": float(np.min(D)),
+            "D_units": "1",
+            "n_levels": int(K),
+            "band_hz": band,
+            "n_realisations": int(N),
+            "n_experimental_records": int(n_exp),
+            "n_bootstrap": n_bootstrap,
+            "confidence": confidence,
+            "bootstrap": "model realisation indices resampled jointly across the grid (common random numbers kept)"
+                         + ("; experimental records resampled independently" if exp_extra else
+                            "; experimental PSD held fixed") + "; the band variances held fixed",
+        },
+    )
+    for n, d in enumerate(grid_dims):
+        ds.attrs[f"{d}_opt"] = float(refined[n])
+        ds.attrs[f"{d}_opt_std"] = float(r_std[n])
+    return ds
 
 
 def refine_grid(r_opt, factor: float, n: int):
