@@ -19,8 +19,9 @@ Proof of identification: ``--set experiment=synthetic`` replaces the reference m
 stochastic simplified model itself with known TRUTH (δ = 0.3 for the J observations, r = (18, 20),
 δ_F = 0.04, 8 experimental records): the report then compares what is identified with the truth.
 
-``--set distance=relative`` weights D(r) by the model's own PSD for the r_opt passed downstream
-(better conditioned without model-form error; see ``_r_opt``).
+``--set distance=relative`` weights D(r) by the model's own PSD for the r_opt passed downstream;
+``--set distance=bands`` uses the generalised least squares of the log band energies
+(``log_band_distance_map``), the best conditioned without model-form error (see ``_r_opt``).
 
 Sizes: ``--set size=paper`` (default: 200 realisations per δ, 100 for the confidence region, a
 10 × 10 grid of r) or ``--set size=quick`` (a look in about a minute). ``--set delta=0.45`` imposes δ
@@ -34,7 +35,7 @@ import numpy as np
 from tubeid.dynamics.response import ResponseSettings, simulate_responses
 from tubeid.dynamics.spectra import j_s
 from tubeid.identification.delta import default_delta_grid, reference_j
-from tubeid.identification.loads import distance_map, relative_weight
+from tubeid.identification.loads import distance_map, log_band_distance_map, relative_weight
 from tubeid.identification.likelihood import likelihood_curve
 from tubeid.mechanics.library import builtin_spec
 from tubeid.mechanics.reduction import J_UNITS, j_functional, reduce
@@ -52,13 +53,16 @@ BAND = 100.0
 
 SIZES = {
     # δ grid step, J realisations per δ, realisations for the confidence region, r grid size per axis,
-    # realisations per r, fine r grid size, realisations per δ_F, record length (s)
-    "paper": dict(delta_step=0.025, n_j=200, n_response=100, n_r=10, n_per_r=8, n_fine=5, n_per_delta_f=40, duration=220.0),
-    "quick": dict(delta_step=0.05, n_j=60, n_response=12, n_r=4, n_per_r=2, n_fine=3, n_per_delta_f=8, duration=40.0),
+    # realisations per r (coarse grid), fine r grid size, realisations per fine r, realisations per δ_F,
+    # record length (s)
+    "paper": dict(delta_step=0.025, n_j=200, n_response=100, n_r=10, n_per_r=8, n_fine=5, n_per_r_fine=16, n_per_delta_f=40,
+                  duration=220.0),
+    "quick": dict(delta_step=0.05, n_j=60, n_response=12, n_r=4, n_per_r=2, n_fine=3, n_per_r_fine=2, n_per_delta_f=8,
+                  duration=40.0),
 }
 TRUTH = {"delta": 0.3, "r1": 18.0, "r2": 20.0, "delta_F": 0.04}  # the synthetic experiment
-N_RECORDS = {"reference": 1, "synthetic": 8}  # experimental records (the paper has one)
-N_J_OBSERVATIONS = 30  # synthetic J observations for the model-to-model step
+N_RECORDS = {"reference": 1, "synthetic": 16}  # experimental records (the paper has one)
+N_J_OBSERVATIONS = 100  # synthetic J observations for the model-to-model step (closed form: cheap)
 R_RANGE = (1.0, 1000.0)  # N²/Hz and (N·m)²/Hz: the coarse grid spans three decades
 # δ_F ∈ (0, √(3/7) = 0.655): dense near 0, where the paper finds 0.04
 DELTA_F_GRID = {"paper": [0.005, 0.01, 0.02, 0.03, 0.04, 0.06, 0.09, 0.14, 0.22, 0.35, 0.5], "quick": [0.01, 0.04, 0.16, 0.4]}
@@ -205,12 +209,12 @@ def r_block(block, rng, *, size, delta):
     return {"psd": out}
 
 
-def _r_study(name, r1, r2, size, d):
+def _r_study(name, r1, r2, size, d, n_per_r):
     return Study(
         name=name,
         description=f"trial grid of r = (r1, r2), (T, M) load at x = 8 m, stochastic model at delta = {d:.4f}",
         seed=2008,
-        axes={"r1": np.round(r1, 6), "r2": np.round(r2, 6), "realisation": range(SIZES[size]["n_per_r"])},
+        axes={"r1": np.round(r1, 6), "r2": np.round(r2, 6), "realisation": range(n_per_r)},
         chunks={"r1": 1, "r2": 1},
         seed_axes=("realisation",),
         task=r_block,
@@ -225,7 +229,7 @@ def _r_study(name, r1, r2, size, d):
 def load_r(results, *, size, delta):
     n = SIZES[size]["n_r"]
     grid = np.geomspace(*R_RANGE, n)
-    return _r_study("load_r", grid, grid, size, _delta_for(results, delta))
+    return _r_study("load_r", grid, grid, size, _delta_for(results, delta), SIZES[size]["n_per_r"])
 
 
 def _r_opt(results, name, refine, distance):
@@ -243,10 +247,14 @@ def _r_opt(results, name, refine, distance):
     ref = results["reference"]
     exp = ref.psd_reference.rename(experiment="record")  # several records: averaged and bootstrapped
     band = float(ref.frequency[-1])
+    grid = results[name].psd
+    if distance == "bands":
+        dm = log_band_distance_map(grid, exp, band_hz=band, n_bootstrap=0, refine=bool(refine))
+        return dm.attrs["r_opt"] if refine else dm.attrs["r_opt_discrete"]
     coarse = results["load_r"]
     r1c, r2c = distance_map(coarse.psd, exp, band_hz=band, n_bootstrap=0, refine=None).attrs["r_opt_discrete"]
     W = relative_weight(coarse.psd.sel(r1=r1c, r2=r2c).mean("realisation").load()) if distance == "relative" else None
-    dm = distance_map(results[name].psd, exp, band_hz=band, n_bootstrap=0, refine=refine, weight=W)
+    dm = distance_map(grid, exp, band_hz=band, n_bootstrap=0, refine=refine, weight=W)
     return dm.attrs["r_opt"] if refine else dm.attrs["r_opt_discrete"]
 
 
@@ -255,7 +263,7 @@ def load_r_fine(results, *, size, delta, distance):
     step = float(results["load_r"].r1[1] / results["load_r"].r1[0])
     n = SIZES[size]["n_fine"]
     span = np.geomspace(1 / step, step, n)  # ± one coarse step around the coarse minimum
-    return _r_study("load_r_fine", r1 * span, r2 * span, size, _delta_for(results, delta))
+    return _r_study("load_r_fine", r1 * span, r2 * span, size, _delta_for(results, delta), SIZES[size]["n_per_r_fine"])
 
 
 # -- stage 5: δ_F -----------------------------------------------------------------------------------
@@ -311,6 +319,7 @@ study = Pipeline(
         "size": Parameter("paper", choices=("paper", "quick"), doc="sample sizes: the paper's, or a quick look"),
         "delta": Parameter(0.0, bounds=(0.0, 0.87), doc="delta for the later stages; 0 = delta_opt of stage 'delta'"),
         "experiment": Parameter("reference", choices=("reference", "synthetic"), doc="the paper's reference model, or the simplified model with known TRUTH"),
-        "distance": Parameter("paper", choices=("paper", "relative"), doc="D(r) for r_opt: the paper's, or weighted by 1/S of the model"),
+        "distance": Parameter("paper", choices=("paper", "relative", "bands"),
+                              doc="D(r) for r_opt: the paper's, weighted by 1/S of the model, or GLS of log band energies"),
     },
 )

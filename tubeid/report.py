@@ -33,11 +33,12 @@ from pathlib import Path
 
 import numpy as np
 import xarray as xr
+import zarr
 
 from tubeid.dynamics.spectra import confidence_band, j_s
 from tubeid.errors import SpecificationError
 from tubeid.identification.likelihood import likelihood_curve
-from tubeid.identification.loads import JS_UNITS, delta_f_likelihood, distance_map, relative_weight
+from tubeid.identification.loads import JS_UNITS, delta_f_likelihood, distance_map, log_band_distance_map, relative_weight
 from tubeid.seeds import rng_for
 
 __all__ = ["register", "make_report", "PAPER_VALUES", "STAGES"]
@@ -357,31 +358,39 @@ def _stage_load_r(store, out, n_bootstrap, seed, sensor, written, notes) -> dict
         dm = distance_map(psd, ref, band_hz=band, n_bootstrap=n_bootstrap, rng=rng_for(seed, "report", "load_r"))
     except SpecificationError as exc:
         raise _StageMissing(f"D(r) could not be computed: {exc}") from None
-    a = dm.attrs
-    quantities, details = {}, {"D_min": a["D_min"], "D_units": a["D_units"], "D_min_relative": a["D_min"] / a["J_s_exp"]
-                               if a["J_s_exp"] > 0 else None, "r_opt_corr": a["r_opt_corr"],
-                               "grid_dims": a["grid_dims"], "n_realisations": a["n_realisations"],
-                               "n_reference_records": a["n_experimental_records"]}
-    for n, d in enumerate(a["grid_dims"]):
-        quantities[f"{d}_opt"] = {"value": a["r_opt"][n], "std": a["r_opt_std"][n], "low": a["r_opt_low"][n],
-                                  "high": a["r_opt_high"][n], "discrete": a["r_opt_discrete"][n],
-                                  "at_boundary": bool(a["r_opt_at_boundary"]), "n_realisations": a["n_realisations"]}
-        details[f"{d}_grid"] = [float(dm[d].values[0]), float(dm[d].values[-1]), int(dm.sizes[d])]
-    # beyond the paper: the relative distance, weighted by the mean simplified model's own PSD
+    maps = {"paper": dm}
+    # beyond the paper: D weighted by the mean simplified model's own PSD, and the log band levels (GLS)
     if "psd_mean" in resp.data_vars:
         try:
             mean = resp["psd_mean"]
             extra = [d for d in mean.dims if d not in ("frequency",) + _SENSOR_DIMS]
             mean = mean.mean(extra) if extra else mean
-            W = relative_weight(mean.load())
-            rel = distance_map(psd, ref, band_hz=band, n_bootstrap=n_bootstrap,
-                               rng=rng_for(seed, "report", "load_r", "relative"), weight=W)
-            ra = rel.attrs
-            details["relative"] = {"note": "beyond the paper: D weighted by 1/sqrt(S_aa S_bb) of response.psd_mean",
-                                   "r_opt": ra["r_opt"], "r_opt_std": ra["r_opt_std"], "r_opt_corr": ra["r_opt_corr"],
-                                   "at_boundary": bool(ra["r_opt_at_boundary"])}
+            maps["relative"] = distance_map(psd, ref, band_hz=band, n_bootstrap=n_bootstrap,
+                                            rng=rng_for(seed, "report", "load_r", "relative"), weight=relative_weight(mean.load()))
         except SpecificationError as exc:
             notes.append(f"relative-weighted D not computed: {exc}")
+    try:
+        maps["bands"] = log_band_distance_map(psd, ref, band_hz=band, n_bootstrap=n_bootstrap,
+                                              rng=rng_for(seed, "report", "load_r", "bands"))
+    except SpecificationError as exc:
+        notes.append(f"log-band distance not computed: {exc}")
+    used = _study_parameters(store).get("distance", "paper")
+    if used not in maps:
+        notes.append(f"the study's distance {used!r} could not be recomputed; the table uses the paper's D")
+        used = "paper"
+    a = maps[used].attrs
+    quantities, details = {}, {"distance": used, "D_min": dm.attrs["D_min"], "D_units": dm.attrs["D_units"],
+                               "D_min_relative": dm.attrs["D_min"] / dm.attrs["J_s_exp"] if dm.attrs["J_s_exp"] > 0 else None,
+                               "r_opt_corr": a["r_opt_corr"], "grid_dims": a["grid_dims"],
+                               "n_realisations": a["n_realisations"], "n_reference_records": a["n_experimental_records"]}
+    for n, d in enumerate(a["grid_dims"]):
+        quantities[f"{d}_opt"] = {"value": a["r_opt"][n], "std": a["r_opt_std"][n], "low": a["r_opt_low"][n],
+                                  "high": a["r_opt_high"][n], "discrete": a["r_opt_discrete"][n],
+                                  "at_boundary": bool(a["r_opt_at_boundary"]), "n_realisations": a["n_realisations"]}
+        details[f"{d}_grid"] = [float(dm[d].values[0]), float(dm[d].values[-1]), int(dm.sizes[d])]
+    for name, m in maps.items():
+        details[f"r_opt_{name}"] = {"note": _DISTANCES[name], "r_opt": m.attrs["r_opt"], "r_opt_std": m.attrs["r_opt_std"],
+                                    "r_opt_corr": m.attrs["r_opt_corr"], "at_boundary": bool(m.attrs["r_opt_at_boundary"])}
     _plot_d_map(dm, out, written, _targets(store))
     return {"quantities": quantities, "details": details}
 
@@ -480,6 +489,21 @@ def _stage_load_delta_f(store, out, n_bootstrap, seed, written, notes) -> dict:
 
 
 # ---------------------------------------------------------------------- summary
+_DISTANCES = {
+    "paper": "the paper's D = integral of ||mean S_model - S_exp||_F^2 dw",
+    "relative": "beyond the paper: D weighted by 1/sqrt(S_aa S_bb) of the mean simplified model's PSD",
+    "bands": "beyond the paper: generalised least squares of the log band energies (5 Hz bands, inverse model variance)",
+}
+
+
+def _study_parameters(store: str) -> dict:
+    """The pipeline's parameter values (root attribute ``parameters``), or {} when absent."""
+    try:
+        return json.loads(dict(zarr.open_group(str(store), mode="r").attrs).get("parameters", "{}"))
+    except Exception:  # not a pipeline store, or an older layout: the defaults apply
+        return {}
+
+
 def _targets(store: str) -> tuple[dict, str]:
     """What identified values are compared with: the truth of a synthetic experiment, else the paper."""
     try:
@@ -548,11 +572,12 @@ def _markdown(summary: dict) -> str:
                      f"({_fmt(100 * lr['D_min_relative'] if lr['D_min_relative'] is not None else None)} % of "
                      "J_s,exp); bootstrap correlation of the r components: "
                      f"{_fmt(lr['r_opt_corr'][0][1] if len(lr['r_opt_corr']) > 1 else None, 2)}.")
-        if "relative" in lr:
-            rr = lr["relative"]
-            lines.append(f"- Beyond the paper, relative distance (weighted by the mean simplified model's PSD): "
-                         f"r_opt = ({', '.join(_fmt(v, 4) for v in rr['r_opt'])}) ± "
-                         f"({', '.join(_fmt(v, 2) for v in rr['r_opt_std'])}).")
+        lines.append(f"- The table's r uses {_DISTANCES[lr.get('distance', 'paper')]} (the study's `distance`).")
+        for name in _DISTANCES:
+            rr = lr.get(f"r_opt_{name}")
+            if rr is not None and name != lr.get("distance", "paper"):
+                lines.append(f"- With {_DISTANCES[name]}: r_opt = ({', '.join(_fmt(v, 4) for v in rr['r_opt'])}) ± "
+                             f"({', '.join(_fmt(v, 2) for v in rr['r_opt_std'])}).")
     if "load_delta_f" in det:
         lines.append(f"- J_s,exp = {_fmt(det['load_delta_f']['J_s_exp'], 6)} {det['load_delta_f']['J_s_units']} "
                      f"({det['load_delta_f']['J_s_exp_source']}).")
