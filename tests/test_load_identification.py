@@ -311,6 +311,10 @@ def test_end_to_end_recovery_of_r_with_the_response_chain():
     paper = distance_map(psd, exp, n_bootstrap=200, rng=1)
     assert paper.attrs["D_units"] == "(m^2/Hz)^2 rad/s"
     assert np.max(paper.attrs["r_opt_std"]) > 1.5 * np.max(rel.attrs["r_opt_std"])
+    # log band levels (GLS, 5 Hz bands): measured (18.41, 19.48) ± (0.38, 0.44), tighter than the relative D
+    bands = log_band_distance_map(psd, exp, n_bootstrap=200, rng=1)
+    assert np.all(_rel_err(bands.attrs["r_opt"]) < 0.10), bands.attrs["r_opt"]
+    assert np.all(np.asarray(bands.attrs["r_opt_std"]) < np.asarray(rel.attrs["r_opt_std"])), bands.attrs["r_opt_std"]
 
 
 @pytest.mark.slow
