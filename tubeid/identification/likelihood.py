@@ -28,7 +28,7 @@ import numpy as np
 import xarray as xr
 from scipy.special import logsumexp
 
-from tubeid.errors import SpecificationError
+from tubeid.errors import Described as _Desc, SpecificationError
 from tubeid.seeds import rng_for
 
 __all__ = ["silverman_bandwidth", "kde_pdf", "likelihood_curve"]
@@ -36,13 +36,6 @@ __all__ = ["silverman_bandwidth", "kde_pdf", "likelihood_curve"]
 _SILVERMAN = 1.06
 _LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 _CHUNK_ELEMENTS = 4_000_000  # bootstrap work arrays are capped at this many float64 values
-
-
-class _Desc(str):
-    """A description of a bad value, shown without quotes in error messages."""
-
-    def __repr__(self):
-        return str(self)
 
 
 def _as_samples(samples, field: str, min_n: int) -> np.ndarray:

@@ -54,7 +54,7 @@ import numpy as np
 import xarray as xr
 
 from tubeid.dynamics.spectra import distance, j_s
-from tubeid.errors import SpecificationError
+from tubeid.errors import Described as _Desc, SpecificationError
 from tubeid.identification.likelihood import likelihood_curve
 from tubeid.seeds import rng_for
 from tubeid.uncertainty.random_matrices import delta_max
@@ -68,13 +68,6 @@ JS_UNITS = D_UNITS
 _SENSOR_DIMS = ("sensor", "sensor_")
 _REFINE = ("spectrum", "distance", None)
 _CHUNK_ELEMENTS = 4_000_000  # bootstrap work arrays are capped at this many complex values
-
-
-class _Desc(str):
-    """A description of a bad value, shown without quotes in error messages."""
-
-    def __repr__(self):
-        return str(self)
 
 
 def _generator(rng, key: str) -> np.random.Generator:

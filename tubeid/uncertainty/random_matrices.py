@@ -23,7 +23,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from tubeid.errors import SpecificationError
+from tubeid.errors import Described as _Desc, SpecificationError
 from tubeid.seeds import rng_for
 
 __all__ = ["delta_max", "sg_plus", "sg_plus_germs", "sg_plus_from_germs", "se_plus", "sg_plus_dispersion", "Dispersion"]
@@ -119,13 +119,6 @@ def sg_plus_from_germs(n: int, delta: float, normals, uniforms) -> np.ndarray:
     L[..., j - 1, j - 1] = sigma * np.sqrt(2.0 * scipy.special.gammaincinv(a, uniforms))
     G = np.swapaxes(L, -1, -2) @ L
     return 0.5 * (G + np.swapaxes(G, -1, -2))
-
-
-class _Desc(str):
-    """A description of a bad value, shown without quotes in error messages."""
-
-    def __repr__(self):
-        return str(self)
 
 
 def _check_mean(mean, name: str) -> np.ndarray:
