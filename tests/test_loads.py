@@ -142,6 +142,15 @@ def test_psd_factor_both_paths():
     L = psd_factor(S_sing)
     np.testing.assert_allclose(np.conj(np.swapaxes(L, -1, -2)) @ L, S_sing, rtol=0, atol=1e-12 * np.abs(S_sing).max())
     assert np.all(psd_factor(np.zeros((3, 2, 2))) == 0)
+    # one stack mixing the four cases (real/complex × regular/singular): each bin factored by its own path
+    Ar = rng.standard_normal((3, 4, 4))
+    mixed = np.concatenate([S_pd[:2], S_sing[:2], (Ar @ np.swapaxes(Ar, 1, 2)).astype(complex),
+                            (Ar[:, :, :1] @ np.swapaxes(Ar[:, :, :1], 1, 2)).astype(complex)])
+    order = rng.permutation(len(mixed))
+    L = psd_factor(mixed[order])
+    np.testing.assert_allclose(np.conj(np.swapaxes(L, -1, -2)) @ L, mixed[order], rtol=0, atol=1e-12 * np.abs(mixed).max())
+    real_bins = np.all(mixed[order].imag == 0, axis=(1, 2))
+    assert np.all(L[real_bins].imag == 0)  # real spectra keep real factors
 
 
 def test_randomised_closed_form_and_mean_property():

@@ -108,18 +108,25 @@ def psd_factor(S) -> np.ndarray:
     shape = S.shape
     S2 = S.reshape((-1,) + shape[-2:])
     S2 = 0.5 * (S2 + np.conj(np.swapaxes(S2, -1, -2)))
-    lam, V = np.linalg.eigh(S2)
-    # Real matrices get real eigenvectors (a complex eigenvector phase would make L^* G L
-    # non-real where S is real, e.g. at f = 0 or for a constant real spectrum).
+    # Real matrices are factored in real arithmetic (real eigenvectors: a complex eigenvector phase
+    # would make L^* G L non-real where S is real, e.g. at f = 0 or for a constant real spectrum).
+    # Eigenvalues only to classify; Cholesky where regular; full eigh only where singular.
     real = np.all(S2.imag == 0, axis=(1, 2))
+    lam = np.empty(S2.shape[:2])
     if np.any(real):
-        lam_r, V_r = np.linalg.eigh(S2[real].real)
-        lam[real], V[real] = lam_r, V_r
-    L = np.sqrt(np.clip(lam, 0.0, None))[:, :, None] * np.conj(np.swapaxes(V, -1, -2))
+        lam[real] = np.linalg.eigvalsh(S2[real].real)
+    if not np.all(real):
+        lam[~real] = np.linalg.eigvalsh(S2[~real])
     regular = lam[:, 0] > _SINGULAR_RTOL * np.max(np.abs(lam), axis=1)
-    if np.any(regular):
-        C = np.linalg.cholesky(S2[regular])
-        L[regular] = np.conj(np.swapaxes(C, -1, -2))
+    L = np.zeros_like(S2)
+    for part in (regular & real, regular & ~real):
+        if np.any(part):
+            C = np.linalg.cholesky(S2[part].real if np.all(real[part]) else S2[part])
+            L[part] = np.conj(np.swapaxes(C, -1, -2))
+    for part in (~regular & real, ~regular & ~real):
+        if np.any(part):
+            lam_p, V = np.linalg.eigh(S2[part].real if np.all(real[part]) else S2[part])
+            L[part] = np.sqrt(np.clip(lam_p, 0.0, None))[:, :, None] * np.conj(np.swapaxes(V, -1, -2))
     return L.reshape(shape)
 
 

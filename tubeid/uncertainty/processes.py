@@ -141,7 +141,8 @@ def _factors(spectrum, fk, m) -> np.ndarray:
         per_bin = not np.all(S == S[:1])
         if not per_bin:
             S = S[:1]
-    check_psd_matrices(fk[: len(S)], S, field="S(f)")
+    if not isinstance(spectrum, LoadSpectrum):  # a LoadSpectrum was checked when built (interpolation and germ keep it PSD)
+        check_psd_matrices(fk[: len(S)], S, field="S(f)")
     A = psd_factor(S)  # A^* A = S  ->  B = A^* satisfies B B^* = S
     B = np.conj(np.swapaxes(A, -1, -2))
     return B if per_bin else B[0]
