@@ -282,6 +282,59 @@ def _band_slice(f: np.ndarray, band: float) -> slice:
     return slice(0, n)
 
 
+def _map_dataset(D, boot, refined, discrete, *, grid_dims, axes, psd_model, confidence, units, long_name,
+                 relative, relative_name, attrs) -> xr.Dataset:
+    """The Dataset of a trial-grid map: D and its bootstrap (``boot`` = (D per replicate, r_opt per
+    replicate) or None), r_opt and its bootstrap statistics, and the map-specific ``attrs``."""
+    shape = D.shape
+    k = len(grid_dims)
+    tail = 50.0 * (1.0 - confidence)
+    nan_map = np.full(shape, np.nan)
+    D_std = D_low = D_high = nan_map
+    r_std = r_low = r_high = [math.nan] * k
+    r_corr = np.full((k, k), np.nan).tolist()
+    if boot is not None:
+        Dbs, rb = boot
+        if len(rb) > 1:
+            D_std = Dbs.std(axis=0, ddof=1)
+            r_std = list(np.std(rb, axis=0, ddof=1))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                r_corr = np.atleast_2d(np.corrcoef(rb, rowvar=False)).tolist()
+        D_low, D_high = np.percentile(Dbs, [tail, 100.0 - tail], axis=0)
+        r_low, r_high = (list(v) for v in np.percentile(rb, [tail, 100.0 - tail], axis=0))
+    i_min = np.unravel_index(np.argmin(D), shape)
+    dims = tuple(grid_dims)
+    coords = {d: (d, a, dict(psd_model[d].attrs)) for d, a in zip(grid_dims, axes)}
+    ds = xr.Dataset(
+        {
+            "D": (dims, D, {"long_name": long_name, "units": units}),
+            "D_std": (dims, D_std, {"long_name": "bootstrap standard deviation of D", "units": units}),
+            "D_low": (dims, D_low, {"long_name": f"bootstrap {100 * confidence:g} % interval of D, low", "units": units}),
+            "D_high": (dims, D_high, {"long_name": f"bootstrap {100 * confidence:g} % interval of D, high", "units": units}),
+            "D_relative": (dims, relative, {"long_name": relative_name, "units": "1"}),
+        },
+        coords=coords,
+        attrs={
+            "grid_dims": list(grid_dims),
+            "r_opt": [float(v) for v in refined],
+            "r_opt_discrete": [float(v) for v in discrete],
+            "r_opt_std": [float(v) for v in r_std],
+            "r_opt_low": [float(v) for v in r_low],
+            "r_opt_high": [float(v) for v in r_high],
+            "r_opt_corr": [[float(v) for v in row] for row in r_corr],
+            "r_opt_at_boundary": int(any(j in (0, n - 1) for j, n in zip(i_min, shape))),
+            "D_min": float(np.min(D)),
+            "D_units": units,
+            "confidence": confidence,
+            **attrs,
+        },
+    )
+    for n, d in enumerate(grid_dims):
+        ds.attrs[f"{d}_opt"] = float(refined[n])
+        ds.attrs[f"{d}_opt_std"] = float(r_std[n])
+    return ds
+
+
 def _grid_inputs(psd_model, psd_exp, band_hz, n_bootstrap, rng, dim, fit, confidence, key):
     """Validate the inputs of the trial-grid maps; returns a namespace of arrays and settings."""
     # ---- validation, all up front ----
@@ -439,11 +492,7 @@ def distance_map(psd_model, psd_exp, band_hz: float = 100.0, n_bootstrap: int = 
     Pm = np.moveaxis(P.reshape(G, N, K), 1, 0).reshape(N, G * K)  # (N, G·K)
     n_exp = E.shape[0] if exp_extra else 0
     Ef = E.reshape((n_exp, -1)) if exp_extra else None
-    tail = 50.0 * (1.0 - confidence)
-    nan_map = np.full(shape, np.nan)
-    D_std = D_low = D_high = nan_map
-    r_std = r_low = r_high = [math.nan] * len(grid_dims)
-    r_corr = np.full((len(grid_dims),) * 2, np.nan).tolist()
+    boot = None
     if n_bootstrap > 0:
         chunk = max(1, _CHUNK_ELEMENTS // (G * K))
         D_boot, r_boot = [], []
@@ -464,46 +513,17 @@ def distance_map(psd_model, psd_exp, band_hz: float = 100.0, n_bootstrap: int = 
             D_boot.append(Db)
             Eb_full = np.broadcast_to(Eb, (b,) + (1,) * len(shape) + E_mean.shape)
             r_boot.extend(refine_one(Db[j], Sb[j], Eb_full[j])[1] for j in range(b))
-        Dbs = np.concatenate(D_boot)
-        rb = np.asarray(r_boot)
-        if n_bootstrap > 1:
-            D_std = Dbs.std(axis=0, ddof=1)
-            r_std = list(np.std(rb, axis=0, ddof=1))
-            with np.errstate(divide="ignore", invalid="ignore"):
-                r_corr = np.atleast_2d(np.corrcoef(rb, rowvar=False)).tolist()
-        D_low, D_high = np.percentile(Dbs, [tail, 100.0 - tail], axis=0)
-        r_low, r_high = (list(v) for v in np.percentile(rb, [tail, 100.0 - tail], axis=0))
+        boot = (np.concatenate(D_boot), np.asarray(r_boot))
 
-    i_min = np.unravel_index(np.argmin(D), shape)
-    at_boundary = int(any(j in (0, n - 1) for j, n in zip(i_min, shape)))
     units = psd_model.attrs.get("units")
     d_units = D_UNITS if units in (None, "m^2/Hz") else f"({units})^2 rad/s"
     if weight is not None:
         d_units = weight.attrs.get("distance_units", "([W][S])^2 rad/s")
-    dims = tuple(grid_dims)
-    coords = {d: (d, a, dict(psd_model[d].attrs)) for d, a in zip(grid_dims, axes)}
-    ds = xr.Dataset(
-        {
-            "D": (dims, D, {"long_name": "D(r) = integral over B of ||mean S_model(w, r) - S_exp(w)||_F^2 dw",
-                            "units": d_units}),
-            "D_std": (dims, D_std, {"long_name": "bootstrap standard deviation of D", "units": d_units}),
-            "D_low": (dims, D_low, {"long_name": f"bootstrap {100 * confidence:g} % interval of D, low",
-                                    "units": d_units}),
-            "D_high": (dims, D_high, {"long_name": f"bootstrap {100 * confidence:g} % interval of D, high",
-                                      "units": d_units}),
-            "D_relative": (dims, D / js_exp if js_exp > 0 else nan_map,
-                           {"long_name": "D / J_s,exp", "units": "1"}),
-        },
-        coords=coords,
+    return _map_dataset(
+        D, boot, refined, discrete, grid_dims=grid_dims, axes=axes, psd_model=psd_model, confidence=confidence,
+        units=d_units, long_name="D(r) = integral over B of ||mean S_model(w, r) - S_exp(w)||_F^2 dw",
+        relative=D / js_exp if js_exp > 0 else np.full(shape, np.nan), relative_name="D / J_s,exp",
         attrs={
-            "grid_dims": list(grid_dims),
-            "r_opt": [float(v) for v in refined],
-            "r_opt_discrete": [float(v) for v in discrete],
-            "r_opt_std": [float(v) for v in r_std],
-            "r_opt_low": [float(v) for v in r_low],
-            "r_opt_high": [float(v) for v in r_high],
-            "r_opt_corr": [[float(v) for v in row] for row in r_corr],
-            "r_opt_at_boundary": at_boundary,
             "r_opt_method": {"spectrum": f"quadratic surrogate in {'log r' if log else 'r'} of the mean model "
                                          "spectrum on the 3^k grid points around the grid minimum, its distance "
                                          "minimised within them",
@@ -511,23 +531,15 @@ def distance_map(psd_model, psd_exp, band_hz: float = 100.0, n_bootstrap: int = 
                                          "grid points around the grid minimum, stationary point clipped to them",
                              None: "grid minimum"}[refine],
             "weight": "none (paper's D)" if weight is None else str(weight.attrs.get("long_name", "given")),
-            "D_min": float(np.min(D)),
-            "D_units": d_units,
             "J_s_exp": js_exp,
             "band_hz": band,
             "n_realisations": int(N),
             "n_experimental_records": int(max(n_exp, 1)),
             "n_bootstrap": n_bootstrap,
-            "confidence": confidence,
             "bootstrap": "model realisation indices resampled jointly across the grid (common random numbers kept)"
                          + ("; experimental records resampled independently" if exp_extra else
                             "; experimental PSD held fixed"),
-        },
-    )
-    for n, d in enumerate(grid_dims):
-        ds.attrs[f"{d}_opt"] = float(refined[n])
-        ds.attrs[f"{d}_opt_std"] = float(r_std[n])
-    return ds
+        })
 
 
 def relative_weight(psd) -> xr.DataArray:
@@ -637,12 +649,7 @@ def log_band_distance_map(psd_model, psd_exp, band_hz: float = 100.0, band_width
 
     D = dmap(Lbar, Le_mean)
     discrete, refined = argmin(D, Lbar, Le_mean)
-    tail = 50.0 * (1.0 - confidence)
-    nan_map = np.full(shape, np.nan)
-    D_std = D_low = D_high = nan_map
-    k = len(grid_dims)
-    r_std = r_low = r_high = [math.nan] * k
-    r_corr = np.full((k, k), np.nan).tolist()
+    boot = None
     if n_bootstrap > 0:
         D_boot, r_boot = [], []
         for _ in range(n_bootstrap):
@@ -652,59 +659,27 @@ def log_band_distance_map(psd_model, psd_exp, band_hz: float = 100.0, band_width
             Db = dmap(Lb, Le_b)
             D_boot.append(Db)
             r_boot.append(argmin(Db, Lb, Le_b)[1])
-        Dbs, rb = np.asarray(D_boot), np.asarray(r_boot)
-        if n_bootstrap > 1:
-            D_std = Dbs.std(axis=0, ddof=1)
-            r_std = list(np.std(rb, axis=0, ddof=1))
-            with np.errstate(divide="ignore", invalid="ignore"):
-                r_corr = np.atleast_2d(np.corrcoef(rb, rowvar=False)).tolist()
-        D_low, D_high = np.percentile(Dbs, [tail, 100.0 - tail], axis=0)
-        r_low, r_high = (list(v) for v in np.percentile(rb, [tail, 100.0 - tail], axis=0))
+        boot = (np.asarray(D_boot), np.asarray(r_boot))
     K = w.size
-    i_min = np.unravel_index(np.argmin(D), shape)
-    dims = tuple(grid_dims)
-    psd_model = g_["psd_model"]
-    coords = {d: (d, a, dict(psd_model[d].attrs)) for d, a in zip(grid_dims, axes)}
-    long = "D(r) = sum over bands and sensors of (mean log band energy, model - experiment)^2 / its variance"
-    ds = xr.Dataset(
-        {"D": (dims, D, {"long_name": long, "units": "1"}),
-         "D_std": (dims, D_std, {"long_name": "bootstrap standard deviation of D", "units": "1"}),
-         "D_low": (dims, D_low, {"long_name": f"bootstrap {100 * confidence:g} % interval of D, low", "units": "1"}),
-         "D_high": (dims, D_high, {"long_name": f"bootstrap {100 * confidence:g} % interval of D, high", "units": "1"}),
-         "D_relative": (dims, D / K, {"long_name": "D / number of band levels (mean squared standardised residual)",
-                                      "units": "1"})},
-        coords=coords,
+    return _map_dataset(
+        D, boot, refined, discrete, grid_dims=grid_dims, axes=axes, psd_model=g_["psd_model"], confidence=confidence,
+        units="1", long_name="D(r) = sum over bands and sensors of (mean log band energy, model - experiment)^2 / its variance",
+        relative=D / K, relative_name="D / number of band levels (mean squared standardised residual)",
         attrs={
-            "grid_dims": list(grid_dims),
-            "r_opt": [float(v) for v in refined],
-            "r_opt_discrete": [float(v) for v in discrete],
-            "r_opt_std": [float(v) for v in r_std],
-            "r_opt_low": [float(v) for v in r_low],
-            "r_opt_high": [float(v) for v in r_high],
-            "r_opt_corr": [[float(v) for v in row] for row in r_corr],
-            "r_opt_at_boundary": int(any(j in (0, n - 1) for j, n in zip(i_min, shape))),
             "r_opt_method": ("quadratic surrogate in log r of every mean log band energy on the 3^k grid points around "
                              "the grid minimum, its distance minimised within them" if refine else "grid minimum"),
             "weight": "log band energies, inverse model variance (generalised least squares)",
             "band_width_hz": width,
             "n_bands": n_bands,
-            "D_min": float(np.min(D)),
-            "D_units": "1",
             "n_levels": int(K),
             "band_hz": band,
             "n_realisations": int(N),
             "n_experimental_records": int(n_exp),
             "n_bootstrap": n_bootstrap,
-            "confidence": confidence,
             "bootstrap": "model realisation indices resampled jointly across the grid (common random numbers kept)"
                          + ("; experimental records resampled independently" if exp_extra else
                             "; experimental PSD held fixed") + "; the band variances held fixed",
-        },
-    )
-    for n, d in enumerate(grid_dims):
-        ds.attrs[f"{d}_opt"] = float(refined[n])
-        ds.attrs[f"{d}_opt_std"] = float(r_std[n])
-    return ds
+        })
 
 
 def refine_grid(r_opt, factor: float, n: int):
