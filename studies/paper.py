@@ -55,13 +55,13 @@ SIZES = {
     # δ grid step, J realisations per δ, realisations for the confidence region, r grid size per axis,
     # realisations per r (coarse grid), fine r grid size, realisations per fine r, realisations per δ_F,
     # record length (s)
-    "paper": dict(delta_step=0.025, n_j=200, n_response=100, n_r=10, n_per_r=8, n_fine=5, n_per_r_fine=16, n_per_delta_f=40,
+    "paper": dict(delta_step=0.025, n_j=200, n_response=100, n_r=10, n_per_r=4, n_fine=5, n_per_r_fine=32, n_per_delta_f=40,
                   duration=220.0),
     "quick": dict(delta_step=0.05, n_j=60, n_response=12, n_r=4, n_per_r=2, n_fine=3, n_per_r_fine=2, n_per_delta_f=8,
                   duration=40.0),
 }
 TRUTH = {"delta": 0.3, "r1": 18.0, "r2": 20.0, "delta_F": 0.04}  # the synthetic experiment
-N_RECORDS = {"reference": 1, "synthetic": 16}  # experimental records (the paper has one)
+N_RECORDS = {"reference": 1, "synthetic": 32}  # experimental records (the paper has one)
 N_J_OBSERVATIONS = 100  # synthetic J observations for the model-to-model step (closed form: cheap)
 R_RANGE = (1.0, 1000.0)  # N²/Hz and (N·m)²/Hz: the coarse grid spans three decades
 # δ_F ∈ (0, √(3/7) = 0.655): dense near 0, where the paper finds 0.04

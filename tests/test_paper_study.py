@@ -30,10 +30,10 @@ def test_every_stage_is_stored_with_labels(store):
     assert list(res) == ["delta", "reference", "response", "load_r", "load_r_fine", "load_delta_f"]
     assert res["delta"].J.dims == ("delta", "realisation")
     assert res["load_r"].psd.dims == ("r1", "r2", "realisation", "frequency")
-    assert res["reference"].psd_reference.sizes["experiment"] == 16
+    assert res["reference"].psd_reference.sizes["experiment"] == 32
     assert res["load_r"].r1.attrs.get("units") == "N^2/Hz"
     params = json.loads(res["load_delta_f"].attrs["parameters"])
-    assert params["r1"] > 0 and params["r2"] > 0 and len(params["J_s_exp"]) == 16
+    assert params["r1"] > 0 and params["r2"] > 0 and len(params["J_s_exp"]) == 32
 
 
 def test_report_recovers_delta_and_compares_with_the_truth(store, tmp_path):

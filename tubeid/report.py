@@ -391,7 +391,7 @@ def _stage_load_r(store, out, n_bootstrap, seed, sensor, written, notes) -> dict
     for name, m in maps.items():
         details[f"r_opt_{name}"] = {"note": _DISTANCES[name], "r_opt": m.attrs["r_opt"], "r_opt_std": m.attrs["r_opt_std"],
                                     "r_opt_corr": m.attrs["r_opt_corr"], "at_boundary": bool(m.attrs["r_opt_at_boundary"])}
-    _plot_d_map(dm, out, written, _targets(store))
+    _plot_d_map(maps[used], out, written, _targets(store))
     return {"quantities": quantities, "details": details}
 
 
@@ -435,7 +435,8 @@ def _plot_d_map(dm: xr.Dataset, out: Path, written: list, target: tuple[dict, st
         ax.set_xlabel(f"{d1} [{axis_units.get(d1, '')}]")
         ax.set_ylabel(f"{d2} [{axis_units.get(d2, '')}]")
         ax.legend(fontsize=8, loc="best")
-        ax.set_title("Trial method: D(r) = ∫ ||S̄_Z(ω, r) − S_Z,exp(ω)||²_F dω")
+        ax.set_title("Trial method: D(r) = ∫ ||S̄_Z(ω, r) − S_Z,exp(ω)||²_F dω" if units != "1" else
+                     "Trial method: D(r) = Σ (log band level, model − experiment)² / variance")
     else:
         d1 = dims[0]
         others = {d: 0 for d in dims[1:]}
