@@ -1,27 +1,68 @@
-"""``tubeid diagnose DATA [--model NAME_OR_SPEC] [--out DIR]``: the measured-data loop of
-:mod:`tubeid.measured.diagnose` from the command line."""
+"""``tubeid diagnose DATA [--model NAME_OR_SPEC] [--out DIR] [--workers N | --scheduler ADDR]``: the
+measured-data loop of :mod:`tubeid.measured.diagnose` from the command line. Its grids and Monte
+Carlo simulations run as a runner pipeline in ``DIR/diagnose.zarr``: rerunning the same command
+resumes (or reuses) it."""
 
 from __future__ import annotations
 
 import argparse
+import ast
+import dataclasses
+import sys
 
 __all__ = ["register"]
 
 
-def _cmd_diagnose(args) -> int:
-    from tubeid.measured.diagnose import DiagnoseSettings, diagnose
+def _setting(text: str) -> tuple[str, object]:
+    if "=" not in text:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected NAME=VALUE")
+    name, value = text.split("=", 1)
+    try:
+        value = ast.literal_eval(value)
+    except (ValueError, SyntaxError):
+        pass  # a plain string
+    return name.strip(), value
+
+
+def _settings(args):
+    from tubeid.errors import SpecificationError
+    from tubeid.measured.diagnose import DiagnoseSettings
 
     kw = {k: v for k, v in (("realisations", args.realisations), ("blocks", args.blocks),
                             ("segment_seconds", args.segment_seconds), ("delta", args.delta),
                             ("load_dispersion", args.load_dispersion), ("load", args.load),
                             ("seed", args.seed)) if v is not None}
-    result = diagnose(args.data, args.model, DiagnoseSettings(**kw))
-    out = result.write(args.out)
+    fields = {f.name for f in dataclasses.fields(DiagnoseSettings)}
+    for name, value in args.settings:
+        if name not in fields:
+            raise SpecificationError(f"--set {name}", value, f"unknown setting (known: {sorted(fields)})")
+        kw[name] = list(value) if isinstance(value, tuple) else value
+    return DiagnoseSettings(**kw)
+
+
+def _cmd_diagnose(args) -> int:
+    from tubeid.measured.diagnose import diagnose
+
+    try:
+        result = diagnose(args.data, args.model, _settings(args), out=args.out, workers=args.workers,
+                          scheduler=args.scheduler, overwrite=args.overwrite,
+                          progress=False if args.no_progress else None, quiet=False)
+    except KeyboardInterrupt:
+        print("\ntubeid: interrupted; finished tasks are kept in the store: rerun the same command to resume", file=sys.stderr)
+        return 130
     rep = result.report
     params = ", ".join(f"{k} = {v['value']:.4g} {v['units']}" if isinstance(v["value"], float) else f"{k} = {v['value']}"
                        for k, v in rep["parameters"].items())
+    load = rep["load"]
     print(f"effect: {rep['effect']}" + (f" ({params})" if params else ""))
     print(f"error before: {rep['error_before']:.4g}  after: {rep['error_after']:.4g}  (decades; held-out segments)")
+    if load["delta_F_given"]:
+        print(f"delta_F: {load['delta_F']} (given)")
+    else:
+        std = load["delta_F_std"]
+        print(f"delta_F: {load['delta_F']:.3g}" + (f" ± {std:.2g} (Monte Carlo)" if std is not None else "")
+              + (" — the likelihood is flat: not identified" if load["delta_F_flat"] else ""))
+    out = result.store.parent
     print(f"report: {out / 'report.json'}, {out / 'report.md'}, {out / 'residual.png'}")
     return 0
 
@@ -29,19 +70,32 @@ def _cmd_diagnose(args) -> int:
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "diagnose", help="trace the residual of measured data to a missing effect; error before/after",
-        description="Identify the load on measured data for a declared model, compare the held-out "
+        description="Identify the load (r, delta_F) on measured data for a declared model, compare the held-out "
                     "spectra with the model's confidence band, trace the residual to a catalog effect "
-                    "(tone, stop, added_mass, damping, sensor_noise) or 'none', re-identify and report.",
+                    "(tone, stop, added_mass, damping, sensor_noise) or 'none', re-identify and report. "
+                    "Grids and Monte Carlo run as a runner pipeline in DIR/diagnose.zarr: rerun the same "
+                    "command to resume.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("data", help="measured record: NetCDF, Zarr, CSV (+ .sensors.csv) or UFF 58")
     p.add_argument("--model", default="paper-simplified", help="built-in model name or a .yaml/.toml specification")
-    p.add_argument("--out", default="diagnosis", help="output directory (report.json, report.md, residual.png)")
+    p.add_argument("--out", default="diagnosis",
+                   help="output directory (report.json, report.md, residual.png, delta_f.png, diagnose.zarr)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--workers", type=int, default=None,
+                   help="embedded LocalCluster worker processes (default: one per core; 0 = sequentially in this process)")
+    g.add_argument("--scheduler", default=None, help="address of an existing dask scheduler (default: DASK_SCHEDULER_ADDRESS)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace a diagnosis of other data, model or settings in --out (default: refuse)")
     p.add_argument("--realisations", type=int, default=None, help="Monte Carlo size of the band (default 40)")
     p.add_argument("--blocks", type=int, default=None, help="time blocks; even ones fit, odd ones held out (default 4)")
     p.add_argument("--segment-seconds", type=float, default=None, help="Welch segment in s (default 2)")
     p.add_argument("--delta", type=float, default=None, help="model dispersion δ of B's stiffness (default 0.2)")
-    p.add_argument("--load-dispersion", type=float, default=None, help="load dispersion δ_F (default 0.04)")
+    p.add_argument("--load-dispersion", type=float, default=None,
+                   help="impose δ_F (default: identified by maximum likelihood of J_s)")
     p.add_argument("--load", choices=("distributed", "force_and_moment"), default=None,
                    help="identification load model (default distributed)")
     p.add_argument("--seed", type=int, default=None, help="seed of all random streams (default 0)")
+    p.add_argument("--set", dest="settings", action="append", type=_setting, default=[], metavar="NAME=VALUE",
+                   help="any other DiagnoseSettings field, e.g. --set delta_f_realisations=60 --set r0=[2.0]")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=_cmd_diagnose)
