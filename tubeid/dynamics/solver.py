@@ -12,39 +12,37 @@ Method ``"exact"`` (default). The system is piecewise linear: each stop is open,
 the + side or on the - side, so there are 3**S regimes. In each regime the first-order
 system x = [q; q'] is diagonalised, x = x_eq + sum_i w_i Re(V_i z_i) (only one mode of each
 complex-conjugate pair is kept, w_i = 2; real modes keep w_i = 1), and the modal equations
-z_i' = lam_i z_i + W_i F(t) are integrated EXACTLY for a PL load:
-z(t + s) = e^{lam s} z(t) + P0(s) W F(t) + P1(s) W F', with P0(s) = (e^{lam s} - 1)/lam and
-P1(s) = (e^{lam s} - 1 - lam s)/lam^2 (tabulated per regime; no matrix product per step). Between
+z_i' = lam_i z_i + W_i F(t) are integrated EXACTLY for a PL load. On a load interval,
+F(t) = F_j + F' t, the particular solution is z_p(t) = alpha F(t) + beta F' (alpha = -W/lam,
+beta = -W/lam^2), so the homogeneous part zh = z - z_p obeys zh(t + s) = e^{lam s} zh(t): the
+solver keeps zh (as zeta = [Re zh; Im zh]); at a load sample zh += beta (F'_old - F'_new), and
+every observable is a row over zeta plus its quasi-static part (linear in F and F'). Between
 regimes nothing is approximated except the location of the switching instants, found by
 safeguarded Newton on the exact closed form u(t) = b^T q(t) (tolerance ~1e-13 dt). A switch
-maps z through a precomputed real transition matrix (continuity of x).
+maps [zeta; F; F'] through a precomputed real transition matrix (continuity of x). (The
+particular part can exceed z itself in the lowest mode: on the paper model by ~10x, i.e. one
+digit of round-off, ~1e-15 relative.)
 
 Fast path. From a sub-step start, u and u' of every stop at the next nb <= 16 sub-step ends
-(same load interval) are tabulated linear forms of x = [Re z; Im z; f_j; f'] (one merged row of
-length 2 n_modes + 2 m each, so a sub-step costs 2 S dot products); the state itself is advanced
-once per block. Observations use the same kind of rows.
+(same load interval) are tabulated rows over [zeta; F_j; F'; 1] (one small matrix-vector product
+per block, written as eight simultaneous dot products so that numba vectorises it); the state
+is advanced once per block by the diagonal e^{lam nb h}. Observations use the same kind of rows.
 
 Event detection. A sub-step is flagged when the distance to a boundary (g - u, u + g, ...)
 changes sign, or when the cubic Hermite interpolant of (u, u') over the sub-step has an interior
 minimum that comes within a margin of the boundary (margin = 4 (w h)^4/384 max|u'|/w,
 w = 2 pi f_max: the Hermite error of a component at the highest frequency, safety factor 4).
 A flagged sub-step is integrated exactly: u on the sub-step is replaced by its Taylor polynomial,
-whose coefficients are tabulated linear forms of [Re z; Im z; f0; f'] (K + 1 dot products), of
+whose coefficients are tabulated rows over zeta plus the quasi-static part (K + 1 dot products), of
 order K = the smallest with (max|lam| sigma)^(K+1)/(K+1)! <= 1e-18 (K = 17 at the default step,
 max|lam| h ~ 0.74; used while max|lam| sigma <= 1.6, K <= 23; otherwise exact propagation),
 interior minima are located by Newton on u' = 0, and the first crossing by safeguarded
 Newton (tolerance 1e-13 h) from the Hermite guess; if the Hermite check on [0, t_c] still allows
-an earlier dip, [0, t_c] is rescanned exactly on 8 pieces. After a switch the end state of the
-remaining segment is propagated first and its u, u' pre-checked; the polynomial is built only if
-that check flags the segment. The only approximation left is to miss a grazing excursion whose
-depth is below the (4x safety) Hermite error bound.
-
-Cost (paper-simplified model, N = 23, 1 stop, 7 loads, 220 s, h = 125 us: 1.76e6 sub-steps,
-~17 000 contacts, ~34 000 flagged sub-steps, one core of a shared 2-core machine): the fast path
-takes ~0.08 s (~45 ns per sub-step: 2 dot products of length 60, the pre-check, 1/8 of a block
-advance and 1/24 of an output), event handling ~0.13 s (~4 us per flagged sub-step: Taylor rows,
-two Horner propagations of 23 complex modes, the 46 x 46 transition matrix, Newton on the
-polynomial; these short loops of length 23-60 run far below the SIMD peak in numba).
+an earlier dip, [0, t_c] is rescanned exactly on 8 pieces. Exact propagation within a sub-step is
+e^{lam tau} = (table at tau = k h/64) x (degree-9 series of the rest). After a switch the end
+state of the remaining segment is propagated first and its u, u' pre-checked; the polynomial is
+built only if that check flags the segment. The only approximation left is to miss a grazing
+excursion whose depth is below the (4x safety) Hermite error bound.
 
 Step rule (``choose_step``): with f_max the highest undamped frequency with every stop
 closed (it bounds every regime), the default step is the largest divisor of dt_load and
@@ -58,6 +56,12 @@ q += dt v. Stable for w_max dt < 2 (w_max with every stop closed): refused beyon
 when w_max dt > 0.5 (frequency error of the highest mode (w dt)^2/24 above ~1 %); default
 w_max dt <= 0.25. The paper's 3 ms is the OUTPUT sampling (MODEL.md section 3.7): as an
 integration step it is refused by both methods.
+
+Cost (paper-simplified model, N = 23, 1 stop, 7 loads, 220 s, h = 125 us: 1.76e6 sub-steps,
+~17 000 contacts, ~34 000 flagged sub-steps with one switch each; one core of a shared 2-core
+machine, ratios measured in one process): this formulation integrates a realisation in 0.57x
+the time of the previous one (rows over [z; F_j; F'] advanced with the forcing terms every
+block, event path with array views and reference counting), 0.62x for the fast path alone.
 """
 
 from __future__ import annotations
@@ -356,104 +360,78 @@ def _regime_codes(S):
     return codes
 
 
-def _phi_coeffs(lam, tau):
-    """e^{lam tau}, P0(tau), P1(tau) for complex arrays (series for small |lam tau|)."""
-    x = lam * tau
-    e = np.exp(x)
-    small = np.abs(x) < 0.1
-    xs = np.where(small, 1.0, x)
-    phi1 = np.where(small, 0, (e - 1) / xs)
-    phi2 = np.where(small, 0, (e - 1 - x) / xs**2)
-    s1 = np.zeros_like(x)
-    s2 = np.zeros_like(x)
-    term1 = np.ones_like(x)  # x^k/(k+1)!
-    term2 = np.full_like(x, 0.5)  # x^k/(k+2)!
-    for k in range(14):
-        s1 = s1 + term1
-        s2 = s2 + term2
-        term1 = term1 * x / (k + 2)
-        term2 = term2 * x / (k + 3)
-    phi1 = np.where(small, s1, phi1)
-    phi2 = np.where(small, s2, phi2)
-    return e, tau * phi1, tau * tau * phi2
+_FINE = 64  # e^{lam tau} on [0, h]: tabulated at tau = k h / _FINE, times a degree-_EXP_DEG series in the rest
+
+
+def _pad8(n):
+    return -(-n // 8) * 8
+
+
+def _stack(cmat, n2p):
+    """[Re c, -Im c] padded to 2 n2p on the last axis: Re(c . z) = row . [Re z; Im z] (padded)."""
+    n2 = cmat.shape[-1]
+    out = np.zeros(cmat.shape[:-1] + (2 * n2p,))
+    out[..., :n2] = cmat.real
+    out[..., n2p:n2p + n2] = -cmat.imag
+    return out
 
 
 @dataclass
 class _Tables:
     """Everything the exact kernel needs for one realisation (arrays stacked over regimes r).
 
-    Block tables are indexed by the number of sub-steps mm = 0..nb advanced from a sub-step start
-    where the load is f(t) = f_j + f' t; ``ff = [f_j; f']`` (2m) and ``zz = [Re z; Im z]`` (2 n2).
+    State: the homogeneous modal part zh = z - z_p, z_p(t) = alpha f(t) + beta f' (exact particular
+    solution for the load f(t) = f_j + f' t of a load interval; alpha = -W/lam, beta = -W/lam^2),
+    stored as zeta = [Re zh; Im zh] padded to 2 n2p (n2p = n2 rounded up to 8, zero modes).
+    Within a regime and a load interval zh(t + s) = e^{lam s} zh(t); at a load sample
+    zh += beta (f'_old - f'_new). Observable rows over zeta, plus the quasi-static part
+    u_qs(t) = ueq + au . f(t) + bu . f' (u' likewise with av, bv; y with ay, by).
     """
 
     lam: np.ndarray  # (nr, n2) complex eigenvalues kept
-    Em: np.ndarray  # (nr, nb+1, n2) complex e^{lam mm h}
-    PW0: np.ndarray  # (nr, nb+1, m, n2) complex P0(mm h) W  (z(mm h) = Em z + PW0 f_j + PW1 f')
-    PW1: np.ndarray  # (nr, nb+1, m, n2) complex P1(mm h) W
-    PWr: np.ndarray  # (nr, nb+1, 2 m, n2) real part of [PW0; PW1] (multiplies ff)
-    PWi: np.ndarray  # (nr, nb+1, 2 m, n2) imaginary part
-    Uz: np.ndarray  # (nr, nb+1, S, 2, 2 n2) real rows: u (0) and u' (1) from zz
-    Uf: np.ndarray  # (nr, nb+1, S, 2, 2 m) real rows: u and u' from ff
-    Yz: np.ndarray  # (nr, nb+1, n_obs, 2 n2)
-    Yf: np.ndarray  # (nr, nb+1, n_obs, 2 m)
-    W: np.ndarray  # (nr, m, n2) complex modal load matrix
-    cu: np.ndarray  # (nr, S, n2) complex: u = ueq + sum Re(cu z)
-    cv: np.ndarray  # (nr, S, n2) complex: u' = sum Re(cv z)
-    cy: np.ndarray  # (nr, n_obs, n2) complex: y = yeq + sum Re(cy z)
-    ueq: np.ndarray  # (nr, S)
-    yeq: np.ndarray  # (nr, n_obs)
+    lr: np.ndarray  # (nr, n2p) real part (0 on padded modes)
+    li: np.ndarray  # (nr, n2p)
+    lmax: np.ndarray  # (nr,) max |lam|
+    Er: np.ndarray  # (nr, nb+1, n2p) Re e^{lam mm h}
+    Ei: np.ndarray  # (nr, nb+1, n2p)
+    Fr: np.ndarray  # (nr, _FINE+1, n2p) Re e^{lam k h/_FINE}
+    Fi: np.ndarray  # (nr, _FINE+1, n2p)
+    betaS: np.ndarray  # (nr, m, 2 n2p) [Re beta; Im beta] per load (load-interval update)
+    zeta0: np.ndarray  # (nr, m, 2, 2 n2p) zeta of -z_p for a unit load (0) and a unit slope (1)
+    UC: np.ndarray  # (nr, ncp, nxl) fast-path block rows over xl = [zeta; f_j; f'; 1; 0...] (f_j: load at the
+    #                 block start): row (mm-1) 2S + 2s + d is u_s (d = 0) or u'_s (d = 1) at mm h (quasi-static part included)
+    YC: np.ndarray  # (nr, (nb+1) nobp, nxl) output rows at mm h over xl: row mm nobp + o (nobp = n_obs padded to 8)
+    CS: np.ndarray  # (nr, 3 S padded to 8, 2 n2p) rows 3s, 3s+1, 3s+2: u, u', u'' (homogeneous part)
+    CY: np.ndarray  # (nr, nobp, 2 n2p) y rows
+    Tay: np.ndarray  # (nr, S _TAYLOR_KP, 2 n2p) row s KP + k: u_s^(k)/k! (homogeneous part)
+    QS: np.ndarray  # (nr, 2 S + n_obs, 2, m): [au, bu], [av, bv] per stop, then [ay, by] per output
+    Q0: np.ndarray  # (nr, 2 S + n_obs) constants: ueq, 0, yeq
     codes: np.ndarray  # (nr, S) int64
     trans_id: np.ndarray  # (nr, S, 2) int64 (-1: none)
     trans_to: np.ndarray  # (nt,) int64
-    T: np.ndarray  # (nt, 2 n2, 2 n2)
-    c: np.ndarray  # (nt, 2 n2)
+    TF: np.ndarray  # (nt, 2 n2p, 2 n2p + mp) zeta_new = TF [zeta_old; f; f'; 0] + c
+    c: np.ndarray  # (nt, 2 n2p)
     gaps: np.ndarray  # (S,)
-    Urow: np.ndarray  # (nr, nb+1, S, 2, nin) [Uz | Uf]: rows over x = [zz; ff], nin = 2 n2 + 2 m
-    Yrow: np.ndarray  # (nr, nb+1, n_obs, nin) [Yz | Yf]
-    Tay: np.ndarray  # (nr, S, _TAYLOR_K + 1, nin) Taylor coefficients u^(k)(0)/k! of u_s over x = [zz; f0; f']
     nb: int
+    n2p: int
     omega_max: float
-    cond_max: float = 0.0
+    V: list = None  # eigenvector matrices (diagnostics: condition numbers)
     half: bool = True
 
+    def cond_max(self):
+        return max(float(np.linalg.cond(v)) for v in self.V)
+
     def kernel_tuple(self, mcoef):
-        """Arrays of the event path, in the order _event_step unpacks them."""
-        c = np.ascontiguousarray
-        lmax = np.abs(self.lam).max(axis=1)
-        return (c(self.lam.real), c(self.lam.imag), lmax, c(self.W.real), c(self.W.imag), c(self.cu.real),
-                c(self.cu.imag), c(self.cv.real), c(self.cv.imag), self.ueq, self.codes, self.trans_id,
-                self.trans_to, self.T, self.c, self.gaps, float(mcoef))
-
-
-def _taylor_table(lam, cu, Wt):
-    """(nr, S, _TAYLOR_K + 1, nin) real: a_k = u^(k)(0)/k! = Tay[r, s, k] . [Re z; Im z; f0; f'] (+ ueq for k = 0)
-    for a load f0 + f' t, from z^(1) = lam z + W f0, z^(k) = lam^(k-1) (lam z + W f0) + lam^(k-2) W f' (k >= 2)."""
-    nr, S, n2 = cu.shape
-    m = Wt.shape[1]
-    KT = _TAYLOR_K
-    Tay = np.zeros((nr, S, KT + 1, 2 * n2 + 2 * m))
-    fact = np.array([math.factorial(k) for k in range(KT + 1)], dtype=float)
-    for k in range(KT + 1):
-        if k == 0:
-            cz = cu
-            cf0 = np.zeros((nr, S, m), complex)
-            cf1 = np.zeros((nr, S, m), complex)
-        else:
-            alpha = cu * lam[:, None, :] ** (k - 1) / fact[k]  # (nr, S, n2)
-            cz = alpha * lam[:, None, :]
-            cf0 = np.einsum("rsi,rli->rsl", alpha, Wt)
-            cf1 = (np.einsum("rsi,rli->rsl", cu * lam[:, None, :] ** (k - 2) / fact[k], Wt) if k >= 2
-                   else np.zeros((nr, S, m), complex))
-        Tay[:, :, k, :n2] = cz.real
-        Tay[:, :, k, n2: 2 * n2] = -cz.imag
-        Tay[:, :, k, 2 * n2: 2 * n2 + m] = cf0.real
-        Tay[:, :, k, 2 * n2 + m:] = cf1.real
-    return Tay
+        """Arrays of the exact kernels, in the order they unpack them."""
+        return (self.lr, self.li, self.lmax, self.Er, self.Ei, self.Fr, self.Fi, self.betaS, self.zeta0,
+                self.UC, self.YC, self.CS, self.CY, self.Tay, self.QS, self.Q0, self.codes,
+                self.trans_id, self.trans_to, self.TF, self.c, self.gaps, float(mcoef))
 
 
 def _build_tables(M, D, K, stops, B, C, h, ns, dt_load):
     N = M.shape[0]
     S = len(stops)
+    m = B.shape[1]
     codes = _regime_codes(S)
     nr = len(codes)
     Minv = np.linalg.inv(M)
@@ -476,10 +454,8 @@ def _build_tables(M, D, K, stops, B, C, h, ns, dt_load):
         eig.append((lam, V, q_eq))
     omega_max = 2 * math.pi * highest_frequency(M, K + sum((st.stiffness * np.outer(b, b) for st, b in zip(stops, bs)), np.zeros((N, N))), ())
     lam_l, V_l, Vinv_l, w_l, xeq_l = [], [], [], [], []
-    cond_max = 0.0
     for lam, V, q_eq in eig:
         Vinv = np.linalg.inv(V)
-        cond_max = max(cond_max, np.linalg.cond(V))
         if all_complex:
             keep = np.flatnonzero(lam.imag > 0)
             if len(keep) != N:
@@ -494,14 +470,18 @@ def _build_tables(M, D, K, stops, B, C, h, ns, dt_load):
         w_l.append(w)
         xeq_l.append(np.concatenate([q_eq, np.zeros(N)]))
     n2 = len(lam_l[0])
-    lam = np.array(lam_l)
+    n2p = _pad8(n2)
+    lam = np.array(lam_l)  # (nr, n2)
     Bx = np.vstack([np.zeros_like(B), Minv @ B])
     W = np.array([Vinv_l[r] @ Bx for r in range(nr)])  # (nr, n2, m)
+    alpha = -W / lam[:, :, None]
+    beta = -W / lam[:, :, None] ** 2
+    n_obs = C.shape[0]
     cu = np.zeros((nr, S, n2), complex)
     cv = np.zeros((nr, S, n2), complex)
     ueq = np.zeros((nr, S))
-    cy = np.zeros((nr, C.shape[0], n2), complex)
-    yeq = np.zeros((nr, C.shape[0]))
+    cy = np.zeros((nr, n_obs, n2), complex)
+    yeq = np.zeros((nr, n_obs))
     for r in range(nr):
         Vw = V_l[r] * w_l[r][None, :]
         for s in range(S):
@@ -510,33 +490,80 @@ def _build_tables(M, D, K, stops, B, C, h, ns, dt_load):
             ueq[r, s] = bs[s] @ xeq_l[r][:N]
         cy[r] = C @ Vw[:N]
         yeq[r] = C @ xeq_l[r][:N]
+
+    def padm(a):  # complex (..., n2) -> (..., n2p), zero modes
+        out = np.zeros(a.shape[:-1] + (n2p,), a.dtype)
+        out[..., :n2] = a
+        return out
+
     nb = min(ns, _BLOCK_MAX)
-    mm = np.arange(nb + 1)
-    Em, P0, P1 = _phi_coeffs(lam[:, None, :], h * mm[None, :, None])  # (nr, nb+1, n2)
-    Wt = np.transpose(W, (0, 2, 1))  # (nr, m, n2)
-    PW0 = P0[:, :, None, :] * Wt[:, None, :, :]
-    PW1 = P1[:, :, None, :] * Wt[:, None, :, :]
+    Em = np.exp(lam[:, None, :] * (h * np.arange(nb + 1))[None, :, None])  # (nr, nb+1, n2)
+    Ef = np.exp(lam[:, None, :] * (h * np.arange(_FINE + 1) / _FINE)[None, :, None])
+    # fast-path block rows: u_s, u'_s at mm h (homogeneous part) from zeta at the block start
+    nobp = _pad8(n_obs)
+    CY = np.zeros((nr, nobp, 2 * n2p))
+    CY[:, :n_obs] = _stack(cy, n2p)
+    CS = np.zeros((nr, _pad8(3 * S), 2 * n2p))
+    CS[:, 0:3 * S:3] = _stack(cu, n2p)
+    CS[:, 1:3 * S:3] = _stack(cv, n2p)
+    CS[:, 2:3 * S:3] = _stack(cv * lam[:, None, :], n2p)
+    # quasi-static rows: Re(c alpha) . f + Re(c beta) . f'
+    qs = np.zeros((nr, 2 * S + n_obs, 2, m))
+    Q0 = np.zeros((nr, 2 * S + n_obs))
+    for r in range(nr):
+        for s in range(S):
+            qs[r, 2 * s] = [(cu[r, s] @ alpha[r]).real, (cu[r, s] @ beta[r]).real]
+            qs[r, 2 * s + 1] = [(cv[r, s] @ alpha[r]).real, (cv[r, s] @ beta[r]).real]
+            Q0[r, 2 * s] = ueq[r, s]
+        for o in range(n_obs):
+            qs[r, 2 * S + o] = [(cy[r, o] @ alpha[r]).real, (cy[r, o] @ beta[r]).real]
+            Q0[r, 2 * S + o] = yeq[r, o]
+    # fast-path rows over xl = [zeta; f_j; f'; 1]: homogeneous part, then the quasi-static part
+    # u_qs(mm h) = ueq + a . f_j + (a mm h + b) . f'
+    nx = 2 * n2p
+    nxl = nx + _pad8(2 * m + 1)
+    tmm = h * np.arange(nb + 1)
 
-    def rows(coef):  # coef (nr, K, n2) -> z rows (nr, nb+1, K, 2 n2) and f rows (nr, nb+1, K, 2 m)
-        ce = coef[:, None, :, :] * Em[:, :, None, :]
-        rz = np.concatenate([ce.real, -ce.imag], axis=-1)
-        f0 = np.einsum("rki,rbli->rbkl", coef, PW0).real
-        f1 = np.einsum("rki,rbli->rbkl", coef, PW1).real
-        return rz, np.concatenate([f0, f1], axis=-1)
+    def qs_rows(ab, const, mm):  # ab (nr, 2, m), const (nr,), mm (K,) -> (nr, K, nxl - nx)
+        out = np.zeros((nr, len(mm), nxl - nx))
+        out[:, :, :m] = ab[:, None, 0]
+        out[:, :, m:2 * m] = ab[:, None, 0] * tmm[mm][None, :, None] + ab[:, None, 1]
+        out[:, :, 2 * m] = const[:, None]
+        return out
 
-    uz, uf = rows(cu)
-    vz, vf = rows(cv)
-    Uz = np.stack([uz, vz], axis=3)  # (nr, nb+1, S, 2, 2 n2)
-    Uf = np.stack([uf, vf], axis=3)
-    Yz, Yf = rows(cy)
-    # merged rows over the inputs x = [zz; ff] (one dot product of length nin = 2 n2 + 2 m each)
-    Urow = np.concatenate([Uz, Uf], axis=-1)  # (nr, nb+1, S, 2, nin)
-    Yrow = np.concatenate([Yz, Yf], axis=-1)  # (nr, nb+1, n_obs, nin)
-    Tay = _taylor_table(lam, cu, Wt)
-    # transitions between regimes differing in one stop
+    mm1 = np.arange(1, nb + 1)
+    UC = np.zeros((nr, nb, S, 2, nxl))
+    UC[:, :, :, 0, :nx] = _stack(cu[:, None] * Em[:, 1:, None, :], n2p)
+    UC[:, :, :, 1, :nx] = _stack(cv[:, None] * Em[:, 1:, None, :], n2p)
+    for s_ in range(S):
+        UC[:, :, s_, 0, nx:] = qs_rows(qs[:, 2 * s_], Q0[:, 2 * s_], mm1)
+        UC[:, :, s_, 1, nx:] = qs_rows(qs[:, 2 * s_ + 1], Q0[:, 2 * s_ + 1], mm1)
+    UC = UC.reshape(nr, nb * S * 2, nxl)
+    ncp = _pad8(UC.shape[1])
+    UC = np.concatenate([UC, np.zeros((nr, ncp - UC.shape[1], nxl))], axis=1)
+    YC = np.zeros((nr, nb + 1, nobp, nxl))
+    YC[:, :, :n_obs, :nx] = _stack(cy[:, None] * Em[:, :, None, :], n2p)
+    for o_ in range(n_obs):
+        YC[:, :, o_, nx:] = qs_rows(qs[:, 2 * S + o_], Q0[:, 2 * S + o_], np.arange(nb + 1))
+    YC = YC.reshape(nr, (nb + 1) * nobp, nxl)
+    zeta0 = np.zeros((nr, m, 2, 2 * n2p))
+    zeta0[:, :, 0, :n2] = -alpha.real.transpose(0, 2, 1)
+    zeta0[:, :, 0, n2p:n2p + n2] = -alpha.imag.transpose(0, 2, 1)
+    zeta0[:, :, 1, :n2] = -beta.real.transpose(0, 2, 1)
+    zeta0[:, :, 1, n2p:n2p + n2] = -beta.imag.transpose(0, 2, 1)
+    fact = np.array([math.factorial(k) for k in range(_TAYLOR_KP)], dtype=float)
+    lpow = lam[:, None, :] ** np.arange(_TAYLOR_KP)[None, :, None] / fact[None, :, None]  # (nr, KP, n2)
+    Tay = _stack(cu[:, :, None, :] * lpow[:, None, :, :], n2p).reshape(nr, S * _TAYLOR_KP, 2 * n2p)
+    # transitions between regimes differing in one stop: zeta_new = T zeta_old + (T P_old - P_new) [f; f'] + c
+    mp = _pad8(2 * m)
     trans_id = -np.ones((nr, S, 2), dtype=np.int64)
     trans_to, Ts, cs = [], [], []
     index = {tuple(c): r for r, c in enumerate(codes)}
+
+    def pmat(r):  # (2 n2, 2 m): [Re z_p; Im z_p] = P [f; f']
+        return np.vstack([np.hstack([alpha[r].real, beta[r].real]), np.hstack([alpha[r].imag, beta[r].imag])])
+
+    idx = np.concatenate([np.arange(n2), n2p + np.arange(n2)])  # [Re; Im] of n2 modes in the padded layout
     for r in range(nr):
         Vw = V_l[r] * w_l[r][None, :]
         X = np.hstack([Vw.real, -Vw.imag])  # x - x_eq = X [zr; zi]
@@ -549,107 +576,153 @@ def _build_tables(M, D, K, stops, B, C, h, ns, dt_load):
                 Vi = Vinv_l[r2]
                 Tc = np.vstack([Vi.real @ X, Vi.imag @ X])
                 off = Vi @ (xeq_l[r] - xeq_l[r2])
+                TF = np.zeros((2 * n2p, 2 * n2p + mp))
+                TF[np.ix_(idx, idx)] = Tc
+                TF[idx, 2 * n2p:2 * n2p + 2 * m] = Tc @ pmat(r) - pmat(r2)
+                cc = np.zeros(2 * n2p)
+                cc[idx] = np.concatenate([off.real, off.imag])
                 trans_id[r, s, d] = len(Ts)
                 trans_to.append(r2)
-                Ts.append(Tc)
-                cs.append(np.concatenate([off.real, off.imag]))
+                Ts.append(TF)
+                cs.append(cc)
     if not Ts:
-        Ts = [np.zeros((2 * n2, 2 * n2))]
-        cs = [np.zeros(2 * n2)]
+        Ts = [np.zeros((2 * n2p, 2 * n2p + mp))]
+        cs = [np.zeros(2 * n2p)]
         trans_to = [0]
     cont = np.ascontiguousarray
     return _Tables(
-        lam=cont(lam), Em=cont(Em), PW0=cont(PW0), PW1=cont(PW1),
-        PWr=cont(np.concatenate([PW0, PW1], axis=2).real), PWi=cont(np.concatenate([PW0, PW1], axis=2).imag), Uz=cont(Uz), Uf=cont(Uf), Yz=cont(Yz),
-        Yf=cont(Yf), W=cont(Wt), cu=cont(cu), cv=cont(cv), cy=cont(cy), ueq=ueq, yeq=yeq,
+        lam=lam, lr=cont(padm(lam).real), li=cont(padm(lam).imag), lmax=np.abs(lam).max(axis=1),
+        Er=cont(padm(Em).real), Ei=cont(padm(Em).imag), Fr=cont(padm(Ef).real), Fi=cont(padm(Ef).imag),
+        betaS=cont(-zeta0[:, :, 1]), zeta0=cont(zeta0), UC=cont(UC), YC=cont(YC), CS=cont(CS), CY=cont(CY),
+        Tay=cont(Tay), QS=cont(qs), Q0=cont(Q0),
         codes=codes.astype(np.int64), trans_id=trans_id, trans_to=np.array(trans_to, dtype=np.int64),
-        T=cont(np.array(Ts)), c=cont(np.array(cs)), gaps=np.array([s.gap for s in stops], float),
-        Urow=cont(Urow), Yrow=cont(Yrow), Tay=cont(Tay), nb=nb,
-        omega_max=omega_max, cond_max=cond_max, half=all_complex)
-
+        TF=cont(np.array(Ts)), c=cont(np.array(cs)), gaps=np.array([s.gap for s in stops], float),
+        nb=nb, n2p=n2p, omega_max=omega_max, V=[e[1] for e in eig], half=all_complex)
 
 # ----------------------------------------------------------------------------------------------
 # Numba kernels
 # ----------------------------------------------------------------------------------------------
+#
+# Loops are written for LLVM's loop vectoriser (numba does not run the SLP vectoriser): no array
+# views in hot code, inner loops over the contiguous last axis, and matrix-vector products as
+# eight simultaneous reductions (_rows8) rather than one reduction per row.
 
 _FM = {"reassoc", "contract"}  # reassociation (vectorised sums) and FMA; no NaN/Inf assumptions
-_HORNER_K = 17
-#: 1/(k+2)! for k = 0.._HORNER_K: Taylor coefficients of phi2(x) = (e^x - 1 - x)/x^2
-_PHI2_COEF = np.array([1.0 / math.factorial(k + 2) for k in range(_HORNER_K + 1)])
+#: 1/k! for the e^x series of _expmul
+_E2, _E3, _E4, _E5, _E6, _E7, _E8, _E9 = (1.0 / math.factorial(k) for k in range(2, 10))
 
 
-@numba.njit(cache=True, fastmath=_FM)
-def _advance(lr, li, lmax, zr, zi, gr, gi, sr, si, sigma, outr, outi, ar, ai):
-    """out = e^{lam sigma} z + P0(sigma) g + P1(sigma) s, exact for a modal forcing g + s t.
-
-    Split real/imaginary arrays. If max|lam| sigma <= 1, phi2(x) = sum x^k/(k+2)! by Horner
-    (18 terms: truncation < 1e-17 relative), phi1 = 1 + x phi2, e^x = 1 + x phi1 (vectorised);
-    otherwise complex exponentials mode by mode."""
-    n2 = lr.shape[0]
-    if lmax * sigma <= 1.0:
-        for i in range(n2):
-            ar[i] = _PHI2_COEF[_HORNER_K]
-            ai[i] = 0.0
-        for kk in range(_HORNER_K - 1, -1, -1):
-            ck = _PHI2_COEF[kk]
-            for i in range(n2):
-                xr = lr[i] * sigma
-                xi = li[i] * sigma
-                t = ar[i] * xr - ai[i] * xi + ck
-                ai[i] = ar[i] * xi + ai[i] * xr
-                ar[i] = t
-        s2 = sigma * sigma
-        for i in range(n2):
-            xr = lr[i] * sigma
-            xi = li[i] * sigma
-            p1r = 1.0 + xr * ar[i] - xi * ai[i]
-            p1i = xr * ai[i] + xi * ar[i]
-            er = 1.0 + xr * p1r - xi * p1i
-            ei = xr * p1i + xi * p1r
-            a = er * zr[i] - ei * zi[i] + sigma * (p1r * gr[i] - p1i * gi[i]) + s2 * (ar[i] * sr[i] - ai[i] * si[i])
-            b = er * zi[i] + ei * zr[i] + sigma * (p1r * gi[i] + p1i * gr[i]) + s2 * (ar[i] * si[i] + ai[i] * sr[i])
-            outr[i] = a
-            outi[i] = b
-    else:
-        for i in range(n2):
-            x = complex(lr[i], li[i]) * sigma
-            e = cmath.exp(x)
-            if abs(x) < 1.0:
-                acc = complex(_PHI2_COEF[_HORNER_K], 0.0)
-                for kk in range(_HORNER_K - 1, -1, -1):
-                    acc = acc * x + _PHI2_COEF[kk]
-                phi2 = acc
-                phi1 = 1.0 + x * phi2
-            else:
-                phi1 = (e - 1.0) / x
-                phi2 = (e - 1.0 - x) / (x * x)
-            v = (e * complex(zr[i], zi[i]) + sigma * phi1 * complex(gr[i], gi[i])
-                 + sigma * sigma * phi2 * complex(sr[i], si[i]))
-            outr[i] = v.real
-            outi[i] = v.imag
+@numba.njit(cache=True, _nrt=False, fastmath=_FM)
+def _rows8(A, r, g, x, n, out, o):
+    """out[o:o+8] = A[r, g:g+8, :n] . x[:n] (eight simultaneous dot products)."""
+    a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = 0.0
+    for i in range(n):
+        xi = x[i]
+        a0 += A[r, g, i] * xi
+        a1 += A[r, g + 1, i] * xi
+        a2 += A[r, g + 2, i] * xi
+        a3 += A[r, g + 3, i] * xi
+        a4 += A[r, g + 4, i] * xi
+        a5 += A[r, g + 5, i] * xi
+        a6 += A[r, g + 6, i] * xi
+        a7 += A[r, g + 7, i] * xi
+    out[o] = a0
+    out[o + 1] = a1
+    out[o + 2] = a2
+    out[o + 3] = a3
+    out[o + 4] = a4
+    out[o + 5] = a5
+    out[o + 6] = a6
+    out[o + 7] = a7
 
 
-@numba.njit(cache=True, fastmath=_FM)
-def _eval_stops(zr, zi, lr, li, gr, gi, cur, cui, cvr, cvi, ueq, u, ud, udd):
-    """u, u', u'' of every stop from the modal state z and the current modal forcing g."""
-    S = cur.shape[0]
-    n2 = zr.shape[0]
-    for s in range(S):
-        a = ueq[s]
+@numba.njit(cache=True, _nrt=False, fastmath=_FM)
+def _expmul(lr, li, Fr, Fi, r, h, tau, zin, zout):
+    """zout = e^{lam tau} zin for 0 <= tau <= h (zin, zout: (2, n2p) views [Re; Im] of the padded modes): tabulated
+    e^{lam k h/_FINE} times the degree-9 series of e^{lam delta}, delta = tau - k h/_FINE in
+    [0, h/_FINE) (|lam delta| <= 0.05 for any accepted step: truncation < 1e-19 relative)."""
+    n2p = lr.shape[1]
+    k = int(tau * (_FINE / h))
+    if k > _FINE:
+        k = _FINE
+    if k < 0:
+        k = 0
+    d = tau - k * (h / _FINE)
+    for i in range(n2p):  # Horner written out: one straight-line body per mode (vectorises over i)
+        xr = lr[r, i] * d
+        xi = li[r, i] * d
+        pr = xr * _E9 + _E8
+        pi = xi * _E9
+        t = pr * xr - pi * xi + _E7
+        pi = pr * xi + pi * xr
+        pr = t
+        t = pr * xr - pi * xi + _E6
+        pi = pr * xi + pi * xr
+        pr = t
+        t = pr * xr - pi * xi + _E5
+        pi = pr * xi + pi * xr
+        pr = t
+        t = pr * xr - pi * xi + _E4
+        pi = pr * xi + pi * xr
+        pr = t
+        t = pr * xr - pi * xi + _E3
+        pi = pr * xi + pi * xr
+        pr = t
+        t = pr * xr - pi * xi + _E2
+        pi = pr * xi + pi * xr
+        pr = t
+        t = pr * xr - pi * xi + 1.0
+        pi = pr * xi + pi * xr
+        pr = t
+        t = pr * xr - pi * xi + 1.0
+        pi = pr * xi + pi * xr
+        pr = t
+        er = Fr[r, k, i] * pr - Fi[r, k, i] * pi
+        ei = Fr[r, k, i] * pi + Fi[r, k, i] * pr
+        a = zin[0, i]
+        b = zin[1, i]
+        zout[0, i] = er * a - ei * b
+        zout[1, i] = er * b + ei * a
+
+
+@numba.njit(cache=True, _nrt=False, fastmath=_FM)
+def _block_advance(Er, Ei, r, n, z):
+    """zeta <- e^{lam n h} zeta (tabulated; z: (2, n2p) view)."""
+    n2p = Er.shape[2]
+    for i in range(n2p):
+        a = z[0, i]
+        b = z[1, i]
+        er = Er[r, n, i]
+        ei = Ei[r, n, i]
+        z[0, i] = er * a - ei * b
+        z[1, i] = er * b + ei * a
+
+
+@numba.njit(cache=True, _nrt=False, fastmath=_FM)
+def _slope_update(betaS, r, f1_old, f1_new, z):
+    """zeta += [Re; Im] beta (f'_old - f'_new): zh = z - z_p stays continuous when the slope changes."""
+    n = z.shape[0]
+    for l in range(f1_old.shape[0]):
+        dl = f1_old[l] - f1_new[l]
+        for i in range(n):
+            z[i] += betaS[r, l, i] * dl
+
+
+@numba.njit(cache=True, _nrt=False)
+def _quasi_static(QS, Q0, r, f, f1, val, slope):
+    """Quasi-static part of every observable in regime r: value ``val`` for the load f with slope
+    f1, and its rate ``slope`` (u_qs(t) = val + slope t)."""
+    for q in range(QS.shape[1]):
+        a = Q0[r, q]
         b = 0.0
-        c = 0.0
-        for i in range(n2):
-            a += cur[s, i] * zr[i] - cui[s, i] * zi[i]
-            b += cvr[s, i] * zr[i] - cvi[s, i] * zi[i]
-            dr = lr[i] * zr[i] - li[i] * zi[i] + gr[i]
-            di = lr[i] * zi[i] + li[i] * zr[i] + gi[i]
-            c += cvr[s, i] * dr - cvi[s, i] * di
-        u[s] = a
-        ud[s] = b
-        udd[s] = c
+        for l in range(f.shape[0]):
+            a += QS[r, q, 0, l] * f[l] + QS[r, q, 1, l] * f1[l]
+            b += QS[r, q, 0, l] * f1[l]
+        val[q] = a
+        slope[q] = b
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def _dist(code, side, g, u, ud, udd):
     """Distance to the boundary (>= 0 inside the current state) and its time derivatives.
 
@@ -665,7 +738,7 @@ def _dist(code, side, g, u, ud, udd):
     return -g - u, -ud, -udd
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def _cubic_min(d0, dd0, d1, dd1, sigma):
     """Interior minimum (s in (0,1), value) of the cubic Hermite interpolant; s = -1 if none."""
     a = 2 * d0 + sigma * dd0 - 2 * d1 + sigma * dd1
@@ -697,7 +770,7 @@ def _cubic_min(d0, dd0, d1, dd1, sigma):
     return best_s, best_v
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def _flag(d0, dd0, d1, dd1, sigma, margin):
     """True if the distance may become negative within the (sub)step."""
     if d1 < 0:
@@ -709,9 +782,24 @@ def _flag(d0, dd0, d1, dd1, sigma, margin):
     return s >= 0 and v < margin
 
 
+@numba.njit(cache=True, inline="always")
+def _quick_safe(code, g, ua, va, a, b, h, mg):
+    """Sufficient test that no boundary of the current state is reached within a sub-step: the
+    cubic Hermite interpolant of the distance d is >= min(d0, d1) - (4/27) h (|d0'| + |d1'|)
+    (bound of its derivative basis functions); True implies _flag is False for every boundary."""
+    if code == 0:
+        dmin = g - max(abs(ua), abs(a))
+    elif code == 1:
+        dmin = min(ua, a) - g
+    else:
+        dmin = -g - max(ua, a)
+    return dmin - 0.15 * h * (abs(va) + abs(b)) >= mg
+
+
 @numba.njit(cache=True)
 def _cubic_first_root(d0, dd0, d1, dd1, sigma, smax):
-    """First s in (0, smax] where the cubic Hermite interpolant becomes negative (-1 if none)."""
+    """First s in (0, smax] where the cubic Hermite interpolant becomes negative (-1 if none):
+    sign change on 16 points, then 4 Illinois (regula falsi) steps in the bracket (a Newton guess)."""
     a = 2 * d0 + sigma * dd0 - 2 * d1 + sigma * dd1
     b = -3 * d0 - 2 * sigma * dd0 + 3 * d1 - sigma * dd1
     c = sigma * dd0
@@ -721,64 +809,42 @@ def _cubic_first_root(d0, dd0, d1, dd1, sigma, smax):
         s = smax * q / n
         v = ((a * s + b) * s + c) * s + d0
         if v < 0:
-            # secant refinement in [s - smax/n, s]
             lo = s - smax / n
             hi = s
             flo = prev
-            for _ in range(30):
-                mid = 0.5 * (lo + hi)
+            fhi = v
+            side = 0
+            for _ in range(4):
+                mid = (lo * fhi - hi * flo) / (fhi - flo)
+                if not (lo < mid < hi):
+                    mid = 0.5 * (lo + hi)
                 fm = ((a * mid + b) * mid + c) * mid + d0
                 if fm >= 0:
                     lo = mid
                     flo = fm
+                    if side == 1:
+                        fhi *= 0.5
+                    side = 1
                 else:
                     hi = mid
-            return hi
+                    fhi = fm
+                    if side == -1:
+                        flo *= 0.5
+                    side = -1
+            return hi if fhi == 0 else (lo * fhi - hi * flo) / (fhi - flo) if flo > 0 > fhi else hi
         prev = v
     return -1.0
 
 
-@numba.njit(cache=True, fastmath=_FM)
-def _matvec(T, x, c, outr, outi):
-    """[outr; outi] = T x + c."""
-    n2 = outr.shape[0]
-    nn = x.shape[0]
-    for i in range(n2):
-        a = c[i]
-        b = c[n2 + i]
-        for j in range(nn):
-            a += T[i, j] * x[j]
-            b += T[n2 + i, j] * x[j]
-        outr[i] = a
-        outi[i] = b
-
-
-@numba.njit(cache=True)
-def _eval_at(tau, ctx, ws, us):
-    """Exact state at tau after the segment start (ws rows 6, 7) and u, u', u'' there (us rows 0-2).
-
-    ctx = (lr, li, lmax, cur, cui, cvr, cvi, ueq); ws rows: 0-1 z start, 2-3 g start, 4-5 g slope,
-    6-7 z(tau), 8-9 g(tau), 10-11 scratch."""
-    lr, li, lmax, cur, cui, cvr, cvi, ueq = ctx
-    if tau == 0.0:
-        ws[6, :] = ws[0, :]
-        ws[7, :] = ws[1, :]
-    else:
-        _advance(lr, li, lmax, ws[0], ws[1], ws[2], ws[3], ws[4], ws[5], tau, ws[6], ws[7], ws[10], ws[11])
-    for i in range(ws.shape[1]):
-        ws[8, i] = ws[2, i] + ws[4, i] * tau
-        ws[9, i] = ws[3, i] + ws[5, i] * tau
-    _eval_stops(ws[6], ws[7], lr, li, ws[8], ws[9], cur, cui, cvr, cvi, ueq, us[0], us[1], us[2])
-
-
 _TAYLOR_K = 24
+_TAYLOR_KP = 32  # rows tabulated per stop (a multiple of 8 for _rows8)
 _TAYLOR_LIMIT = 1.6  # max |lam| sigma for the Taylor polynomial of u (order 24: truncation < 1e-20 relative)
 #: Order rule of the Taylor polynomial of u on a segment: the smallest K with x^(K+1)/(K+1)! <= _TAYLOR_TOL,
 #: x = max|lam| sigma (K = 17 at the default step, x <= 0.74; K = 23 at x = 1.6).
 _TAYLOR_TOL = 1e-18
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def _taylor_order(x):
     """Smallest K in [3, _TAYLOR_K] with x^(K+1)/(K+1)! <= _TAYLOR_TOL (x = max|lam| sigma)."""
     K = 3
@@ -789,22 +855,19 @@ def _taylor_order(x):
     return K
 
 
-@numba.njit(cache=True, fastmath=_FM)
-def _taylor_u(Tay_r, kord, ueq_r, xin, acc, pc):
+@numba.njit(cache=True, _nrt=False, fastmath=_FM)
+def _taylor_u(Tay, r, kord, z0, qv, qd, acc, pc):
     """pc[s, 0, k] = u_s^(k)(0)/k!, pc[s, 1, k] = u_s^(k+1)(0)/k!, pc[s, 2, k] = u_s^(k+2)(0)/k!,
-    k <= kord, about the segment start: kord + 1 tabulated dot products of length nin per stop
-    (rows Tay_r[s, k] over xin = [Re z; Im z; f0; f'])."""
-    S = Tay_r.shape[0]
-    nin = xin.shape[0]
+    k <= kord, about the segment start: tabulated rows Tay[r, s KP + k] over zeta (homogeneous
+    part) plus the quasi-static part qv[2s] + qd[2s] t."""
+    S = pc.shape[0]
     n = kord + 1
+    nx = z0.shape[0]
     for s in range(S):
-        for k in range(n):
-            row = Tay_r[s, k]
-            a = 0.0
-            for i in range(nin):
-                a += row[i] * xin[i]
-            acc[k] = a
-        acc[0] += ueq_r[s]
+        for g in range(0, n, 8):
+            _rows8(Tay, r, s * _TAYLOR_KP + g, z0, nx, acc, g)
+        acc[0] += qv[2 * s]
+        acc[1] += qd[2 * s]
         for k in range(n):
             pc[s, 0, k] = acc[k]
         for k in range(n - 1):
@@ -816,13 +879,21 @@ def _taylor_u(Tay_r, kord, ueq_r, xin, acc, pc):
         pc[s, 2, n - 2] = 0.0
 
 
-@numba.njit(cache=True)
-def _eval_u(tau, kord, pc, ctx, ws, us):
-    """u, u', u'' of every stop at tau (us rows 0-2): Taylor polynomial of order kord (pc[s, 0/1/2, k]:
-    u, u', u'' coefficients) or, for kord = 0, exact propagation."""
-    if kord == 0:
-        _eval_at(tau, ctx, ws, us)
-        return
+@numba.njit(cache=True, _nrt=False)
+def _stop_values(CS, r, z, S, qv, qd, t, ev, us, row):
+    """us[row:row+3, s] = u, u', u'' of every stop at local time t from zeta z (rows CS, 3 per stop)."""
+    nx = z.shape[0]
+    for g in range(0, 3 * S, 8):
+        _rows8(CS, r, g, z, nx, ev, g)
+    for s in range(S):
+        us[row, s] = ev[3 * s] + qv[2 * s] + qd[2 * s] * t
+        us[row + 1, s] = ev[3 * s + 1] + qv[2 * s + 1] + qd[2 * s + 1] * t
+        us[row + 2, s] = ev[3 * s + 2] + qd[2 * s + 1]
+
+
+@numba.njit(cache=True, inline="always")
+def _poly_u(tau, kord, pc, us):
+    """u, u', u'' of every stop at tau from the Taylor coefficients pc (Horner, order kord)."""
     K = kord
     for s in range(pc.shape[0]):
         a = pc[s, 0, K]
@@ -837,8 +908,26 @@ def _eval_u(tau, kord, pc, ctx, ws, us):
         us[2, s] = c
 
 
-@numba.njit(cache=True)
-def _crossing_in(ta, tb, da, dda, db, ddb, code, side, s, g, h, margin, kord, pc, ctx, ws, us):
+@numba.njit(cache=True, _nrt=False)
+def _exact_u(tau, ex, us):
+    """u, u', u'' of every stop at tau by exact propagation (ex = tables and segment state)."""
+    lr, li, Fr, Fi, CS, r, h, z0v, zt, ztv, ev, qv, qd = ex
+    _expmul(lr, li, Fr, Fi, r, h, tau, z0v, ztv)
+    _stop_values(CS, r, zt, us.shape[1], qv, qd, tau, ev, us, 0)
+
+
+@numba.njit(cache=True, inline="always")
+def _eval_u(tau, kord, pc, ex, us):
+    """u, u', u'' of every stop at tau (us rows 0-2): Taylor polynomial of order kord (pc[s, 0/1/2, k]:
+    u, u', u'' coefficients) or, for kord = 0, exact propagation."""
+    if kord > 0:
+        _poly_u(tau, kord, pc, us)
+    else:
+        _exact_u(tau, ex, us)
+
+
+@numba.njit(cache=True, inline="always")
+def _crossing_in(ta, tb, da, dda, db, ddb, code, side, s, g, h, margin, kord, pc, ex, us):
     """First crossing (d < 0) in (ta, tb] of the exact solution, given d and d' at the ends;
     -1 if none. Cubic Hermite guess, exact Newton on d' = 0 for an interior minimum, then
     safeguarded Newton on d for the root (tolerance 1e-13 h)."""
@@ -856,7 +945,7 @@ def _crossing_in(ta, tb, da, dda, db, ddb, code, side, s, g, h, margin, kord, pc
         tm = ta + sm * sig
         dm = 1.0
         for _ in range(12):
-            _eval_u(tm, kord, pc, ctx, ws, us)
+            _eval_u(tm, kord, pc, ex, us)
             dm, ddm, dddm = _dist(code, side, g, us[0, s], us[1, s], us[2, s])
             if dm < 0 or dddm <= 0:
                 break
@@ -872,7 +961,7 @@ def _crossing_in(ta, tb, da, dda, db, ddb, code, side, s, g, h, margin, kord, pc
         guess = ta + sg * sig if sg > 0 else 0.5 * (lo + hi)
     t = min(max(guess, lo), hi)
     for _ in range(100):
-        _eval_u(t, kord, pc, ctx, ws, us)
+        _eval_u(t, kord, pc, ex, us)
         d, dd, _x = _dist(code, side, g, us[0, s], us[1, s], us[2, s])
         if d >= 0:
             lo = t
@@ -889,33 +978,34 @@ def _crossing_in(ta, tb, da, dda, db, ddb, code, side, s, g, h, margin, kord, pc
     return t
 
 
-@numba.njit(cache=True)
-def _first_crossing(code, side, s, g, sigma, d0, dd0, d1, dd1, h, mcoef, scan, kord, pc, ctx, ws, us):
+@numba.njit(cache=True, _nrt=False)
+def _first_crossing(code, side, s, g, sigma, d0, dd0, d1, dd1, h, mcoef, scan, kord, pc, ex, us, stats):
     """Earliest crossing in (0, sigma] for one boundary (-1 if none). The candidate is verified:
     if the cubic Hermite check on [0, t_c] allows an earlier dip, [0, t_c] is rescanned exactly on
     8 pieces. scan=True scans the whole segment exactly on 8 pieces (testing aid)."""
     tc = sigma
     if not scan:
         margin = mcoef * (sigma / h) ** 4 * max(abs(dd0), abs(dd1))
-        tc = _crossing_in(0.0, sigma, d0, dd0, d1, dd1, code, side, s, g, h, margin, kord, pc, ctx, ws, us)
+        tc = _crossing_in(0.0, sigma, d0, dd0, d1, dd1, code, side, s, g, h, margin, kord, pc, ex, us)
         if tc <= 0:
             return tc
-        _eval_u(tc, kord, pc, ctx, ws, us)
+        _eval_u(tc, kord, pc, ex, us)
         dc, ddc, _x = _dist(code, side, g, us[0, s], us[1, s], us[2, s])
         mc = mcoef * (tc / h) ** 4 * max(abs(dd0), abs(ddc))
         sm, vm = _cubic_min(max(d0, 0.0), dd0, max(dc, 0.0), ddc, tc)
         if sm < 0 or vm >= mc:
             return tc
+    stats[4] += 1
     n = 8
     ta = 0.0
     da = d0
     dda = dd0
     for p in range(1, n + 1):
         tb = tc * p / n
-        _eval_u(tb, kord, pc, ctx, ws, us)
+        _eval_u(tb, kord, pc, ex, us)
         db, ddb, _x = _dist(code, side, g, us[0, s], us[1, s], us[2, s])
         mp = mcoef * ((tb - ta) / h) ** 4 * max(abs(dda), abs(ddb))
-        t2 = _crossing_in(ta, tb, da, dda, db, ddb, code, side, s, g, h, mp, kord, pc, ctx, ws, us)
+        t2 = _crossing_in(ta, tb, da, dda, db, ddb, code, side, s, g, h, mp, kord, pc, ex, us)
         if t2 >= 0:
             return t2
         ta = tb
@@ -924,104 +1014,56 @@ def _first_crossing(code, side, s, g, sigma, d0, dd0, d1, dd1, h, mcoef, scan, k
     return -1.0 if scan else tc
 
 
-@numba.njit(cache=True, fastmath=_FM)
-def _forcing(Wr_r, Wi_r, fj, fdot, t_loc, ws):
-    """Modal forcing at t_loc (ws rows 2-3) and its slope (rows 4-5) for the load fj + fdot t."""
-    m = fj.shape[0]
-    n2 = ws.shape[1]
-    for i in range(n2):
-        ws[2, i] = 0.0
-        ws[3, i] = 0.0
-        ws[4, i] = 0.0
-        ws[5, i] = 0.0
-    for l in range(m):
-        fa = fj[l] + fdot[l] * t_loc
-        fb = fdot[l]
-        wr = Wr_r[l]
-        wi = Wi_r[l]
-        for i in range(n2):
-            ws[2, i] += wr[i] * fa
-            ws[3, i] += wi[i] * fa
-            ws[4, i] += wr[i] * fb
-            ws[5, i] += wi[i] * fb
+@numba.njit(cache=True, _nrt=False)
+def _event_step(r, z, zv, fs, f1, h, count, tb, wk, contact_time, n_events, refine_all, stats):
+    """Integrate one sub-step [0, h] exactly from zeta = z (regime r; zv its (2, n2p) view) with
+    event location; z is replaced by zeta at h. The load over the sub-step is fs + f1 t.
 
-
-@numba.njit(cache=True, fastmath=_FM)
-def _block_advance(er, ei, pr, pi, zz, ff, nzr, nzi):
-    """zz <- Em z + [PW0 PW1] ff (tabulated exact advance over a whole number of sub-steps)."""
-    n2 = er.shape[0]
-    for i in range(n2):
-        nzr[i] = er[i] * zz[i] - ei[i] * zz[n2 + i]
-        nzi[i] = er[i] * zz[n2 + i] + ei[i] * zz[i]
-    for l in range(ff.shape[0]):
-        fl = ff[l]
-        prl = pr[l]
-        pil = pi[l]
-        for i in range(n2):
-            nzr[i] += prl[i] * fl
-            nzi[i] += pil[i] * fl
-    for i in range(n2):
-        zz[i] = nzr[i]
-        zz[n2 + i] = nzi[i]
-
-
-@numba.njit(cache=True)
-def _event_step(r, zz, fj, fdot, h, count, tb, Tay, E1r, E1i, P1r, P1i, ws, us, pc, xr_, xin, acc, contact_time,
-                n_events, refine_all):
-    """Integrate one sub-step [0, h] exactly from zz = [Re z; Im z] (regime r) with event location;
-    zz is replaced by the state at h. The load over the sub-step is f(t) = fj + fdot t.
-
-    First segment (the fast path flagged it): u on [0, h] is its tabulated Taylor polynomial (one
-    small matrix-vector product, order from _taylor_order) when max|lam| h <= _TAYLOR_LIMIT, else
-    exact propagation. After a switch at t_loc: the end state is propagated first (Horner,
-    _advance) and u, u' at both ends of [t_loc, h] pre-checked; the Taylor polynomial of the new
-    segment is built only if that check flags it. The full state is propagated only to a switch
-    and to the end (tables E1/P1 when the whole sub-step is event-free). Returns the final regime."""
-    (lamr, lami, lmax, Wr_, Wi_, cur, cui, cvr, cvi, ueq, codes, trans_id, trans_to, T, c, gaps, mcoef) = tb
+    First segment (the fast path flagged it): u on [0, h] is its tabulated Taylor polynomial (order
+    from _taylor_order) when max|lam| h <= _TAYLOR_LIMIT, else exact propagation. After a switch
+    at t_loc: the end state is propagated first and u, u' at both ends of [t_loc, h] pre-checked;
+    the Taylor polynomial of the new segment is built only if that check flags it. A switch maps
+    [zeta; f; f'] through the transition table. Returns the final regime."""
+    (lr, li, lmax, Er, Ei, Fr, Fi, betaS, zeta0, UC, YC, CS, CY, Tay, QS, Q0, codes, trans_id, trans_to, TF, cT,
+     gaps, mcoef) = tb
+    z0, ze, zt, xin, ev, acc, pc, us, qv, qd, fl, z0v, zev, ztv = wk
     S = gaps.shape[0]
-    n2 = lamr.shape[1]
-    m = fj.shape[0]
+    nx = z.shape[0]
+    m = fs.shape[0]
     t_loc = 0.0
     just_switched = False
-    for i in range(n2):
-        ws[0, i] = zz[i]
-        ws[1, i] = zz[n2 + i]
+    for i in range(nx):
+        z0[i] = z[i]
     for it in range(201):
         if it == 200:
             raise RuntimeError("more than 200 regime switches within one step")
         sigma = h - t_loc
-        ctx = (lamr[r], lami[r], lmax[r], cur[r], cui[r], cvr[r], cvi[r], ueq[r])
+        for l in range(m):
+            fl[l] = fs[l] + f1[l] * t_loc
+        _quasi_static(QS, Q0, r, fl, f1, qv, qd)
+        ex = (lr, li, Fr, Fi, CS, r, h, z0v, zt, ztv, ev, qv, qd)
         x = lmax[r] * sigma
         kord = _taylor_order(x) if x <= _TAYLOR_LIMIT else 0
-        forced = False
+        if kord == 0:
+            stats[3] += 1
         poly_done = False
         end_ready = False
-        if kord > 0:
-            for i in range(n2):
-                xin[i] = ws[0, i]
-                xin[n2 + i] = ws[1, i]
-            for l in range(m):
-                xin[2 * n2 + l] = fj[l] + fdot[l] * t_loc
-                xin[2 * n2 + m + l] = fdot[l]
         if just_switched or kord == 0:
-            _forcing(Wr_[r], Wi_[r], fj, fdot, t_loc, ws)
-            forced = True
-            _eval_at(0.0, ctx, ws, us)
+            _stop_values(CS, r, z0, S, qv, qd, 0.0, ev, us, 0)
             for s in range(S):
                 us[3, s] = us[0, s]
                 us[4, s] = us[1, s]
-            _eval_at(sigma, ctx, ws, us)
-            for i in range(n2):  # end state, kept in case no event occurs
-                ws[12, i] = ws[6, i]
-                ws[13, i] = ws[7, i]
+            _expmul(lr, li, Fr, Fi, r, h, sigma, z0v, zev)  # end state, kept in case no event occurs
+            _stop_values(CS, r, ze, S, qv, qd, sigma, ev, us, 0)
             end_ready = True
         else:
-            _taylor_u(Tay[r], kord, ueq[r], xin, acc, pc)
+            _taylor_u(Tay, r, kord, z0, qv, qd, acc, pc)
+            stats[2] += 1
             poly_done = True
             for s in range(S):
                 us[3, s] = pc[s, 0, 0]
                 us[4, s] = pc[s, 1, 0]
-            _eval_u(sigma, kord, pc, ctx, ws, us)
+            _eval_u(sigma, kord, pc, ex, us)
         for s in range(S):
             us[5, s] = us[0, s]
             us[6, s] = us[1, s]
@@ -1040,42 +1082,31 @@ def _event_step(r, zz, fj, fdot, h, count, tb, Tay, E1r, E1i, P1r, P1i, ws, us, 
                 if not (refine_all or _flag(d0, dd0, d1, dd1, sigma, margin)):
                     continue
                 if kord > 0 and not poly_done:
-                    _taylor_u(Tay[r], kord, ueq[r], xin, acc, pc)
+                    _taylor_u(Tay, r, kord, z0, qv, qd, acc, pc)
+                    stats[2] += 1
                     poly_done = True
                 tc = _first_crossing(code, side, s, gaps[s], sigma, d0, dd0, d1, dd1, h, mcoef,
-                                     refine_all and d1 >= 0, kord, pc, ctx, ws, us)
+                                     refine_all and d1 >= 0, kord, pc, ex, us, stats)
                 if tc >= 0 and tc < tau_c:
                     tau_c = tc
                     s_c = s
                     side_c = side
         if s_c < 0:
             if end_ready:
-                for i in range(n2):
-                    zz[i] = ws[12, i]
-                    zz[n2 + i] = ws[13, i]
-            elif t_loc == 0.0:  # whole sub-step event-free: tabulated exact advance
-                for l in range(m):
-                    xr_[l] = fj[l]
-                    xr_[m + l] = fdot[l]
-                _block_advance(E1r[r], E1i[r], P1r[r], P1i[r], zz, xr_[: 2 * m], ws[6], ws[7])
+                for i in range(nx):
+                    z[i] = ze[i]
+            elif t_loc == 0.0:  # whole sub-step event-free: tabulated e^{lam h}
+                _block_advance(Er, Ei, r, 1, zv)
             else:
-                if not forced:
-                    _forcing(Wr_[r], Wi_[r], fj, fdot, t_loc, ws)
-                _advance(lamr[r], lami[r], lmax[r], ws[0], ws[1], ws[2], ws[3], ws[4], ws[5], sigma, ws[6], ws[7],
-                         ws[10], ws[11])
-                for i in range(n2):
-                    zz[i] = ws[6, i]
-                    zz[n2 + i] = ws[7, i]
+                _expmul(lr, li, Fr, Fi, r, h, sigma, z0v, zv)
             if count:
                 for s in range(S):
                     if codes[r, s] != 0:
                         contact_time[s] += sigma
             return r
-        # switch regime at tau_c: x continuous, z_new = T [Re z; Im z] + c
-        if not forced:
-            _forcing(Wr_[r], Wi_[r], fj, fdot, t_loc, ws)
-        _advance(lamr[r], lami[r], lmax[r], ws[0], ws[1], ws[2], ws[3], ws[4], ws[5], tau_c, ws[6], ws[7],
-                 ws[10], ws[11])
+        # switch regime at tau_c: x continuous, zeta_new = TF [zeta; f; f'] + c
+        stats[1] += 1
+        _expmul(lr, li, Fr, Fi, r, h, tau_c, z0v, ztv)
         if count:
             for s in range(S):
                 if codes[r, s] != 0:
@@ -1084,107 +1115,117 @@ def _event_step(r, zz, fj, fdot, h, count, tb, Tay, E1r, E1i, P1r, P1i, ws, us, 
         tid = trans_id[r, s_c, side_c if code == 0 else 0]
         if code == 0 and count:
             n_events[s_c] += 1
-        for i in range(n2):
-            xr_[i] = ws[6, i]
-            xr_[n2 + i] = ws[7, i]
-        _matvec(T[tid], xr_, c[tid], ws[0], ws[1])
+        for i in range(nx):
+            xin[i] = zt[i]
+        for l in range(m):
+            xin[nx + l] = fs[l] + f1[l] * (t_loc + tau_c)
+            xin[nx + m + l] = f1[l]
+        for g in range(0, nx, 8):
+            _rows8(TF, tid, g, xin, xin.shape[0], z0, g)
+        for i in range(nx):
+            z0[i] += cT[tid, i]
         r = trans_to[tid]
         t_loc += tau_c
         just_switched = True
         if h - t_loc <= 1e-14 * h:
-            for i in range(n2):
-                zz[i] = ws[0, i]
-                zz[n2 + i] = ws[1, i]
+            for i in range(nx):
+                z[i] = z0[i]
             return r
     return r
 
 
 @numba.njit(cache=True, fastmath=_FM)
-def _exact_kernel(loads, dt_load, h, ns, nb, out_every, j0, Er, Ei, PWr, PWi, Urow, Yrow, Tay, cyr, cyi, yeq, tb,
-                  y_out, sumsq, contact_time, n_events, refine_all, n_flagged):
-    """Main loop: blocks of up to nb sub-steps checked through the tabulated u, u' (fast path:
-    two dot products of length nin per stop and sub-step, rows Urow over x = [zz; ff]); a flagged
-    sub-step goes to _event_step. x[:2 n2] = zz = [Re z; Im z] of the kept modes, x[2 n2:] = ff =
-    [f_j; f'] (load at the block start and its slope)."""
-    lamr = tb[0]
-    cur = tb[5]
-    cui = tb[6]
-    cvr = tb[7]
-    cvi = tb[8]
-    ueq = tb[9]
-    codes = tb[10]
-    gaps = tb[15]
-    mcoef = tb[16]
+def _exact_kernel(loads, dt_load, h, ns, nb, out_every, j0, tb, y_out, sumsq, contact_time, n_events, refine_all,
+                  stats):
+    """Main loop over load intervals and blocks of up to nb sub-steps. Fast path: u, u' of every
+    stop at the nb sub-step ends from the block rows UC (one block matrix-vector product on zeta)
+    plus the quasi-static part; the block is then advanced by the diagonal e^{lam n h}. A flagged
+    sub-step goes to _event_step. stats: flagged sub-steps, switches, Taylor builds, exact
+    segments, rescans."""
+    (lr, li, lmax, Er, Ei, Fr, Fi, betaS, zeta0, UC, YC, CS, CY, Tay, QS, Q0, codes, trans_id, trans_to, TF, cT,
+     gaps, mcoef) = tb
     n_int = loads.shape[0] - 1
-    n2 = lamr.shape[1]
+    n2p = lr.shape[1]
+    nx = 2 * n2p
     S = gaps.shape[0]
+    S2 = 2 * S
     m = loads.shape[1]
-    n_obs = yeq.shape[1]
-    nin = 2 * n2 + 2 * m
-    x = np.zeros(nin)
-    zz = x[: 2 * n2]
-    ff = x[2 * n2:]
-    acc = np.zeros(_TAYLOR_K + 1)
-    nzr = np.zeros(n2)
-    nzi = np.zeros(n2)
-    fj = np.zeros(m)
-    fdot = np.zeros(m)
-    ub = np.zeros((nb + 1, S))
-    udb = np.zeros((nb + 1, S))
+    n_obs = y_out.shape[1]
+    nobp = CY.shape[1]
+    nxl = UC.shape[2]
+    xl = np.zeros(nxl)  # [zeta; f_j; f'; 1; 0...]
+    z = xl[:nx]
+    zv = z.reshape((2, n2p))
+    xl[nx + 2 * m] = 1.0
+    col = np.zeros(UC.shape[1])
+    yv = np.zeros(nobp)
+    ev = np.zeros(max(CS.shape[1], 8))
     u0 = np.zeros(S)
     ud0 = np.zeros(S)
-    ws = np.zeros((14, n2))
-    us = np.zeros((7, S))
-    pc = np.zeros((S, 3, _TAYLOR_K + 1))
-    xr_ = np.zeros(max(2 * n2, 2 * m))
-    xin = np.zeros(nin)
-    E1r = np.ascontiguousarray(Er[:, 1])
-    E1i = np.ascontiguousarray(Ei[:, 1])
-    P1r = np.ascontiguousarray(PWr[:, 1])
-    P1i = np.ascontiguousarray(PWi[:, 1])
+    qv = np.zeros(S2 + n_obs)
+    qd = np.zeros(S2 + n_obs)
+    f1 = np.zeros(m)
+    f1_old = np.zeros(m)
+    fs = np.zeros(m)
+    fk = np.zeros(m)
+    z0 = np.zeros(nx)
+    ze = np.zeros(nx)
+    zt = np.zeros(nx)
+    wk = (z0, ze, zt, np.zeros(TF.shape[2]), np.zeros(max(CS.shape[1], 8)), np.zeros(_TAYLOR_KP),
+          np.zeros((S, 3, _TAYLOR_K + 1)), np.zeros((7, S)), np.zeros(S2 + n_obs), np.zeros(S2 + n_obs), np.zeros(m),
+          z0.reshape((2, n2p)), ze.reshape((2, n2p)), zt.reshape((2, n2p)))
     r = 0
+    # initial state q = q' = 0 (regime 0, no preload): zh = -z_p(0)
+    for l in range(m):
+        f1[l] = (loads[1, l] - loads[0, l]) / dt_load
+        for i in range(nx):
+            z[i] += zeta0[0, l, 0, i] * loads[0, l] + zeta0[0, l, 1, i] * f1[l]
     for s in range(S):
-        u0[s] = ueq[r, s]
+        u0[s] = Q0[0, 2 * s]
     step = 0
     count_from = j0 * out_every
     store = y_out.shape[0] > 0
     if j0 == 0:
         for o in range(n_obs):
-            y = yeq[r, o]
+            y = Q0[0, S2 + o]
             sumsq[o] += y * y
             if store:
                 y_out[0, o] = y
     for k in range(n_int):
+        for l in range(m):
+            f1_old[l] = f1[l]
+            fk[l] = loads[k, l]
+            f1[l] = (loads[k + 1, l] - loads[k, l]) / dt_load
+        if k > 0:
+            _slope_update(betaS, r, f1_old, f1, z)
+        for l in range(m):
+            xl[nx + m + l] = f1[l]
         j = 0
         while j < ns:
             mb = min(nb, ns - j)
-            th = j / ns
+            # u, u' at the ends of the next mb sub-steps: col = UC[r] [zeta; f_j; f'; 1]
             for l in range(m):
-                df = loads[k + 1, l] - loads[k, l]
-                ff[l] = loads[k, l] + df * th
-                ff[m + l] = df / dt_load
-            for s in range(S):
-                ub[0, s] = u0[s]
-                udb[0, s] = ud0[s]
+                xl[nx + l] = fk[l] + f1[l] * (j * h)
+            for g in range(0, mb * S2, 8):
+                _rows8(UC, r, g, xl, nxl, col, g)
             flag_m = -1
             for mm in range(1, mb + 1):
                 flagged = refine_all
+                base = (mm - 1) * S2
                 for s in range(S):
-                    rowu = Urow[r, mm, s, 0]
-                    rowv = Urow[r, mm, s, 1]
-                    a = 0.0
-                    b = 0.0
-                    for i in range(nin):
-                        a += rowu[i] * x[i]
-                        b += rowv[i] * x[i]
-                    a += ueq[r, s]
-                    ub[mm, s] = a
-                    udb[mm, s] = b
-                    ua = ub[mm - 1, s]
-                    va = udb[mm - 1, s]
+                    a = col[base + 2 * s]
+                    b = col[base + 2 * s + 1]
+                    if mm == 1:
+                        ua = u0[s]
+                        va = ud0[s]
+                    else:
+                        ua = col[base - S2 + 2 * s]
+                        va = col[base - S2 + 2 * s + 1]
                     g = gaps[s]
                     code = codes[r, s]
                     mg = mcoef * max(abs(va), abs(b))
+                    if _quick_safe(code, g, ua, va, a, b, h, mg):
+                        continue
                     if code == 0:
                         if _flag(g - ua, -va, g - a, -b, h, mg) or _flag(ua + g, va, a + g, b, h, mg):
                             flagged = True
@@ -1197,56 +1238,56 @@ def _exact_kernel(loads, dt_load, h, ns, nb, out_every, j0, Er, Ei, PWr, PWi, Ur
                 if flagged:
                     flag_m = mm
                     break
-                gstep = step + mm
-                if gstep > count_from:
+            n_acc = mb if flag_m < 0 else flag_m - 1
+            if n_acc > 0:
+                # contact time of the accepted sub-steps step+1 .. step+n_acc counted after count_from
+                n_cnt = min(n_acc, max(0, step + n_acc - count_from))
+                if n_cnt > 0:
                     for s in range(S):
                         if codes[r, s] != 0:
-                            contact_time[s] += h
-                if gstep % out_every == 0:
-                    jout = gstep // out_every
+                            contact_time[s] += n_cnt * h
+                # outputs at the accepted sub-step ends that fall on the output grid
+                mm = out_every - step % out_every
+                while mm <= n_acc:
+                    jout = (step + mm) // out_every
                     if jout >= j0:
+                        for g in range(0, n_obs, 8):
+                            _rows8(YC, r, mm * nobp + g, xl, nxl, yv, g)
                         for o in range(n_obs):
-                            ry = Yrow[r, mm, o]
-                            y = yeq[r, o]
-                            for i in range(nin):
-                                y += ry[i] * x[i]
+                            y = yv[o]
                             sumsq[o] += y * y
                             if store:
                                 y_out[jout - j0, o] = y
-            n_acc = mb if flag_m < 0 else flag_m - 1
-            if n_acc > 0:
-                _block_advance(Er[r, n_acc], Ei[r, n_acc], PWr[r, n_acc], PWi[r, n_acc], zz, ff, nzr, nzi)
+                    mm += out_every
+                _block_advance(Er, Ei, r, n_acc, zv)
+                base = (n_acc - 1) * S2
                 for s in range(S):
-                    u0[s] = ub[n_acc, s]
-                    ud0[s] = udb[n_acc, s]
+                    u0[s] = col[base + 2 * s]
+                    ud0[s] = col[base + 2 * s + 1]
                 j += n_acc
                 step += n_acc
             if flag_m >= 0:
-                n_flagged[0] += 1
-                th = j / ns
+                stats[0] += 1
                 for l in range(m):
-                    df = loads[k + 1, l] - loads[k, l]
-                    fj[l] = loads[k, l] + df * th
-                    fdot[l] = df / dt_load
-                r = _event_step(r, zz, fj, fdot, h, step >= count_from, tb, Tay, E1r, E1i, P1r, P1i, ws, us, pc,
-                                xr_, xin, acc, contact_time, n_events, refine_all)
-                for s in range(S):
-                    a = ueq[r, s]
-                    b = 0.0
-                    for i in range(n2):
-                        a += cur[r, s, i] * zz[i] - cui[r, s, i] * zz[n2 + i]
-                        b += cvr[r, s, i] * zz[i] - cvi[r, s, i] * zz[n2 + i]
-                    u0[s] = a
-                    ud0[s] = b
+                    fs[l] = fk[l] + f1[l] * (j * h)
+                r = _event_step(r, z, zv, fs, f1, h, step >= count_from, tb, wk, contact_time, n_events,
+                                refine_all, stats)
+                _quasi_static(QS, Q0, r, fk, f1, qv, qd)
                 j += 1
                 step += 1
+                t = j * h
+                for g in range(0, 3 * S, 8):
+                    _rows8(CS, r, g, z, nx, ev, g)
+                for s in range(S):
+                    u0[s] = ev[3 * s] + qv[2 * s] + qd[2 * s] * t
+                    ud0[s] = ev[3 * s + 1] + qv[2 * s + 1] + qd[2 * s + 1] * t
                 if step % out_every == 0:
                     jout = step // out_every
                     if jout >= j0:
+                        for g in range(0, n_obs, 8):
+                            _rows8(CY, r, g, z, nx, yv, g)
                         for o in range(n_obs):
-                            y = yeq[r, o]
-                            for i in range(n2):
-                                y += cyr[r, o, i] * zz[i] - cyi[r, o, i] * zz[n2 + i]
+                            y = yv[o] + qv[S2 + o] + qd[S2 + o] * t
                             sumsq[o] += y * y
                             if store:
                                 y_out[jout - j0, o] = y
@@ -1329,16 +1370,19 @@ def _se_kernel(loads, ns, out_every, j0, h, MiK, MiD, MiB, Mib, bmat, gaps, kst,
 
 
 def exact_step_flops(n_modes: int, n_stops: int, n_loads: int, steps_per_block: int, n_obs: int = 0,
-                     steps_per_output: int = 1) -> float:
-    """Floating-point operations per integration step of the exact kernel's fast path.
+                     steps_per_output: int = 1, steps_per_interval: int | None = None) -> float:
+    """Floating-point operations per integration step of the exact kernel's fast path (useful
+    work, padding excluded).
 
-    Per step and stop, u and u' from the tabulated rows: 2 dot products of length 2 n_modes + 2 m
-    (2 flops per term). Per block of ``steps_per_block`` steps, the state advance: complex diagonal
-    (6 flops per mode) + 2 m x n_modes complex-by-real terms (4 flops each). Per output,
-    n_obs dot products of length 2 n_modes + 2 m. Event handling is excluded (timed separately).
+    Per step and stop, u and u' from the tabulated rows over [zeta; F_j; F'; 1]: 2 dot products of
+    length 2 n_modes + 2 m + 1 (2 flops per term). Per block of ``steps_per_block`` steps, the
+    diagonal advance (6 flops per mode). Per load interval (``steps_per_interval`` steps, default
+    the block), the slope update of the homogeneous state (4 flops per mode and load). Per output,
+    n_obs dot products of the same length. Event handling is excluded (timed separately).
     """
-    row = 2 * n_modes + 2 * n_loads
-    return (2 * n_stops * 2 * row + (6 * n_modes + 8 * n_loads * n_modes) / steps_per_block
+    spi = steps_per_block if steps_per_interval is None else steps_per_interval
+    row = 2 * n_modes + 2 * n_loads + 1
+    return (2 * n_stops * 2 * row + 6 * n_modes / steps_per_block + 4 * n_modes * n_loads / spi
             + n_obs * 2 * row / steps_per_output)
 
 
@@ -1480,13 +1524,14 @@ def simulate(M, D, K, stops, B, C, loads, dt_load, *, output_dt=3e-3, dt=None, m
             tb = tab_cache[tkey]
             w = tb.omega_max
             mcoef = _MARGIN_SAFETY * (w * h) ** 4 / (384.0 * w)
-            nflag = np.zeros(1, dtype=np.int64)
-            _exact_kernel(L[r], dt_load, h, ns, tb.nb, out_every, j0, tb.Em.real.copy(), tb.Em.imag.copy(),
-                          tb.PWr, tb.PWi, tb.Urow, tb.Yrow, tb.Tay, tb.cy.real.copy(), tb.cy.imag.copy(), tb.yeq,
-                          tb.kernel_tuple(mcoef), y_buf, sumsq, ct, nev, bool(_refine_all), nflag)
+            stats = np.zeros(8, dtype=np.int64)
+            _exact_kernel(L[r], dt_load, h, ns, tb.nb, out_every, j0, tb.kernel_tuple(mcoef), y_buf, sumsq, ct, nev,
+                          bool(_refine_all), stats)
             if _diagnostics is not None:
-                _diagnostics.append({"flagged_steps": int(nflag[0]), "steps": n_steps_total,
-                                     "cond_V": tb.cond_max, "half_modes": tb.half, "n_modes": tb.lam.shape[1]})
+                _diagnostics.append({"flagged_steps": int(stats[0]), "switches": int(stats[1]),
+                                     "taylor_builds": int(stats[2]), "exact_segments": int(stats[3]),
+                                     "rescans": int(stats[4]), "steps": n_steps_total, "cond_V": tb.cond_max(),
+                                     "half_modes": tb.half, "n_modes": tb.lam.shape[1]})
         else:
             Minv = np.linalg.inv(Mr)
             bmat = np.array([s.vector for s in stops_nl]).reshape(len(stops_nl), N)
