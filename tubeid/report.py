@@ -391,6 +391,8 @@ def _stage_load_r(store, out, n_bootstrap, seed, sensor, written, notes) -> dict
     for name, m in maps.items():
         details[f"r_opt_{name}"] = {"note": _DISTANCES[name], "r_opt": m.attrs["r_opt"], "r_opt_std": m.attrs["r_opt_std"],
                                     "r_opt_corr": m.attrs["r_opt_corr"], "at_boundary": bool(m.attrs["r_opt_at_boundary"])}
+    if "bands" in maps:  # goodness of fit: about 1 if the experiment is a draw of the model class
+        details["r_opt_bands"]["mean_squared_standardised_residual"] = float(maps["bands"].D_relative.min())
     _plot_d_map(maps[used], out, written, _targets(store))
     return {"quantities": quantities, "details": details}
 
@@ -579,6 +581,14 @@ def _markdown(summary: dict) -> str:
             if rr is not None and name != lr.get("distance", "paper"):
                 lines.append(f"- With {_DISTANCES[name]}: r_opt = ({', '.join(_fmt(v, 4) for v in rr['r_opt'])}) ± "
                              f"({', '.join(_fmt(v, 2) for v in rr['r_opt_std'])}).")
+        msr = (lr.get("r_opt_bands") or {}).get("mean_squared_standardised_residual")
+        if msr is not None:
+            verdict = ("no sign of model-form error (values of a few come from the grid's discreteness and the "
+                       "δ used)" if msr < 10 else
+                       "the model does not explain the experiment within its own scatter (model-form error): "
+                       "r from the band levels is then not meaningful")
+            lines.append(f"- Log band levels at the grid minimum: mean squared standardised residual {_fmt(msr, 3)} "
+                         f"(about 1 for a draw of the model class at a grid point): {verdict}.")
     if "load_delta_f" in det:
         lines.append(f"- J_s,exp = {_fmt(det['load_delta_f']['J_s_exp'], 6)} {det['load_delta_f']['J_s_units']} "
                      f"({det['load_delta_f']['J_s_exp_source']}).")
