@@ -2,11 +2,15 @@
 
 For every (effect, record): one record of the reference model (``paper-reference``, the paper's 7
 coherent forces, sensors on the centre tube at x = 2, 6, 10 m) with that effect switched on (or
-none), diagnosed with ``paper-reference`` not declaring it (distributed load, δ = 0.2, δ_F = 0.04).
-Stored: the effect named (index in ``NAMES``), whether it is the right one, the held-out error
-before and after (decades). The record's seed comes from the point's generator, so every record
-differs and the store does not depend on workers or blocks.
-Run: ``tubeid run studies/diagnose_effects.py`` (about 1–3 min per point on one core).
+none), diagnosed with ``paper-reference`` not declaring it (distributed load, δ = 0.2, δ_F
+identified by maximum likelihood of J_s — the default — or ``--set delta_f=paper`` for the paper's
+0.04 imposed). Stored: the effect named (index in ``NAMES``), whether it is the right one, the
+held-out error before and after (decades), δ_F used and whether its likelihood was flat. The
+record's seed comes from the point's generator, so every record differs and the store does not
+depend on workers or blocks. Each point's diagnosis runs its own pipeline in this task's process
+(``workers=0``, a temporary store): the runner parallelises over the points.
+Run: ``tubeid run studies/diagnose_effects.py`` (several minutes per point on one core with δ_F
+identified: its Monte Carlo builds the solver tables of a random K_B for every realisation and δ_F).
 """
 
 import numpy as np
@@ -46,13 +50,16 @@ def record(effects, duration, seed):
 
 
 @pointwise
-def check(point, rng, *, duration, realisations):
+def check(point, rng, *, duration, realisations, delta_f):
     seed = int(rng.integers(2**31))
     data = record(EFFECTS[point["effect"]], duration, seed)
-    settings = DiagnoseSettings(realisations=realisations, fit_realisations=4, grid_points=4, seed=seed % 1000)
-    rep = diagnose(data, "paper-reference", settings).report
+    settings = DiagnoseSettings(realisations=realisations, fit_realisations=4, grid_points=4, seed=seed % 1000,
+                                load_dispersion=0.04 if delta_f == "paper" else None)
+    rep = diagnose(data, "paper-reference", settings, workers=0).report
+    load = rep["load"]
     return {"named": NAMES.index(rep["effect"]), "right": float(rep["effect"] == point["effect"]),
-            "error_before": rep["error_before"], "error_after": rep["error_after"]}
+            "error_before": rep["error_before"], "error_after": rep["error_after"], "delta_F": load["delta_F"],
+            "delta_F_flat": np.nan if load["delta_F_given"] else float(load["delta_F_flat"])}
 
 
 study = Study(
@@ -67,8 +74,12 @@ study = Study(
         "right": Output(units="1", long_name="1 if the effect named is the one switched on"),
         "error_before": Output(units="decades", long_name="held-out error before"),
         "error_after": Output(units="decades", long_name="held-out error after"),
+        "delta_F": Output(units="1", long_name="load dispersion of the band (identified or given)"),
+        "delta_F_flat": Output(units="1", long_name="1 if the likelihood of delta_F was flat (NaN: given)"),
     },
     units={"effect": "", "record": "1"},
     parameters={"duration": Parameter(128.0, bounds=(16.0, 2000.0), units="s", doc="record length"),
-                "realisations": Parameter(32, bounds=(4, 400), doc="band realisations")},
+                "realisations": Parameter(32, bounds=(4, 400), doc="band realisations"),
+                "delta_f": Parameter("identified", choices=("identified", "paper"),
+                                     doc="delta_F identified by maximum likelihood, or the paper's 0.04 imposed")},
 )

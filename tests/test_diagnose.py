@@ -14,7 +14,8 @@ against a null of ≈ 0.08), which would hide every effect; that is the model un
 paper's δ covers, not a missing effect.
 
 Every diagnosis runs as a runner pipeline; ``workers=0`` (in this process) everywhere but in one
-test, which checks that a real 2-worker LocalCluster gives the same store and report.
+test, which resumes an interrupted diagnosis on a real 2-worker LocalCluster and checks that the
+store and report equal the uninterrupted in-process run's.
 """
 
 import importlib
@@ -46,9 +47,11 @@ XS = (2.0, 6.0, 10.0)
 # ~0.8 s of table building for the reference model); the band then comes from δ_F and the
 # estimator scatter. δ_F is imposed (the paper's 0.04): with 2 fitting blocks J_s has only 2
 # observations and a small Monte Carlo, so its likelihood says little (its identification is
-# tested on data made for it, below). The slow full-size runs keep δ = 0.2 and identify δ_F.
+# tested on data made for it, below). The coarse grid of r is the start alone (its level offset
+# places the fine grid; the control runs the 3-point coarse grid). The slow full-size runs keep
+# δ = 0.2 and identify δ_F.
 SMALL = DiagnoseSettings(realisations=12, fit_realisations=2, grid_points=3, delta=0.0, load_dispersion=0.04,
-                         r_fine_points=3)
+                         r_points=1, r_fine_points=3)
 FULL = DiagnoseSettings(realisations=32, fit_realisations=4, grid_points=4, seed=1)
 # The control runs the default path (δ_F identified) at small sizes, through the command line.
 CONTROL_SET = {"realisations": 12, "delta": 0.0, "fit_realisations": 2, "r_fine_points": 3,
@@ -291,7 +294,8 @@ def test_control_is_none_through_the_command_line(control):
     assert len(load["J_s_observed"]) == 2 and max(load["delta_F_likelihood"]["likelihood"]) == 1.0
     assert isinstance(load["delta_F_flat"], bool) and isinstance(load["delta_F_identified"], bool)
     stages = rep["runner"]["stages"]
-    assert stages["load_delta_f"]["computed"] == 4 and stages["band"]["computed"] == 6  # 8 and 12 realisations by 2
+    # δ = 0: the realisations are cut into 2 tasks (one solver table each): 8 and 12 realisations by 4 and 6
+    assert stages["load_delta_f"]["computed"] == 2 and stages["band"]["computed"] == 2
     assert stages["load_r"]["computed"] == 3 and stages["load_r_fine"]["computed"] == 3
     for name in ("residual.png", "delta_f.png"):
         assert (out / name).stat().st_size > 10_000
@@ -299,22 +303,14 @@ def test_control_is_none_through_the_command_line(control):
     assert "none" in md and "δ_F" in md
 
 
-def test_two_workers_give_the_in_process_result(control, tmp_path):
-    """The same diagnosis on a real embedded LocalCluster of 2 worker processes (each rebuilds the
-    stages from the pipeline source and reads the record from the output directory): the stored
-    results are byte-identical and the report equal."""
-    out = tmp_path / "diag2"
-    d = diagnose(control["path"], "paper-reference", DiagnoseSettings(**CONTROL_SET), out=out, workers=2)
-    assert d.report["runner"]["workers"] == 2
-    _same_report(d.report, control["report"])
-    assert _chunks(out / "diagnose.zarr") == _chunks(control["out"] / "diagnose.zarr")
-
-
-def test_an_interrupted_diagnosis_resumes_identically_and_other_data_are_refused(control, tmp_path, monkeypatch):
-    """Interrupted during the δ_F Monte Carlo (the third of its four tasks raises), the same call
-    resumes: only the missing tasks are computed and store and report equal the uninterrupted
-    run's. The same record from another path reuses the store (nothing computed); a changed record,
-    settings or model are refused before any work, leaving the store as it was."""
+def test_interrupted_in_process_resumed_on_two_workers_equals_the_uninterrupted_run(control, tmp_path, monkeypatch):
+    """Interrupted during the δ_F Monte Carlo (the second of its two tasks raises), the same call
+    resumes, here on a real embedded LocalCluster of 2 worker processes (each rebuilds the stages
+    from the pipeline source and reads the record from the output directory): only the missing
+    tasks are computed, and the stored results are byte-identical to, and the report equal to, the
+    uninterrupted in-process run's. The same record from another path reuses the store (nothing
+    computed); a changed record, other settings or another model are refused before any work,
+    leaving the store as it was."""
     dg = importlib.import_module("tubeid.measured.diagnose")  # the module (the package re-exports the function)
 
     path = shutil.copy(control["path"], tmp_path / "control.nc")
@@ -323,9 +319,9 @@ def test_an_interrupted_diagnosis_resumes_identically_and_other_data_are_refused
     real, calls = dg.simulate_series, []
 
     def failing(*args, **kw):
-        if kw.get("load_dispersion", 0.0) > 0 and np.size(args[5]) == 2:  # a δ_F task (2 realisations)
+        if kw.get("load_dispersion", 0.0) > 0 and np.size(args[5]) == 4:  # a δ_F task (4 realisations)
             calls.append(1)
-            if len(calls) == 2 * len(CONTROL_SET["delta_f_grid"]) + 1:
+            if len(calls) == len(CONTROL_SET["delta_f_grid"]) + 1:  # the second task's first δ_F
                 raise RuntimeError("interrupted on purpose")
         return real(*args, **kw)
 
@@ -333,10 +329,12 @@ def test_an_interrupted_diagnosis_resumes_identically_and_other_data_are_refused
     with pytest.raises(RuntimeError, match="on purpose"):
         diagnose(path, "paper-reference", settings, out=out)
     monkeypatch.setattr(dg, "simulate_series", real)
-    d = diagnose(path, "paper-reference", settings, out=out)
+    d = diagnose(path, "paper-reference", settings, out=out, workers=2)
+    assert d.report["runner"]["workers"] == 2
     st = d.report["runner"]["stages"]
-    assert st["load_r"] == {**st["load_r"], "computed": 0, "reused": 3}
-    assert (st["load_delta_f"]["computed"], st["load_delta_f"]["reused"]) == (2, 2)
+    assert (st["load_r"]["computed"], st["load_r"]["reused"]) == (0, 3)
+    assert (st["load_delta_f"]["computed"], st["load_delta_f"]["reused"]) == (1, 1)
+    assert (st["band"]["computed"], st["band"]["reused"]) == (2, 0)
     _same_report(d.report, control["report"])
     store = out / "diagnose.zarr"
     assert _chunks(store) == _chunks(control["out"] / "diagnose.zarr")
@@ -384,7 +382,7 @@ def test_effect_is_named_and_error_drops_small(kind):
     _check(rep, kind)
     _check_parameters(rep, kind)
     st = rep["runner"]["stages"]
-    assert st["candidates"]["computed"] >= SMALL.grid_points and st["band_after"]["computed"] == 6
+    assert st["candidates"]["computed"] >= SMALL.grid_points and st["band_after"]["computed"] == 2
 
 
 # ------------------------------------------------------------------------------------- δ_F

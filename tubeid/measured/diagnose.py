@@ -561,9 +561,12 @@ def delta_f_identification(samples: xr.DataArray, observations, m: int, settings
         if flat:
             note = ("the likelihood is flat: it varies by less than a factor e^2 over the grid, so these data do "
                     "not identify δ_F (the value used is the argmax, with no precision)")
+        elif rel[0] > -FLAT_LOG_RATIO and rel[-1] > -FLAT_LOG_RATIO:
+            note = ("neither end of the grid is excluded (likelihood within a factor e^2 of the maximum at both): "
+                    "these data do not identify δ_F")
         elif not identified:
-            side = "upper" if rel[0] > -FLAT_LOG_RATIO else "lower"
-            note = f"only a{'n' if side == 'upper' else ''} {side} bound: the other end of the grid is not excluded"
+            note = ("only an upper bound: small δ_F are not excluded" if rel[0] > -FLAT_LOG_RATIO
+                    else "only a lower bound: large δ_F are not excluded")
     std_mc = lik.attrs["argmax_std"]
     std_obs = None
     if obs.size > 1 and settings.n_bootstrap > 1 and np.any(np.isfinite(ll)):

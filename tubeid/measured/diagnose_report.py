@@ -71,13 +71,13 @@ def markdown(rep: dict) -> str:
                   for k, v in rep["parameters"].items()]
         lines.append("")
     load = rep["load"]
-    r_b = ", ".join(f"{v:.4g}" for v in load["r_before"])
-    r_a = ", ".join(f"{v:.4g}" for v in load["r_after"])
+    r_b = ", ".join(f"{v:.4g} {u}" for v, u in zip(load["r_before"], load["units"]))
+    r_a = ", ".join(f"{v:.4g} {u}" for v, u in zip(load["r_after"], load["units"]))
     lines += [f"- error before: {rep['error_before']:.4g} decades; after: {rep['error_after']:.4g} decades",
               f"- metric: {rep['metric']}",
               f"- explained within the band before (error <= null threshold {rep['null_threshold']:.4g}): {rep['explained_before']}; "
               f"after (null threshold {rep['null_threshold_after']:.4g}): {rep['explained_after']}",
-              f"- load ({load['model']}): r before ({r_b}), after ({r_a}) {load['units']}; δ = {load['delta']} (given)",
+              f"- load ({load['model']}): r before ({r_b}), after ({r_a}) ({load['r_trials']} trials before); δ = {load['delta']} (given)",
               *_delta_f_lines(load), "",
               "| candidate | signature score | held-out error | penalised |", "|---|---|---|---|"]
     for c in rep["candidates"]:

@@ -21,10 +21,11 @@ such action removes, in [0, 1]:
   model's realisations (z-scores), min(−z_rms, −z_kurtosis)/10 clipped to [0, 1] — a stop
   near a sensor clips its amplitude distribution.
 
-**Fits** (:func:`fit_candidate`): a small trial grid per effect around the estimate of its
-signature, each trial simulated with the mean model on the fitting blocks (common random numbers)
-and scored by the level-free log-spectral distance (the mean log offset removed, i.e. the load
-level profiled out as for a linear model). Fixed by assumption, not fitted: a tone's location
+**Fits** (the ``candidates`` stage of :mod:`tubeid.measured.pipeline`, one runner task per
+trial): a small trial grid per effect around the estimate of its signature (:func:`candidate_grid`),
+each trial simulated with the mean model on the fitting blocks (common random numbers) and scored
+by the level-free log-spectral distance (the mean log offset removed, i.e. the load level
+profiled out as for a linear model). Fixed by assumption, not fitted: a tone's location
 (``load_x`` on the non-linear tube), an added stop's stiffness (the declared stop's), the tube of
 added mass and damping (the tube carrying the sensors).
 """

@@ -45,6 +45,13 @@ R_UNITS = {"r1": "N^2/Hz", "r2": "(N m)^2/Hz"}
 STATISTICS = ["rms", "skewness", "excess_kurtosis"]
 
 
+def _realisation_chunk(ctx, n: int) -> int:
+    """Realisations per task. With δ = 0 every realisation of a call shares one set of solver
+    tables (≈ 60 % of a short record's cost): two tasks, one table each; with δ > 0 each
+    realisation has its own random K_B, and tasks of 2 balance the workers."""
+    return 2 if ctx.settings.delta > 0 else max(2, -(-n // 2))
+
+
 def _ctx(p: dict):
     return dg.load_context(p["data"], p["data_sha256"], p["model"], p["settings"])
 
@@ -186,7 +193,8 @@ def load_delta_f(results, *, data, data_sha256, model, settings):
         description=f"J_s of one block's length ({ctx.meas.block_samples * ctx.meas.dt:.4g} s) of the stochastic model at "
                     f"delta = {s.delta}, r = {r}, over a delta_F grid (common random numbers across delta_F)",
         axes={"delta_F": grid, "realisation": range(s.delta_f_realisations)},
-        chunks={"delta_F": len(grid), "realisation": 2}, seed_axes=("realisation",), task=delta_f_block,
+        chunks={"delta_F": len(grid), "realisation": _realisation_chunk(ctx, s.delta_f_realisations)},
+        seed_axes=("realisation",), task=delta_f_block,
         outputs={"J_s": Output(units=JS_UNITS, long_name="J_s = integral of ||S_Z(w)||_F^2 over the band")},
         units={"delta_F": "1"}, parameters={**base, "r": r}, summarize=summarize_delta_f)
 
@@ -238,7 +246,8 @@ def _band_study(name, base, ctx, r, effects, dF, what) -> Study:
     return Study(
         name=name, seed=SEED,
         description=f"{what}: confidence band, stochastic model at delta = {s.delta}, delta_F = {dF:.4g}, r = {list(r)}",
-        axes={"realisation": range(s.realisations)}, chunks={"realisation": 2}, task=band_block,
+        axes={"realisation": range(s.realisations)}, chunks={"realisation": _realisation_chunk(ctx, s.realisations)},
+        task=band_block,
         coords={**_spectral_coords(ctx), "statistic": STATISTICS}, outputs=_band_outputs(), units={"frequency": "Hz"},
         parameters={**base, "r": [float(v) for v in r], "effects": effects, "load_dispersion": float(dF)},
         summarize=summarize_band)
@@ -369,7 +378,8 @@ def candidate_bands(results, *, data, data_sha256, model, settings):
     return Study(
         name="candidate_bands", seed=SEED,
         description=f"confidence bands of the best trial of {names} at delta_F = {dF:.4g} (common random numbers across candidates)",
-        axes={"candidate": names, "realisation": range(s.realisations)}, chunks={"candidate": 1, "realisation": 2},
+        axes={"candidate": names, "realisation": range(s.realisations)},
+        chunks={"candidate": 1, "realisation": _realisation_chunk(ctx, s.realisations)},
         seed_axes=("realisation",), task=candidate_band_block,
         coords={**_spectral_coords(ctx), "statistic": STATISTICS}, outputs=_band_outputs(), units={"frequency": "Hz"},
         parameters={**base, "names": names, "r": [list(dg.scaled_r(r0, best[n][1])) for n in names],
