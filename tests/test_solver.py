@@ -323,17 +323,18 @@ def test_tabulated_taylor_polynomial_matches_exact_propagation():
     tb = so._build_tables(M, D, K, (stop,), B, C, h, ns, DT_LOAD)
     rng = rng_for(4, "taylor-table")
     n2, n2p, m = tb.lam.shape[1], tb.n2p, B.shape[1]
+    nx, nxl = 2 * n2p, tb.UC.shape[2]
     for r in range(tb.lam.shape[0]):
-        z0 = np.zeros(2 * n2p)
-        z0[:n2], z0[n2p:n2p + n2] = rng.normal(size=(2, n2)) * 1e-6
+        x0 = np.zeros(nxl)  # [zeta; f; f'; 1] at the segment start
+        x0[:n2], x0[n2p:n2p + n2] = rng.normal(size=(2, n2)) * 1e-6
         f0, fdot = rng.normal(size=m), rng.normal(size=m) / DT_LOAD
-        qv, qd = np.zeros(2 + C.shape[0]), np.zeros(2 + C.shape[0])
-        so._quasi_static(tb.QS, tb.Q0, r, f0, fdot, qv, qd)
+        so._set_load(x0, nx, f0, fdot, 0.0)
         pc = np.zeros((1, 3, so._TAYLOR_K + 1))
         kord = so._taylor_order(np.abs(tb.lam[r]).max() * h)
-        so._taylor_u(tb.Tay, r, kord, z0, qv, qd, np.zeros(so._TAYLOR_KP), pc)
-        zt = np.zeros(2 * n2p)
-        ex = (tb.lr, tb.li, tb.Fr, tb.Fi, tb.CS, r, h, z0.reshape(2, n2p), zt, zt.reshape(2, n2p), np.zeros(8), qv, qd)
+        so._taylor_u(tb.Tay, r, kord, x0, np.zeros(so._TAYLOR_KP), pc)
+        xl = np.zeros(nxl)
+        ex = (tb.lr, tb.li, tb.Fr, tb.Fi, tb.CS, r, h, x0[:nx].reshape(2, n2p), xl, xl[:nx].reshape(2, n2p),
+              np.zeros(4), f0, fdot, 0.0)
         for tau in (0.0, 0.37 * h, h):
             a, b = np.zeros((7, 1)), np.zeros((7, 1))
             so._eval_u(tau, kord, pc, ex, a)
@@ -345,7 +346,7 @@ def test_tabulated_taylor_polynomial_matches_exact_propagation():
                 assert abs(a[row, 0] - b[row, 0]) <= 1e-9 * scale, (r, tau, row, a[row, 0], b[row, 0])
             # the propagated homogeneous state itself: e^{lam tau} z to 1e-14 relative (the table
             # times a degree-9 series: truncation < 1e-19, the rest is round-off)
-            zc = z0[:n2] + 1j * z0[n2p:n2p + n2]
+            zc = x0[:n2] + 1j * x0[n2p:n2p + n2]
             want = np.exp(tb.lam[r] * tau) * zc
-            got = zt[:n2] + 1j * zt[n2p:n2p + n2]
+            got = xl[:n2] + 1j * xl[n2p:n2p + n2]
             assert np.max(np.abs(got - want)) <= 1e-14 * np.max(np.abs(want))

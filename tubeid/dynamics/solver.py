@@ -367,6 +367,19 @@ def _pad8(n):
     return -(-n // 8) * 8
 
 
+def _pad4(n):
+    return -(-n // 4) * 4
+
+
+def _order_py(x):
+    """Python twin of _taylor_order (same rule)."""
+    K, t = 3, x**4 / 24.0
+    while t > _TAYLOR_TOL and K < _TAYLOR_K:
+        K += 1
+        t = t * x / (K + 1)
+    return K
+
+
 def _stack(cmat, n2p):
     """[Re c, -Im c] padded to 2 n2p on the last axis: Re(c . z) = row . [Re z; Im z] (padded)."""
     n2 = cmat.shape[-1]
@@ -392,25 +405,25 @@ class _Tables:
     lr: np.ndarray  # (nr, n2p) real part (0 on padded modes)
     li: np.ndarray  # (nr, n2p)
     lmax: np.ndarray  # (nr,) max |lam|
+    kord_h: np.ndarray  # (nr,) int64 Taylor order of a whole sub-step (0: exact propagation)
     Er: np.ndarray  # (nr, nb+1, n2p) Re e^{lam mm h}
     Ei: np.ndarray  # (nr, nb+1, n2p)
     Fr: np.ndarray  # (nr, _FINE+1, n2p) Re e^{lam k h/_FINE}
     Fi: np.ndarray  # (nr, _FINE+1, n2p)
-    betaS: np.ndarray  # (nr, m, 2 n2p) [Re beta; Im beta] per load (load-interval update)
-    zeta0: np.ndarray  # (nr, m, 2, 2 n2p) zeta of -z_p for a unit load (0) and a unit slope (1)
-    UC: np.ndarray  # (nr, ncp, nxl) fast-path block rows over xl = [zeta; f_j; f'; 1; 0...] (f_j: load at the
-    #                 block start): row (mm-1) 2S + 2s + d is u_s (d = 0) or u'_s (d = 1) at mm h (quasi-static part included)
-    YC: np.ndarray  # (nr, (nb+1) nobp, nxl) output rows at mm h over xl: row mm nobp + o (nobp = n_obs padded to 8)
-    CS: np.ndarray  # (nr, 3 S padded to 8, 2 n2p) rows 3s, 3s+1, 3s+2: u, u', u'' (homogeneous part)
-    CY: np.ndarray  # (nr, nobp, 2 n2p) y rows
-    Tay: np.ndarray  # (nr, S _TAYLOR_KP, 2 n2p) row s KP + k: u_s^(k)/k! (homogeneous part)
-    QS: np.ndarray  # (nr, 2 S + n_obs, 2, m): [au, bu], [av, bv] per stop, then [ay, by] per output
-    Q0: np.ndarray  # (nr, 2 S + n_obs) constants: ueq, 0, yeq
+    betaT: np.ndarray  # (nr, m padded to 8, nx) [Re beta; Im beta] per load (load-interval update)
+    zeta0: np.ndarray  # (nr, m, 2, nx) zeta of -z_p for a unit load (0) and a unit slope (1)
+    # Row tables over the extended input xl = [zeta; f; f'; 1; 0...] (nxl = nx + 2 m + 1 padded to 8),
+    # f the load at the reference time of the row; rows include the quasi-static part:
+    UC: np.ndarray  # (nr, ncp, nxl) fast path, f = load at the block start: row (mm-1) 2S + 2s + d is
+    #                 u_s (d = 0) or u'_s (d = 1) at mm h
+    YC: np.ndarray  # (nr, (nb+1) nobp, nxl) outputs at mm h: row mm nobp + o (nobp = n_obs padded to 8)
+    CS: np.ndarray  # (nr, 3 S padded to 8, nxl) rows 3s, 3s+1, 3s+2: u, u', u'' now
+    CY: np.ndarray  # (nr, nobp, nxl) outputs now
+    Tay: np.ndarray  # (nr, S _TAYLOR_KP, nxl) row s KP + k: u_s^(k)(0)/k!
     codes: np.ndarray  # (nr, S) int64
     trans_id: np.ndarray  # (nr, S, 2) int64 (-1: none)
     trans_to: np.ndarray  # (nt,) int64
-    TF: np.ndarray  # (nt, 2 n2p, 2 n2p + mp) zeta_new = TF [zeta_old; f; f'; 0] + c
-    c: np.ndarray  # (nt, 2 n2p)
+    TF: np.ndarray  # (nt, nx, nxl) zeta_new = TF [zeta_old; f; f'; 1] at the switching instant
     gaps: np.ndarray  # (S,)
     nb: int
     n2p: int
@@ -421,11 +434,13 @@ class _Tables:
     def cond_max(self):
         return max(float(np.linalg.cond(v)) for v in self.V)
 
-    def kernel_tuple(self, mcoef):
-        """Arrays of the exact kernels, in the order they unpack them."""
-        return (self.lr, self.li, self.lmax, self.Er, self.Ei, self.Fr, self.Fi, self.betaS, self.zeta0,
-                self.UC, self.YC, self.CS, self.CY, self.Tay, self.QS, self.Q0, self.codes,
-                self.trans_id, self.trans_to, self.TF, self.c, self.gaps, float(mcoef))
+    def kernel_tuples(self, mcoef):
+        """(fast path, event path) arrays, in the order _exact_kernel and _event_step unpack them."""
+        fast = (self.Er, self.Ei, self.betaT, self.zeta0, self.UC, self.YC, self.CY, self.codes, self.gaps,
+                float(mcoef))
+        event = (self.lr, self.li, self.lmax, self.kord_h, self.Fr, self.Fi, self.CS, self.Tay, self.TF, self.codes,
+                 self.trans_id, self.trans_to, self.gaps, float(mcoef))
+        return fast, event
 
 
 def _build_tables(M, D, K, stops, B, C, h, ns, dt_load):
@@ -500,14 +515,7 @@ def _build_tables(M, D, K, stops, B, C, h, ns, dt_load):
     Em = np.exp(lam[:, None, :] * (h * np.arange(nb + 1))[None, :, None])  # (nr, nb+1, n2)
     Ef = np.exp(lam[:, None, :] * (h * np.arange(_FINE + 1) / _FINE)[None, :, None])
     # fast-path block rows: u_s, u'_s at mm h (homogeneous part) from zeta at the block start
-    nobp = _pad8(n_obs)
-    CY = np.zeros((nr, nobp, 2 * n2p))
-    CY[:, :n_obs] = _stack(cy, n2p)
-    CS = np.zeros((nr, _pad8(3 * S), 2 * n2p))
-    CS[:, 0:3 * S:3] = _stack(cu, n2p)
-    CS[:, 1:3 * S:3] = _stack(cv, n2p)
-    CS[:, 2:3 * S:3] = _stack(cv * lam[:, None, :], n2p)
-    # quasi-static rows: Re(c alpha) . f + Re(c beta) . f'
+    # quasi-static coefficients: Re(c alpha) . f + Re(c beta) . f' (+ the equilibrium value)
     qs = np.zeros((nr, 2 * S + n_obs, 2, m))
     Q0 = np.zeros((nr, 2 * S + n_obs))
     for r in range(nr):
@@ -518,10 +526,45 @@ def _build_tables(M, D, K, stops, B, C, h, ns, dt_load):
         for o in range(n_obs):
             qs[r, 2 * S + o] = [(cy[r, o] @ alpha[r]).real, (cy[r, o] @ beta[r]).real]
             Q0[r, 2 * S + o] = yeq[r, o]
-    # fast-path rows over xl = [zeta; f_j; f'; 1]: homogeneous part, then the quasi-static part
-    # u_qs(mm h) = ueq + a . f_j + (a mm h + b) . f'
+    # every row table acts on the extended input xl = [zeta; f; f'; 1; 0...] (f: load at the
+    # reference time of the row): homogeneous part, then the quasi-static part a . f + b . f' + c
     nx = 2 * n2p
     nxl = nx + _pad8(2 * m + 1)
+    nobp = _pad4(n_obs)
+
+    def xrows(H, A, Bc, c0):  # H (nr, K, n2) complex; A, Bc (nr, K, m); c0 (nr, K) -> (nr, K, nxl)
+        out = np.zeros(H.shape[:2] + (nxl,))
+        out[..., :nx] = _stack(H, n2p)
+        out[..., nx:nx + m] = A
+        out[..., nx + m:nx + 2 * m] = Bc
+        out[..., nx + 2 * m] = c0
+        return out
+
+    zm = np.zeros((nr, m))
+    z1 = np.zeros(nr)
+    # u_s, u'_s, u''_s (rows 3s, 3s+1, 3s+2): u'' = Re(cv lam zh) + av . f'
+    CS = np.zeros((nr, _pad4(3 * S), nxl))
+    for s_ in range(S):
+        au, bu, av, bv = qs[:, 2 * s_, 0], qs[:, 2 * s_, 1], qs[:, 2 * s_ + 1, 0], qs[:, 2 * s_ + 1, 1]
+        CS[:, 3 * s_:3 * s_ + 3] = xrows(np.stack([cu[:, s_], cv[:, s_], cv[:, s_] * lam], axis=1),
+                                         np.stack([au, av, zm], axis=1), np.stack([bu, bv, av], axis=1),
+                                         np.stack([Q0[:, 2 * s_], z1, z1], axis=1))
+    CY = np.zeros((nr, nobp, nxl))
+    CY[:, :n_obs] = xrows(cy, qs[:, 2 * S:, 0], qs[:, 2 * S:, 1], Q0[:, 2 * S:])
+    # Taylor rows u_s^(k)/k! about the segment start: the quasi-static part enters k = 0 and 1
+    fact = np.array([math.factorial(k) for k in range(_TAYLOR_KP)], dtype=float)
+    lpow = lam[:, None, :] ** np.arange(_TAYLOR_KP)[None, :, None] / fact[None, :, None]  # (nr, KP, n2)
+    Tay = np.zeros((nr, S, _TAYLOR_KP, nxl))
+    for s_ in range(S):
+        A = np.zeros((nr, _TAYLOR_KP, m))
+        Bc = np.zeros((nr, _TAYLOR_KP, m))
+        c0 = np.zeros((nr, _TAYLOR_KP))
+        A[:, 0] = qs[:, 2 * s_, 0]
+        Bc[:, 0] = qs[:, 2 * s_, 1]
+        Bc[:, 1] = qs[:, 2 * s_, 0]
+        c0[:, 0] = Q0[:, 2 * s_]
+        Tay[:, s_] = xrows(cu[:, s_, None, :] * lpow, A, Bc, c0)
+    Tay = Tay.reshape(nr, S * _TAYLOR_KP, nxl)
     tmm = h * np.arange(nb + 1)
 
     def qs_rows(ab, const, mm):  # ab (nr, 2, m), const (nr,), mm (K,) -> (nr, K, nxl - nx)
@@ -551,13 +594,9 @@ def _build_tables(M, D, K, stops, B, C, h, ns, dt_load):
     zeta0[:, :, 0, n2p:n2p + n2] = -alpha.imag.transpose(0, 2, 1)
     zeta0[:, :, 1, :n2] = -beta.real.transpose(0, 2, 1)
     zeta0[:, :, 1, n2p:n2p + n2] = -beta.imag.transpose(0, 2, 1)
-    fact = np.array([math.factorial(k) for k in range(_TAYLOR_KP)], dtype=float)
-    lpow = lam[:, None, :] ** np.arange(_TAYLOR_KP)[None, :, None] / fact[None, :, None]  # (nr, KP, n2)
-    Tay = _stack(cu[:, :, None, :] * lpow[:, None, :, :], n2p).reshape(nr, S * _TAYLOR_KP, 2 * n2p)
     # transitions between regimes differing in one stop: zeta_new = T zeta_old + (T P_old - P_new) [f; f'] + c
-    mp = _pad8(2 * m)
     trans_id = -np.ones((nr, S, 2), dtype=np.int64)
-    trans_to, Ts, cs = [], [], []
+    trans_to, Ts = [], []
     index = {tuple(c): r for r, c in enumerate(codes)}
 
     def pmat(r):  # (2 n2, 2 m): [Re z_p; Im z_p] = P [f; f']
@@ -576,27 +615,26 @@ def _build_tables(M, D, K, stops, B, C, h, ns, dt_load):
                 Vi = Vinv_l[r2]
                 Tc = np.vstack([Vi.real @ X, Vi.imag @ X])
                 off = Vi @ (xeq_l[r] - xeq_l[r2])
-                TF = np.zeros((2 * n2p, 2 * n2p + mp))
+                TF = np.zeros((nx, nxl))
                 TF[np.ix_(idx, idx)] = Tc
-                TF[idx, 2 * n2p:2 * n2p + 2 * m] = Tc @ pmat(r) - pmat(r2)
-                cc = np.zeros(2 * n2p)
-                cc[idx] = np.concatenate([off.real, off.imag])
+                TF[idx, nx:nx + 2 * m] = Tc @ pmat(r) - pmat(r2)
+                TF[idx, nx + 2 * m] = np.concatenate([off.real, off.imag])
                 trans_id[r, s, d] = len(Ts)
                 trans_to.append(r2)
                 Ts.append(TF)
-                cs.append(cc)
     if not Ts:
-        Ts = [np.zeros((2 * n2p, 2 * n2p + mp))]
-        cs = [np.zeros(2 * n2p)]
+        Ts = [np.zeros((nx, nxl))]
         trans_to = [0]
+    betaT = np.zeros((nr, _pad8(m), nx))  # slope update rows (loads padded to 8)
+    betaT[:, :m] = -zeta0[:, :, 1]
     cont = np.ascontiguousarray
     return _Tables(
         lam=lam, lr=cont(padm(lam).real), li=cont(padm(lam).imag), lmax=np.abs(lam).max(axis=1),
+        kord_h=np.array([_order_py(x) if x <= _TAYLOR_LIMIT else 0 for x in np.abs(lam).max(axis=1) * h], np.int64),
         Er=cont(padm(Em).real), Ei=cont(padm(Em).imag), Fr=cont(padm(Ef).real), Fi=cont(padm(Ef).imag),
-        betaS=cont(-zeta0[:, :, 1]), zeta0=cont(zeta0), UC=cont(UC), YC=cont(YC), CS=cont(CS), CY=cont(CY),
-        Tay=cont(Tay), QS=cont(qs), Q0=cont(Q0),
-        codes=codes.astype(np.int64), trans_id=trans_id, trans_to=np.array(trans_to, dtype=np.int64),
-        TF=cont(np.array(Ts)), c=cont(np.array(cs)), gaps=np.array([s.gap for s in stops], float),
+        betaT=cont(betaT), zeta0=cont(zeta0), UC=cont(UC), YC=cont(YC), CS=cont(CS), CY=cont(CY),
+        Tay=cont(Tay), codes=codes.astype(np.int64), trans_id=trans_id, trans_to=np.array(trans_to, dtype=np.int64),
+        TF=cont(np.array(Ts)), gaps=np.array([s.gap for s in stops], float),
         nb=nb, n2p=n2p, omega_max=omega_max, V=[e[1] for e in eig], half=all_complex)
 
 # ----------------------------------------------------------------------------------------------
@@ -634,6 +672,22 @@ def _rows8(A, r, g, x, n, out, o):
     out[o + 5] = a5
     out[o + 6] = a6
     out[o + 7] = a7
+
+
+@numba.njit(cache=True, _nrt=False, fastmath=_FM)
+def _rows4(A, r, g, x, n, out, o):
+    """out[o:o+4] = A[r, g:g+4, :n] . x[:n] (small row groups: observables, u/u'/u'')."""
+    a0 = a1 = a2 = a3 = 0.0
+    for i in range(n):
+        xi = x[i]
+        a0 += A[r, g, i] * xi
+        a1 += A[r, g + 1, i] * xi
+        a2 += A[r, g + 2, i] * xi
+        a3 += A[r, g + 3, i] * xi
+    out[o] = a0
+    out[o + 1] = a1
+    out[o + 2] = a2
+    out[o + 3] = a3
 
 
 @numba.njit(cache=True, _nrt=False, fastmath=_FM)
@@ -699,27 +753,33 @@ def _block_advance(Er, Ei, r, n, z):
 
 
 @numba.njit(cache=True, _nrt=False, fastmath=_FM)
-def _slope_update(betaS, r, f1_old, f1_new, z):
-    """zeta += [Re; Im] beta (f'_old - f'_new): zh = z - z_p stays continuous when the slope changes."""
+def _slope_update(betaT, r, df, z):
+    """zeta += [Re; Im] beta df, df = f'_old - f'_new (padded to a multiple of 8 with zeros): zh =
+    z - z_p stays continuous when the load slope changes. Eight loads per pass over zeta."""
     n = z.shape[0]
-    for l in range(f1_old.shape[0]):
-        dl = f1_old[l] - f1_new[l]
+    for c in range(0, df.shape[0], 8):
+        d0 = df[c]
+        d1 = df[c + 1]
+        d2 = df[c + 2]
+        d3 = df[c + 3]
+        d4 = df[c + 4]
+        d5 = df[c + 5]
+        d6 = df[c + 6]
+        d7 = df[c + 7]
         for i in range(n):
-            z[i] += betaS[r, l, i] * dl
+            z[i] += (((betaT[r, c, i] * d0 + betaT[r, c + 1, i] * d1) + (betaT[r, c + 2, i] * d2 + betaT[r, c + 3, i] * d3))
+                     + ((betaT[r, c + 4, i] * d4 + betaT[r, c + 5, i] * d5)
+                        + (betaT[r, c + 6, i] * d6 + betaT[r, c + 7, i] * d7)))
 
 
-@numba.njit(cache=True, _nrt=False)
-def _quasi_static(QS, Q0, r, f, f1, val, slope):
-    """Quasi-static part of every observable in regime r: value ``val`` for the load f with slope
-    f1, and its rate ``slope`` (u_qs(t) = val + slope t)."""
-    for q in range(QS.shape[1]):
-        a = Q0[r, q]
-        b = 0.0
-        for l in range(f.shape[0]):
-            a += QS[r, q, 0, l] * f[l] + QS[r, q, 1, l] * f1[l]
-            b += QS[r, q, 0, l] * f1[l]
-        val[q] = a
-        slope[q] = b
+@numba.njit(cache=True, _nrt=False, inline="always")
+def _set_load(x, nx, fs, f1, t):
+    """Tail of an extended input xl = [zeta; f; f'; 1]: the load fs + f1 t and its slope."""
+    m = fs.shape[0]
+    for l in range(m):
+        x[nx + l] = fs[l] + f1[l] * t
+        x[nx + m + l] = f1[l]
+    x[nx + 2 * m] = 1.0
 
 
 @numba.njit(cache=True, inline="always")
@@ -796,13 +856,45 @@ def _quick_safe(code, g, ua, va, a, b, h, mg):
     return dmin - 0.15 * h * (abs(va) + abs(b)) >= mg
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def _cubic_first_root(d0, dd0, d1, dd1, sigma, smax):
-    """First s in (0, smax] where the cubic Hermite interpolant becomes negative (-1 if none):
-    sign change on 16 points, then 4 Illinois (regula falsi) steps in the bracket (a Newton guess)."""
+    """First s in (0, smax] where the cubic Hermite interpolant becomes negative (-1 if none); a
+    Newton guess. If the cubic is monotone on [0, smax] (no critical point inside) and changes
+    sign, its only root is refined from the secant guess by 4 safeguarded Newton steps; otherwise
+    the sign change is located on 16 points and refined by 4 Illinois steps."""
     a = 2 * d0 + sigma * dd0 - 2 * d1 + sigma * dd1
     b = -3 * d0 - 2 * sigma * dd0 + 3 * d1 - sigma * dd1
     c = sigma * dd0
+    vmax = ((a * smax + b) * smax + c) * smax + d0
+    # critical points of p(s) = a s^3 + b s^2 + c s + d0: 3a s^2 + 2b s + c = 0
+    qa = 3 * a
+    qb = 2 * b
+    inside = False
+    if abs(qa) > 1e-300:
+        disc = qb * qb - 4 * qa * c
+        if disc >= 0:
+            sq = math.sqrt(disc)
+            r1 = (-qb - sq) / (2 * qa)
+            r2 = (-qb + sq) / (2 * qa)
+            inside = (0 < r1 < smax) or (0 < r2 < smax)
+    elif abs(qb) > 0:
+        inside = 0 < -c / qb < smax
+    if not inside and d0 >= 0 > vmax:
+        lo = 0.0
+        hi = smax
+        s = smax * d0 / (d0 - vmax)
+        for _ in range(4):
+            v = ((a * s + b) * s + c) * s + d0
+            if v >= 0:
+                lo = s
+            else:
+                hi = s
+            dv = (qa * s + qb) * s + c
+            sn = s - v / dv if dv != 0 else 0.5 * (lo + hi)
+            if not (lo < sn < hi):
+                sn = 0.5 * (lo + hi)
+            s = sn
+        return s
     n = 16
     prev = d0
     for q in range(1, n + 1):
@@ -844,6 +936,10 @@ _TAYLOR_LIMIT = 1.6  # max |lam| sigma for the Taylor polynomial of u (order 24:
 _TAYLOR_TOL = 1e-18
 
 
+#: 1/k for the order rule (multiplications instead of divisions)
+_INV = np.array([0.0] + [1.0 / k for k in range(1, _TAYLOR_K + 2)])
+
+
 @numba.njit(cache=True, inline="always")
 def _taylor_order(x):
     """Smallest K in [3, _TAYLOR_K] with x^(K+1)/(K+1)! <= _TAYLOR_TOL (x = max|lam| sigma)."""
@@ -851,23 +947,21 @@ def _taylor_order(x):
     t = x * x * x * x / 24.0
     while t > _TAYLOR_TOL and K < _TAYLOR_K:
         K += 1
-        t = t * x / (K + 1)
+        t = t * x * _INV[K + 1]
     return K
 
 
 @numba.njit(cache=True, _nrt=False, fastmath=_FM)
-def _taylor_u(Tay, r, kord, z0, qv, qd, acc, pc):
+def _taylor_u(Tay, r, kord, x0, acc, pc):
     """pc[s, 0, k] = u_s^(k)(0)/k!, pc[s, 1, k] = u_s^(k+1)(0)/k!, pc[s, 2, k] = u_s^(k+2)(0)/k!,
-    k <= kord, about the segment start: tabulated rows Tay[r, s KP + k] over zeta (homogeneous
-    part) plus the quasi-static part qv[2s] + qd[2s] t."""
+    k <= kord, about the segment start: rows Tay[r, s KP + k] over x0 = [zeta; f; f'; 1] (load at
+    the segment start)."""
     S = pc.shape[0]
     n = kord + 1
-    nx = z0.shape[0]
+    nx = x0.shape[0]
     for s in range(S):
         for g in range(0, n, 8):
-            _rows8(Tay, r, s * _TAYLOR_KP + g, z0, nx, acc, g)
-        acc[0] += qv[2 * s]
-        acc[1] += qd[2 * s]
+            _rows8(Tay, r, s * _TAYLOR_KP + g, x0, nx, acc, g)
         for k in range(n):
             pc[s, 0, k] = acc[k]
         for k in range(n - 1):
@@ -880,15 +974,16 @@ def _taylor_u(Tay, r, kord, z0, qv, qd, acc, pc):
 
 
 @numba.njit(cache=True, _nrt=False)
-def _stop_values(CS, r, z, S, qv, qd, t, ev, us, row):
-    """us[row:row+3, s] = u, u', u'' of every stop at local time t from zeta z (rows CS, 3 per stop)."""
-    nx = z.shape[0]
-    for g in range(0, 3 * S, 8):
-        _rows8(CS, r, g, z, nx, ev, g)
+def _stop_values(CS, r, x, S, ev, us, row):
+    """us[row, s], us[row+1, s], us[row+2, s] = u, u', u'' of every stop from x = [zeta; f; f'; 1]
+    (rows CS, 3 per stop)."""
+    n = x.shape[0]
+    for g in range(0, 3 * S, 4):
+        _rows4(CS, r, g, x, n, ev, g)
     for s in range(S):
-        us[row, s] = ev[3 * s] + qv[2 * s] + qd[2 * s] * t
-        us[row + 1, s] = ev[3 * s + 1] + qv[2 * s + 1] + qd[2 * s + 1] * t
-        us[row + 2, s] = ev[3 * s + 2] + qd[2 * s + 1]
+        us[row, s] = ev[3 * s]
+        us[row + 1, s] = ev[3 * s + 1]
+        us[row + 2, s] = ev[3 * s + 2]
 
 
 @numba.njit(cache=True, inline="always")
@@ -910,10 +1005,12 @@ def _poly_u(tau, kord, pc, us):
 
 @numba.njit(cache=True, _nrt=False)
 def _exact_u(tau, ex, us):
-    """u, u', u'' of every stop at tau by exact propagation (ex = tables and segment state)."""
-    lr, li, Fr, Fi, CS, r, h, z0v, zt, ztv, ev, qv, qd = ex
-    _expmul(lr, li, Fr, Fi, r, h, tau, z0v, ztv)
-    _stop_values(CS, r, zt, us.shape[1], qv, qd, tau, ev, us, 0)
+    """u, u', u'' of every stop at tau by exact propagation from the segment start (ex: tables,
+    segment state z0v, scratch xl and its (2, n2p) view, load fs + f1 (t0 + tau))."""
+    lr, li, Fr, Fi, CS, r, h, z0v, xl, xlv, ev, fs, f1, t0 = ex
+    _expmul(lr, li, Fr, Fi, r, h, tau, z0v, xlv)
+    _set_load(xl, 2 * z0v.shape[1], fs, f1, t0 + tau)
+    _stop_values(CS, r, xl, us.shape[1], ev, us, 0)
 
 
 @numba.njit(cache=True, inline="always")
@@ -1015,58 +1112,58 @@ def _first_crossing(code, side, s, g, sigma, d0, dd0, d1, dd1, h, mcoef, scan, k
 
 
 @numba.njit(cache=True, _nrt=False)
-def _event_step(r, z, zv, fs, f1, h, count, tb, wk, contact_time, n_events, refine_all, stats):
-    """Integrate one sub-step [0, h] exactly from zeta = z (regime r; zv its (2, n2p) view) with
-    event location; z is replaced by zeta at h. The load over the sub-step is fs + f1 t.
+def _event_step(r, z, zv, fs, f1, h, count, tbe, wk, contact_time, n_events, refine_all, stats):
+    """Integrate one sub-step [0, h] exactly from zeta = z (regime r) with event location; z is
+    replaced by zeta at h (zv: its (2, n2p) view) and wk's us[5], us[6] by u, u' at h. The load
+    over the sub-step is fs + f1 t.
 
     First segment (the fast path flagged it): u on [0, h] is its tabulated Taylor polynomial (order
     from _taylor_order) when max|lam| h <= _TAYLOR_LIMIT, else exact propagation. After a switch
     at t_loc: the end state is propagated first and u, u' at both ends of [t_loc, h] pre-checked;
     the Taylor polynomial of the new segment is built only if that check flags it. A switch maps
-    [zeta; f; f'] through the transition table. Returns the final regime."""
-    (lr, li, lmax, Er, Ei, Fr, Fi, betaS, zeta0, UC, YC, CS, CY, Tay, QS, Q0, codes, trans_id, trans_to, TF, cT,
-     gaps, mcoef) = tb
-    z0, ze, zt, xin, ev, acc, pc, us, qv, qd, fl, z0v, zev, ztv = wk
-    S = gaps.shape[0]
+    [zeta; f; f'; 1] through the transition table. Returns the final regime."""
+    (lr, li, lmax, kord_h, Fr, Fi, CS, Tay, TF, codes, trans_id, trans_to, gaps, mcoef) = tbe
+    x0, xe, xl, z0v, zev, xlv, ev, acc, pc, us = wk  # x0, xe, xl: [zeta; f; f'; 1] at the segment
+    S = gaps.shape[0]                                 # start, end, and a scratch time; *v: (2, n2p) views
     nx = z.shape[0]
-    m = fs.shape[0]
     t_loc = 0.0
     just_switched = False
+    start_known = False  # u, u' at the segment start already in us[3], us[4] (continuity at a switch)
     for i in range(nx):
-        z0[i] = z[i]
+        x0[i] = z[i]
     for it in range(201):
         if it == 200:
             raise RuntimeError("more than 200 regime switches within one step")
         sigma = h - t_loc
-        for l in range(m):
-            fl[l] = fs[l] + f1[l] * t_loc
-        _quasi_static(QS, Q0, r, fl, f1, qv, qd)
-        ex = (lr, li, Fr, Fi, CS, r, h, z0v, zt, ztv, ev, qv, qd)
+        _set_load(x0, nx, fs, f1, t_loc)
+        ex = (lr, li, Fr, Fi, CS, r, h, z0v, xl, xlv, ev, fs, f1, t_loc)
         x = lmax[r] * sigma
-        kord = _taylor_order(x) if x <= _TAYLOR_LIMIT else 0
+        if t_loc == 0.0:
+            kord = kord_h[r]
+        else:
+            kord = _taylor_order(x) if x <= _TAYLOR_LIMIT else 0
         if kord == 0:
             stats[3] += 1
         poly_done = False
         end_ready = False
         if just_switched or kord == 0:
-            _stop_values(CS, r, z0, S, qv, qd, 0.0, ev, us, 0)
-            for s in range(S):
-                us[3, s] = us[0, s]
-                us[4, s] = us[1, s]
+            if not start_known:
+                _stop_values(CS, r, x0, S, ev, us, 3)  # rows 3, 4 (5 overwritten below)
             _expmul(lr, li, Fr, Fi, r, h, sigma, z0v, zev)  # end state, kept in case no event occurs
-            _stop_values(CS, r, ze, S, qv, qd, sigma, ev, us, 0)
+            _set_load(xe, nx, fs, f1, h)
+            _stop_values(CS, r, xe, S, ev, us, 5)  # rows 5, 6, 7
             end_ready = True
         else:
-            _taylor_u(Tay, r, kord, z0, qv, qd, acc, pc)
+            _taylor_u(Tay, r, kord, x0, acc, pc)
             stats[2] += 1
             poly_done = True
             for s in range(S):
                 us[3, s] = pc[s, 0, 0]
                 us[4, s] = pc[s, 1, 0]
             _eval_u(sigma, kord, pc, ex, us)
-        for s in range(S):
-            us[5, s] = us[0, s]
-            us[6, s] = us[1, s]
+            for s in range(S):
+                us[5, s] = us[0, s]
+                us[6, s] = us[1, s]
         tau_c = 1e308
         s_c = -1
         side_c = -1
@@ -1082,7 +1179,7 @@ def _event_step(r, z, zv, fs, f1, h, count, tb, wk, contact_time, n_events, refi
                 if not (refine_all or _flag(d0, dd0, d1, dd1, sigma, margin)):
                     continue
                 if kord > 0 and not poly_done:
-                    _taylor_u(Tay, r, kord, z0, qv, qd, acc, pc)
+                    _taylor_u(Tay, r, kord, x0, acc, pc)
                     stats[2] += 1
                     poly_done = True
                 tc = _first_crossing(code, side, s, gaps[s], sigma, d0, dd0, d1, dd1, h, mcoef,
@@ -1094,19 +1191,27 @@ def _event_step(r, z, zv, fs, f1, h, count, tb, wk, contact_time, n_events, refi
         if s_c < 0:
             if end_ready:
                 for i in range(nx):
-                    z[i] = ze[i]
-            elif t_loc == 0.0:  # whole sub-step event-free: tabulated e^{lam h}
-                _block_advance(Er, Ei, r, 1, zv)
-            else:
+                    z[i] = xe[i]
+            else:  # u, u' at the end already in us[5], us[6] (polynomial)
                 _expmul(lr, li, Fr, Fi, r, h, sigma, z0v, zv)
             if count:
                 for s in range(S):
                     if codes[r, s] != 0:
                         contact_time[s] += sigma
             return r
-        # switch regime at tau_c: x continuous, zeta_new = TF [zeta; f; f'] + c
+        # switch regime at tau_c: x continuous, zeta_new = TF [zeta; f; f'; 1]; u and u' continuous:
+        # their values at tau_c start the next segment
         stats[1] += 1
-        _expmul(lr, li, Fr, Fi, r, h, tau_c, z0v, ztv)
+        _expmul(lr, li, Fr, Fi, r, h, tau_c, z0v, xlv)
+        _set_load(xl, nx, fs, f1, t_loc + tau_c)
+        if kord > 0:
+            _poly_u(tau_c, kord, pc, us)
+        else:
+            _stop_values(CS, r, xl, S, ev, us, 0)
+        for s in range(S):
+            us[3, s] = us[0, s]
+            us[4, s] = us[1, s]
+        start_known = True
         if count:
             for s in range(S):
                 if codes[r, s] != 0:
@@ -1115,37 +1220,31 @@ def _event_step(r, z, zv, fs, f1, h, count, tb, wk, contact_time, n_events, refi
         tid = trans_id[r, s_c, side_c if code == 0 else 0]
         if code == 0 and count:
             n_events[s_c] += 1
-        for i in range(nx):
-            xin[i] = zt[i]
-        for l in range(m):
-            xin[nx + l] = fs[l] + f1[l] * (t_loc + tau_c)
-            xin[nx + m + l] = f1[l]
         for g in range(0, nx, 8):
-            _rows8(TF, tid, g, xin, xin.shape[0], z0, g)
-        for i in range(nx):
-            z0[i] += cT[tid, i]
+            _rows8(TF, tid, g, xl, xl.shape[0], x0, g)
         r = trans_to[tid]
         t_loc += tau_c
         just_switched = True
         if h - t_loc <= 1e-14 * h:
             for i in range(nx):
-                z[i] = z0[i]
+                z[i] = x0[i]
+            _set_load(x0, nx, fs, f1, h)
+            _stop_values(CS, r, x0, S, ev, us, 5)
             return r
     return r
 
 
 @numba.njit(cache=True, fastmath=_FM)
-def _exact_kernel(loads, dt_load, h, ns, nb, out_every, j0, tb, y_out, sumsq, contact_time, n_events, refine_all,
-                  stats):
+def _exact_kernel(loads, dt_load, h, ns, nb, out_every, j0, tbf, tbe, y_out, sumsq, contact_time, n_events,
+                  refine_all, stats):
     """Main loop over load intervals and blocks of up to nb sub-steps. Fast path: u, u' of every
-    stop at the nb sub-step ends from the block rows UC (one block matrix-vector product on zeta)
-    plus the quasi-static part; the block is then advanced by the diagonal e^{lam n h}. A flagged
+    stop at the nb sub-step ends from the block rows UC over [zeta; f_j; f'; 1] (one block
+    matrix-vector product); the block is then advanced by the diagonal e^{lam n h}. A flagged
     sub-step goes to _event_step. stats: flagged sub-steps, switches, Taylor builds, exact
     segments, rescans."""
-    (lr, li, lmax, Er, Ei, Fr, Fi, betaS, zeta0, UC, YC, CS, CY, Tay, QS, Q0, codes, trans_id, trans_to, TF, cT,
-     gaps, mcoef) = tb
+    Er, Ei, betaT, zeta0, UC, YC, CY, codes, gaps, mcoef = tbf
     n_int = loads.shape[0] - 1
-    n2p = lr.shape[1]
+    n2p = Er.shape[2]
     nx = 2 * n2p
     S = gaps.shape[0]
     S2 = 2 * S
@@ -1156,56 +1255,48 @@ def _exact_kernel(loads, dt_load, h, ns, nb, out_every, j0, tb, y_out, sumsq, co
     xl = np.zeros(nxl)  # [zeta; f_j; f'; 1; 0...]
     z = xl[:nx]
     zv = z.reshape((2, n2p))
-    xl[nx + 2 * m] = 1.0
     col = np.zeros(UC.shape[1])
     yv = np.zeros(nobp)
-    ev = np.zeros(max(CS.shape[1], 8))
     u0 = np.zeros(S)
     ud0 = np.zeros(S)
-    qv = np.zeros(S2 + n_obs)
-    qd = np.zeros(S2 + n_obs)
     f1 = np.zeros(m)
-    f1_old = np.zeros(m)
+    df = np.zeros(betaT.shape[1])
     fs = np.zeros(m)
     fk = np.zeros(m)
-    z0 = np.zeros(nx)
-    ze = np.zeros(nx)
-    zt = np.zeros(nx)
-    wk = (z0, ze, zt, np.zeros(TF.shape[2]), np.zeros(max(CS.shape[1], 8)), np.zeros(_TAYLOR_KP),
-          np.zeros((S, 3, _TAYLOR_K + 1)), np.zeros((7, S)), np.zeros(S2 + n_obs), np.zeros(S2 + n_obs), np.zeros(m),
-          z0.reshape((2, n2p)), ze.reshape((2, n2p)), zt.reshape((2, n2p)))
+    us = np.zeros((8, S))
+    x0 = np.zeros(nxl)
+    xe = np.zeros(nxl)
+    xs = np.zeros(nxl)
+    wk = (x0, xe, xs, x0[:nx].reshape((2, n2p)), xe[:nx].reshape((2, n2p)), xs[:nx].reshape((2, n2p)),
+          np.zeros(max(tbe[6].shape[1], 4)), np.zeros(_TAYLOR_KP), np.zeros((S, 3, _TAYLOR_K + 1)), us)
     r = 0
     # initial state q = q' = 0 (regime 0, no preload): zh = -z_p(0)
     for l in range(m):
         f1[l] = (loads[1, l] - loads[0, l]) / dt_load
         for i in range(nx):
             z[i] += zeta0[0, l, 0, i] * loads[0, l] + zeta0[0, l, 1, i] * f1[l]
-    for s in range(S):
-        u0[s] = Q0[0, 2 * s]
     step = 0
     count_from = j0 * out_every
+    to_out = out_every  # sub-steps to the next output sample
+    jout = 0  # index of the last output sample
     store = y_out.shape[0] > 0
     if j0 == 0:
         for o in range(n_obs):
-            y = Q0[0, S2 + o]
-            sumsq[o] += y * y
             if store:
-                y_out[0, o] = y
+                y_out[0, o] = 0.0
     for k in range(n_int):
         for l in range(m):
-            f1_old[l] = f1[l]
             fk[l] = loads[k, l]
-            f1[l] = (loads[k + 1, l] - loads[k, l]) / dt_load
+            f1n = (loads[k + 1, l] - loads[k, l]) / dt_load
+            df[l] = f1[l] - f1n
+            f1[l] = f1n
         if k > 0:
-            _slope_update(betaS, r, f1_old, f1, z)
-        for l in range(m):
-            xl[nx + m + l] = f1[l]
+            _slope_update(betaT, r, df, z)
         j = 0
         while j < ns:
             mb = min(nb, ns - j)
             # u, u' at the ends of the next mb sub-steps: col = UC[r] [zeta; f_j; f'; 1]
-            for l in range(m):
-                xl[nx + l] = fk[l] + f1[l] * (j * h)
+            _set_load(xl, nx, fk, f1, j * h)
             for g in range(0, mb * S2, 8):
                 _rows8(UC, r, g, xl, nxl, col, g)
             flag_m = -1
@@ -1247,18 +1338,19 @@ def _exact_kernel(loads, dt_load, h, ns, nb, out_every, j0, tb, y_out, sumsq, co
                         if codes[r, s] != 0:
                             contact_time[s] += n_cnt * h
                 # outputs at the accepted sub-step ends that fall on the output grid
-                mm = out_every - step % out_every
+                mm = to_out
                 while mm <= n_acc:
-                    jout = (step + mm) // out_every
+                    jout += 1
                     if jout >= j0:
-                        for g in range(0, n_obs, 8):
-                            _rows8(YC, r, mm * nobp + g, xl, nxl, yv, g)
+                        for g in range(0, n_obs, 4):
+                            _rows4(YC, r, mm * nobp + g, xl, nxl, yv, g)
                         for o in range(n_obs):
                             y = yv[o]
                             sumsq[o] += y * y
                             if store:
                                 y_out[jout - j0, o] = y
                     mm += out_every
+                to_out = mm - n_acc
                 _block_advance(Er, Ei, r, n_acc, zv)
                 base = (n_acc - 1) * S2
                 for s in range(S):
@@ -1270,24 +1362,23 @@ def _exact_kernel(loads, dt_load, h, ns, nb, out_every, j0, tb, y_out, sumsq, co
                 stats[0] += 1
                 for l in range(m):
                     fs[l] = fk[l] + f1[l] * (j * h)
-                r = _event_step(r, z, zv, fs, f1, h, step >= count_from, tb, wk, contact_time, n_events,
+                r = _event_step(r, z, zv, fs, f1, h, step >= count_from, tbe, wk, contact_time, n_events,
                                 refine_all, stats)
-                _quasi_static(QS, Q0, r, fk, f1, qv, qd)
+                for s in range(S):
+                    u0[s] = us[5, s]
+                    ud0[s] = us[6, s]
                 j += 1
                 step += 1
-                t = j * h
-                for g in range(0, 3 * S, 8):
-                    _rows8(CS, r, g, z, nx, ev, g)
-                for s in range(S):
-                    u0[s] = ev[3 * s] + qv[2 * s] + qd[2 * s] * t
-                    ud0[s] = ev[3 * s + 1] + qv[2 * s + 1] + qd[2 * s + 1] * t
-                if step % out_every == 0:
-                    jout = step // out_every
+                to_out -= 1
+                if to_out == 0:
+                    to_out = out_every
+                    jout += 1
                     if jout >= j0:
-                        for g in range(0, n_obs, 8):
-                            _rows8(CY, r, g, z, nx, yv, g)
+                        _set_load(xl, nx, fk, f1, j * h)
+                        for g in range(0, n_obs, 4):
+                            _rows4(CY, r, g, xl, nxl, yv, g)
                         for o in range(n_obs):
-                            y = yv[o] + qv[S2 + o] + qd[S2 + o] * t
+                            y = yv[o]
                             sumsq[o] += y * y
                             if store:
                                 y_out[jout - j0, o] = y
@@ -1525,7 +1616,8 @@ def simulate(M, D, K, stops, B, C, loads, dt_load, *, output_dt=3e-3, dt=None, m
             w = tb.omega_max
             mcoef = _MARGIN_SAFETY * (w * h) ** 4 / (384.0 * w)
             stats = np.zeros(8, dtype=np.int64)
-            _exact_kernel(L[r], dt_load, h, ns, tb.nb, out_every, j0, tb.kernel_tuple(mcoef), y_buf, sumsq, ct, nev,
+            tbf, tbe = tb.kernel_tuples(mcoef)
+            _exact_kernel(L[r], dt_load, h, ns, tb.nb, out_every, j0, tbf, tbe, y_buf, sumsq, ct, nev,
                           bool(_refine_all), stats)
             if _diagnostics is not None:
                 _diagnostics.append({"flagged_steps": int(stats[0]), "switches": int(stats[1]),
