@@ -222,10 +222,10 @@ def test_highest_frequency_and_choose_step():
     f = highest_frequency([[m]], [[k]], [Stop([1.0], 1e-3, ks)])
     assert f == pytest.approx(math.sqrt((k + ks) / m) / (2 * math.pi), rel=1e-12)
     dt = choose_step(950.0, 1e-3, 3e-3)
-    assert dt <= 1 / (8 * 950.0)
+    assert dt <= 1 / (4 * 950.0)
     for big in (1e-3, 3e-3):
         assert abs(big / dt - round(big / dt)) < 1e-9
-    assert choose_step(950.0, 1e-3, 3e-3) == pytest.approx(1e-3 / 8)
+    assert choose_step(950.0, 1e-3, 3e-3) == pytest.approx(1e-3 / 4)  # 4 points per period of f_max
     dse = choose_step(950.0, 1e-3, 3e-3, method="symplectic-euler")
     assert 2 * math.pi * 950 * dse <= 0.25
     # incommensurate dt_load and output_dt still get a common divisor
@@ -247,9 +247,13 @@ def test_step_refusals_and_warnings():
     with pytest.raises(SpecificationError, match="1/\\(2 f_max\\)"):
         simulate(M, D, K, [stiff], B, C, F, DT_LOAD, dt=1e-3)  # 1 ms > 1/(2 f_max)
     n = math.ceil(2 * f_stiff * DT_LOAD * (1 + 1e-12))  # largest divisor step <= 1/(2 f_max)
-    assert DT_LOAD / n > 1 / (4 * f_stiff)  # ... which is in the warned band
-    with pytest.warns(UserWarning, match="1/\\(4 f_max\\)"):
+    assert DT_LOAD / n > 1 / (3 * f_stiff)  # ... which is in the warned band
+    with pytest.warns(UserWarning, match="1/\\(3 f_max\\)"):
         simulate(M, D, K, [stiff], B, C, F, DT_LOAD, dt=DT_LOAD / n)
+    n4 = math.ceil(4 * f_stiff * DT_LOAD * (1 - 1e-12))  # a step just within the default rule ...
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        simulate(M, D, K, [stiff], B, C, F, DT_LOAD, dt=DT_LOAD / n4)  # ... is accepted silently
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         simulate(M, D, K, [stop], B, C, F, DT_LOAD)  # default step: no warning

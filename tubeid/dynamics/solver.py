@@ -46,10 +46,17 @@ excursion whose depth is below the (4x safety) Hermite error bound.
 
 Step rule (``choose_step``): with f_max the highest undamped frequency with every stop
 closed (it bounds every regime), the default step is the largest divisor of dt_load and
-output_dt with dt <= 1/(STEP_POINTS_PER_PERIOD f_max) (8 points per shortest period).
-A user step dt > 1/(2 f_max) is refused (a whole contact oscillation can then fall inside
-one step unseen); dt > 1/(4 f_max) is accepted with a warning (the Hermite pre-check is
-then no better than ~1.6 % of the highest mode's amplitude).
+output_dt with dt <= 1/(STEP_POINTS_PER_PERIOD f_max) (4 points per shortest period; 250 us for
+the paper model). Between events the solution is exact whatever the step: the step only sets the
+resolution of the Hermite pre-check (error bound (w h)^4/384 = 1.6 % of the highest mode's
+amplitude at 4 points, margin 4x that) and the Taylor order (K = 22). Measured on the paper
+model (random stiffness, paper load): the default pre-check finds exactly the contact events of
+an exact re-examination of every step (30 s, 3 realisations, at 4 and at 3 points per period),
+and the 220 s PSD at the stop node matches a 4x smaller step within the statistical scatter of
+chaotic runs (12 realisations: max 5 Hz-band difference 0.2 %, mean signed +0.02 %; 0.2 % and
+-0.01 % at 8 points per period). A user step dt > 1/(2 f_max) is refused (a whole contact
+oscillation can then fall inside one step unseen); dt > 1/(3 f_max) is accepted with a warning
+(the Hermite error bound then exceeds 5 % of the highest mode's amplitude).
 
 Method ``"symplectic-euler"`` (industrial modal codes): v += dt M^-1 (B F - D v - K q - f);
 q += dt v. Stable for w_max dt < 2 (w_max with every stop closed): refused beyond; warned
@@ -91,10 +98,10 @@ __all__ = [
 ]
 
 #: Default points per period of the highest closed-regime frequency for the exact method.
-STEP_POINTS_PER_PERIOD = 8
+STEP_POINTS_PER_PERIOD = 4
 #: Exact method: a user step above 1/(REFUSE_POINTS f_max) is refused, above 1/(WARN_POINTS f_max) warned.
 _EXACT_REFUSE_POINTS = 2.0
-_EXACT_WARN_POINTS = 4.0
+_EXACT_WARN_POINTS = 3.0
 #: Symplectic Euler: refuse w dt >= 2, warn w dt > 0.5, default w dt <= 0.25.
 _SE_STABLE = 2.0
 _SE_WARN = 0.5
@@ -299,8 +306,8 @@ def check_step(dt, f_max, method, *, field_name="dt"):
                 f"oscillations.{note}")
         if dt * f_max > 1.0 / _EXACT_WARN_POINTS:
             warnings.warn(
-                f"dt = {dt:.4g} s exceeds 1/(4 f_max) = {1 / (4 * f_max):.4g} s (f_max = {f_max:.4g} Hz): "
-                f"grazing contacts may be missed (rule: dt <= 1/(4 f_max), default 1/(8 f_max))",
+                f"dt = {dt:.4g} s exceeds 1/(3 f_max) = {1 / (3 * f_max):.4g} s (f_max = {f_max:.4g} Hz): "
+                f"grazing contacts may be missed (rule: dt <= 1/(3 f_max), default 1/(4 f_max))",
                 stacklevel=3)
     else:
         w = 2 * math.pi * f_max
@@ -319,7 +326,7 @@ def choose_step(f_max, dt_load, output_dt=3e-3, method="exact", dt=None):
     """Integration step (s) for highest frequency ``f_max`` (Hz).
 
     dt=None: the largest step dividing both dt_load and output_dt that satisfies the method's
-    default rule (exact: dt <= 1/(8 f_max); symplectic Euler: 2 pi f_max dt <= 0.25). A given dt
+    default rule (exact: dt <= 1/(4 f_max); symplectic Euler: 2 pi f_max dt <= 0.25). A given dt
     must divide dt_load and output_dt; it is refused when unstable and warned when inaccurate
     (see module docstring).
     """
