@@ -301,20 +301,6 @@ def test_input_validation():
         simulate(M, D, K, [], B, np.eye(4), F, DT_LOAD, method="euler")
 
 
-def test_benchmark_helper_runs_and_reports():
-    """Smoke test of tubeid.dynamics.bench on a 1 s window (no timing assertions)."""
-    from tubeid.dynamics.bench import benchmark_solver, synthetic_model
-
-    mdl = synthetic_model()
-    f = highest_frequency(mdl["M"], mdl["K"], mdl["stops"])
-    assert 900 < f < 1000  # MODEL.md 3.7: ~950 Hz with the stop closed
-    res = benchmark_solver(duration=1.0, baseline_window=0.05, repeat=1)
-    assert res.steps == 8000 and res.dt_exact == pytest.approx(1.25e-4)
-    assert res.contact_events > 0 and 0 < res.contact_fraction < 1
-    assert res.flops_per_step > 0 and res.flop_rate_simd > 0
-    assert "speedup" in res.report()
-
-
 def test_tabulated_taylor_polynomial_matches_exact_propagation():
     """The event path's tabulated Taylor rows of u (order from the truncation rule) against the
     exact modal propagation at points of the sub-step, every regime; and the tabulated

@@ -1,27 +1,19 @@
-"""Benchmark of the transient solver: exact solver vs a plain numpy loop, and a flop bound.
+"""Benchmark of the transient solver on the paper's chain, and this machine's FLOP rate.
 
-``benchmark_solver`` times :func:`tubeid.dynamics.solver.simulate` (exact method, one
-realisation of ``duration`` seconds, one core) against :func:`simulate_baseline` (symplectic
-Euler in a Python loop at its own accuracy rule, timed on a shorter window and extrapolated
-linearly in time; the cost per step is constant so this is exact up to timer noise), in the
-same process. It also counts the floating-point operations of the solver's inner loop and
-measures this machine's double-precision FLOP rate with a numba loop of independent fused
-multiply-adds on L1-resident arrays (SIMD peak-like throughput) and with one dependent
-multiply-add chain (scalar latency-bound rate), which gives a flop-bound time.
-
-``synthetic_model`` is a stand-in until the paper's reduced model is plugged in: the
-unreduced simplified bundle of MODEL.md section 2 (centre tube + equivalent tube, 8 Hermite
-elements each, clamped, 3 grid springs, stop at x = 6 m), 28 DOF, 7 loads, 7 sensors.
-``synthetic_loads`` is a stand-in load generator (Gaussian, two-sided PSD 1.3 N^2/Hz on
-|f| <= 100 Hz, coherence exp(-|dx|/4 m) on the squared modulus), load generation excluded
-from the timings.
+``bench_transient`` times one realisation of the paper's stochastic simplified model end to end
+(random stiffness, random load spectrum, Gaussian load generation, exact integration, Welch PSD)
+against the same chain with the straightforward per-step numpy loop (``simulate_baseline``), in
+the same process, and splits the integration into its fast path (same run with the gap opened:
+no contact, same step and tables) and event handling. ``measure_flop_rate`` measures this core's
+double-precision FLOP rate with a numba loop of independent fused multiply-adds on L1-resident
+arrays (SIMD peak-like throughput) and with scalar FMA chains; the flop bound of the fast path is
+its flop count (``exact_step_flops``) divided by the SIMD rate.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -34,94 +26,8 @@ from tubeid.dynamics.solver import (
     simulate,
     simulate_baseline,
 )
-from tubeid.errors import SpecificationError
-from tubeid.seeds import rng_for
 
-__all__ = ["bench_transient", "benchmark_solver", "BenchmarkResult", "synthetic_model", "synthetic_loads", "measure_flop_rate"]
-
-
-# ----------------------------------------------------------------------------------------------
-# Synthetic model and loads (stand-ins)
-# ----------------------------------------------------------------------------------------------
-
-
-def _hermite_beam(E, rho, A, I, length, n_el):
-    """Clamped-clamped Euler-Bernoulli beam, Hermite elements, consistent mass; inner DOFs (y, theta)."""
-    le = length / n_el
-    k = E * I / le**3 * np.array([[12, 6 * le, -12, 6 * le], [6 * le, 4 * le**2, -6 * le, 2 * le**2],
-                                  [-12, -6 * le, 12, -6 * le], [6 * le, 2 * le**2, -6 * le, 4 * le**2]])
-    m = rho * A * le / 420 * np.array([[156, 22 * le, 54, -13 * le], [22 * le, 4 * le**2, 13 * le, -3 * le**2],
-                                       [54, 13 * le, 156, -22 * le], [-13 * le, -3 * le**2, -22 * le, 4 * le**2]])
-    n = 2 * (n_el + 1)
-    K = np.zeros((n, n))
-    M = np.zeros((n, n))
-    for e in range(n_el):
-        sl = slice(2 * e, 2 * e + 4)
-        K[sl, sl] += k
-        M[sl, sl] += m
-    inner = slice(2, n - 2)
-    return M[inner, inner], K[inner, inner]
-
-
-def synthetic_model(gap=1.5e-6, stop_stiffness=1e8, xi=0.02):
-    """The unreduced simplified model of MODEL.md section 2 (28 DOF). Returns a dict with
-    M, D, K (N, N), stops [Stop], B (N, 7: forces at the centre tube's inner nodes), C (7, N:
-    centre-tube transverse displacements), sensor_names."""
-    A = math.pi * (0.5**2 - 0.3**2)
-    I = math.pi / 4 * (0.5**4 - 0.3**4)
-    blocks = []
-    for E, rho in ((7.5e8, 250.0), (1.8e9, 1000.0)):
-        Mt, Kt = _hermite_beam(E, rho, A, I, 16.0, 8)
-        w2, P = _eig_mass(Kt, Mt)
-        Dt = Mt @ P @ np.diag(2 * xi * np.sqrt(w2)) @ P.T @ Mt
-        blocks.append((Mt, Dt, Kt))
-    n1 = blocks[0][0].shape[0]
-    N = 2 * n1
-    M = np.zeros((N, N))
-    D = np.zeros((N, N))
-    K = np.zeros((N, N))
-    for t, (Mt, Dt, Kt) in enumerate(blocks):
-        sl = slice(t * n1, (t + 1) * n1)
-        M[sl, sl], D[sl, sl], K[sl, sl] = Mt, Dt, Kt
-    y_dof = lambda tube, x: tube * n1 + 2 * (int(round(x / 2.0)) - 1)  # noqa: E731
-    for x in (4.0, 8.0, 12.0):
-        i, j = y_dof(0, x), y_dof(1, x)
-        K[i, i] += 4e7
-        K[j, j] += 4e7
-        K[i, j] -= 4e7
-        K[j, i] -= 4e7
-    b = np.zeros(N)
-    b[y_dof(0, 6.0)] = 1.0
-    xs = 2.0 * np.arange(1, 8)
-    B = np.zeros((N, 7))
-    C = np.zeros((7, N))
-    for k, x in enumerate(xs):
-        B[y_dof(0, x), k] = 1.0
-        C[k, y_dof(0, x)] = 1.0
-    return dict(M=M, D=D, K=K, stops=[Stop(b, gap, stop_stiffness, name="stop_x6")], B=B, C=C,
-                sensor_names=[f"centre_x{x:g}" for x in xs])
-
-
-def _eig_mass(K, M):
-    import scipy.linalg
-
-    w2, P = scipy.linalg.eigh(K, M)  # mass-normalised
-    return w2, P
-
-
-def synthetic_loads(n_t, dt_load, seed=0, realisation=0, psd=1.3, f_band=100.0, positions=None, lam=4.0):
-    """Stand-in load samples (n_t, m): stationary Gaussian, two-sided PSD ``psd`` (N^2/Hz) on
-    |f| <= f_band (ideal FFT band-limiting), S_ij = psd exp(-|x_i - x_j|/(2 lam)) (real)."""
-    xs = 2.0 * np.arange(1, 8) if positions is None else np.asarray(positions, float)
-    rng = rng_for(seed, "synthetic-loads", realisation)
-    w = rng.standard_normal((n_t, len(xs)))
-    spec = np.fft.rfft(w, axis=0)
-    f = np.fft.rfftfreq(n_t, dt_load)
-    spec[f > f_band] = 0.0
-    x = np.fft.irfft(spec, n=n_t, axis=0)
-    x *= math.sqrt(2 * f_band * psd) / x.std(axis=0, keepdims=True)
-    coh = np.exp(-np.abs(xs[:, None] - xs[None, :]) / (2 * lam))
-    return x @ np.linalg.cholesky(coh).T
+__all__ = ["bench_transient", "measure_flop_rate"]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -192,129 +98,6 @@ def measure_flop_rate(seconds=0.1, repeat=3):
 # ----------------------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class BenchmarkResult:
-    """Timings (s, one core, same process) and rates; see :func:`benchmark_solver`."""
-
-    n_dof: int
-    n_modes: int
-    f_max_hz: float
-    dt_exact: float
-    dt_baseline: float
-    duration: float
-    steps: int
-    seconds_exact: float
-    seconds_fast_path: float
-    seconds_setup: float
-    seconds_baseline_window: float
-    baseline_window: float
-    seconds_baseline_extrapolated: float
-    speedup: float
-    speedup_per_step: float
-    flops_per_step: float
-    flop_rate_simd: float
-    flop_rate_scalar: float
-    flop_bound_seconds: float
-    flagged_steps: int
-    contact_fraction: float
-    contact_events: int
-    rms_obs_max: float
-
-    def report(self) -> str:
-        ev = self.seconds_exact - self.seconds_fast_path
-        return "\n".join([
-            f"model: N = {self.n_dof} DOF, {self.n_modes} kept modes (one per conjugate pair), "
-            f"f_max (stops closed) = {self.f_max_hz:.1f} Hz",
-            f"exact: dt = {self.dt_exact * 1e6:.2f} us, {self.steps} steps for {self.duration:g} s: "
-            f"{self.seconds_exact:.3f} s per realisation (setup incl. modal tables {self.seconds_setup:.3f} s)",
-            f"  of which fast path {self.seconds_fast_path:.3f} s (same run with the gap opened) and event "
-            f"handling ~{ev:.3f} s for {self.flagged_steps} flagged steps "
-            f"(~{1e6 * ev / max(self.flagged_steps, 1):.1f} us each)",
-            f"  contact fraction {self.contact_fraction:.3f}, {self.contact_events} contact events, "
-            f"max RMS {self.rms_obs_max:.3g}",
-            f"baseline (numpy symplectic Euler, dt = {self.dt_baseline * 1e6:.2f} us): {self.seconds_baseline_window:.2f} s "
-            f"for {self.baseline_window:g} s, extrapolated linearly to {self.seconds_baseline_extrapolated:.1f} s",
-            f"speedup: {self.speedup:.0f}x (each method at its own step rule); {self.speedup_per_step:.1f}x per step",
-            f"fast path: {self.flops_per_step:.0f} flops/step; machine: SIMD FMA {self.flop_rate_simd / 1e9:.1f} GFLOP/s, "
-            f"scalar FMA {self.flop_rate_scalar / 1e9:.1f} GFLOP/s",
-            f"flop bound of the fast path = {self.flop_bound_seconds:.4f} s (SIMD rate); achieved "
-            f"{self.flops_per_step * self.steps / self.seconds_fast_path / 1e9:.2f} GFLOP/s on the fast path",
-        ])
-
-
-def _best(fn, repeat):
-    best = math.inf
-    out = None
-    for _ in range(max(1, repeat)):
-        t0 = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t0)
-    return best, out
-
-
-def benchmark_solver(M=None, D=None, K=None, stops=None, B=None, C=None, loads=None, dt_load=1e-3, *,
-                     duration=220.0, output_dt=3e-3, baseline_window=1.0, seed=0, repeat=3):
-    """Time ``simulate`` (exact, one realisation of ``duration`` s) against ``simulate_baseline``.
-
-    Matrices default to :func:`synthetic_model`; loads (n_t, m) default to :func:`synthetic_loads`
-    with dt_load. All timings are the best of ``repeat`` in this process after a warm-up
-    (compilation excluded); load generation is excluded. The exact time includes validation and
-    modal tables (``seconds_setup``). The fast-path time is the same run with every gap set to
-    1e9 m (no contact, same step and tables); the difference is the event handling. The baseline
-    runs on the first ``baseline_window`` seconds and is scaled by duration/baseline_window (its
-    cost per step is constant). The flop bound is the fast path's flop count divided by the SIMD
-    FMA rate measured here.
-    """
-    if M is None:
-        mdl = synthetic_model()
-        M, D, K, stops, B, C = mdl["M"], mdl["D"], mdl["K"], mdl["stops"], mdl["B"], mdl["C"]
-    M, D, K, B, C = (np.asarray(a, float) for a in (M, D, K, B, C))
-    if not (duration > 0 and 0 < baseline_window <= duration):
-        raise SpecificationError("baseline_window", baseline_window, f"must be in (0, duration = {duration}]")
-    n_t = int(round(duration / dt_load)) + 1
-    if loads is None:
-        loads = synthetic_loads(n_t, dt_load, seed=seed)
-    loads = np.asarray(loads, float)
-    if loads.ndim != 2 or loads.shape[0] < n_t:
-        raise SpecificationError("loads.shape", loads.shape, f"must be (n_t >= {n_t}, m) for duration {duration} s")
-    loads = loads[:n_t]
-    f_max = highest_frequency(M, K, stops)
-    h = choose_step(f_max, dt_load, output_dt)
-    ns = int(round(dt_load / h))
-    opened = [Stop(s.b, 1e9, s.stiffness, s.name) for s in stops]
-    run = lambda st, L, **kw: simulate(M, D, K, st, B, C, L, dt_load, output_dt=output_dt, dt=h, **kw)  # noqa: E731
-    run(stops, loads[: min(n_t, 101)])  # warm-up (compilation or cache load)
-    short = loads[: min(n_t, 11)]
-    t_setup, _ = _best(lambda: run(stops, short), repeat)
-    diag = []
-    t_exact, res = _best(lambda: (diag.clear(), run(stops, loads, _diagnostics=diag))[1], repeat)
-    t_fast, _ = _best(lambda: run(opened, loads), repeat)
-    n_b = int(round(baseline_window / dt_load)) + 1
-    t_base_win, (_, h_b) = _best(lambda: simulate_baseline(M, D, K, stops, B, C, loads[:n_b], dt_load,
-                                                           output_dt=output_dt), repeat)
-    t_base = t_base_win * duration / baseline_window
-    steps = (n_t - 1) * ns
-    steps_b = int(round(duration / h_b))
-    n_modes = diag[0]["n_modes"]
-    n_stops = len([s for s in stops if s.gap > 0])
-    fl = exact_step_flops(n_modes, n_stops, B.shape[1], min(ns, 16), C.shape[0], int(round(output_dt / h)))
-    simd, scalar = measure_flop_rate()
-    return BenchmarkResult(
-        n_dof=M.shape[0], n_modes=n_modes, f_max_hz=f_max, dt_exact=h, dt_baseline=h_b, duration=duration,
-        steps=steps, seconds_exact=t_exact, seconds_fast_path=t_fast, seconds_setup=t_setup,
-        seconds_baseline_window=t_base_win, baseline_window=baseline_window, seconds_baseline_extrapolated=t_base,
-        speedup=t_base / t_exact, speedup_per_step=(t_base / steps_b) / (t_exact / steps), flops_per_step=fl,
-        flop_rate_simd=simd, flop_rate_scalar=scalar, flop_bound_seconds=fl * steps / simd,
-        flagged_steps=diag[0]["flagged_steps"],
-        contact_fraction=float(res.contact_fraction.values[0, 0]) if res.contact_fraction.size else 0.0,
-        contact_events=int(res.contact_events.values[0, 0]) if res.contact_events.size else 0,
-        rms_obs_max=float(res.rms.values.max()))
-
-
-if __name__ == "__main__":  # pragma: no cover
-    print(benchmark_solver().report())
-
-
 def bench_transient(duration: float = 220.0, delta: float = 0.45, delta_f: float = 0.04, seed: int = 1,
                     baseline_window: float = 1.0, bands_hz: float = 5.0, n_psd_realisations: int = 4) -> dict:
     """One realisation of the paper's stochastic simplified model, end to end, on one core.
@@ -328,6 +111,9 @@ def bench_transient(duration: float = 220.0, delta: float = 0.45, delta_f: float
     step, each averaged over ``n_psd_realisations`` realisations run at both steps on the same loads
     (the runs are chaotic: a single realisation scatters by 2–5 % per band whatever the solver). Memory: the peak
     traced allocation of one realisation plus 200 kept results (PSD + statistics), per worker.
+    ``seconds_fast_path``: the same integration with the gap opened (no contact: same step, tables
+    and output); ``seconds_event_handling`` is the difference, shared by the ``flagged_steps``
+    (sub-steps sent to the exact event path) of the timed run.
     """
     import tracemalloc
 
@@ -375,6 +161,14 @@ def bench_transient(duration: float = 220.0, delta: float = 0.45, delta_f: float
     t_base = (time.perf_counter() - t0) * duration / baseline_window
     f_max = highest_frequency(M, K, stops)
     h = choose_step(f_max, st.dt_load, st.output_dt)
+    diag = []
+    simulate(M, D, K, stops, B, C, F, st.dt_load, output_dt=st.output_dt, discard=st.discard, _diagnostics=diag)
+    opened = [Stop(b=s.b, gap=1e9, stiffness=s.stiffness) for s in stops]
+    t_fast = math.inf
+    for _ in range(3):
+        t0 = time.perf_counter()
+        simulate(M, D, K, opened, B, C, F, st.dt_load, output_dt=st.output_dt, dt=h, discard=st.discard).observations.values[0]
+        t_fast = min(t_fast, time.perf_counter() - t0)
     coarse, fine = [], []
     for k in range(n_psd_realisations):  # chaotic runs: compare realisation-averaged PSDs
         rng_k = realisation_streams(seed + 1000, k)
@@ -397,7 +191,8 @@ def bench_transient(duration: float = 220.0, delta: float = 0.45, delta_f: float
     simd, _ = measure_flop_rate()
     n_modes = M.shape[0]  # one mode per conjugate pair: N modes of the 2N-state system
     steps = int(round(duration / h))
-    flops = exact_step_flops(n_modes, len(stops), B.shape[1], min(int(round(st.dt_load / h)), 16), C.shape[0], int(round(st.output_dt / h)))
+    ns = int(round(st.dt_load / h))
+    flops = exact_step_flops(n_modes, len(stops), B.shape[1], min(ns, 16), C.shape[0], int(round(st.output_dt / h)), ns)
     per_real = sum(best)
     return {
         "seconds_per_realisation": per_real,
@@ -409,6 +204,11 @@ def bench_transient(duration: float = 220.0, delta: float = 0.45, delta_f: float
         "integration_speedup": t_base / best[1],
         "flop_bound_seconds": flops * steps / simd,
         "flop_bound_how": f"{flops:.0f} flops/step (exact_step_flops: fast path, events excluded) x {steps} steps / {simd / 1e9:.1f} GFLOP/s (numba FMA loop measured in this process)",
+        "seconds_fast_path": t_fast,
+        "seconds_event_handling": best[1] - t_fast,
+        "flagged_steps": diag[0]["flagged_steps"],
+        "switches": diag[0]["switches"],
+        "microseconds_per_flagged_step": 1e6 * (best[1] - t_fast) / max(diag[0]["flagged_steps"], 1),
         "psd_error_vs_fine_step": float(max(errs)),
         "psd_error_bands_hz": bands_hz,
         "psd_error_realisations": n_psd_realisations,
