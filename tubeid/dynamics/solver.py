@@ -417,7 +417,7 @@ class _Tables:
     Ei: np.ndarray  # (nr, nb+1, n2p)
     Fr: np.ndarray  # (nr, _FINE+1, n2p) Re e^{lam k h/_FINE}
     Fi: np.ndarray  # (nr, _FINE+1, n2p)
-    betaT: np.ndarray  # (nr, m padded to 8, nx) [Re beta; Im beta] per load (load-interval update)
+    betaT: np.ndarray  # (nr, m padded to 8, nxl) [Re beta; Im beta; 0] per load (load-interval update)
     zeta0: np.ndarray  # (nr, m, 2, nx) zeta of -z_p for a unit load (0) and a unit slope (1)
     # Row tables over the extended input xl = [zeta; f; f'; 1; 0...] (nxl = nx + 2 m + 1 padded to 8),
     # f the load at the reference time of the row; rows include the quasi-static part:
@@ -461,6 +461,7 @@ def _build_tables(M, D, K, stops, B, C, h, ns, dt_load):
     bs = [s.vector for s in stops]
     eig = []
     all_complex = True
+    eig_cache = {}  # regimes with the same stops closed (either side) share K + sum k b b^T
     for r in range(nr):
         Kr = K.copy()
         fr = np.zeros(N)
@@ -469,15 +470,21 @@ def _build_tables(M, D, K, stops, B, C, h, ns, dt_load):
                 Kr += st.stiffness * np.outer(bs[s], bs[s])
                 fr += st.stiffness * st.gap * codes[r, s] * bs[s]
         q_eq = np.linalg.solve(Kr, fr)
-        A = np.block([[np.zeros((N, N)), np.eye(N)], [-Minv @ Kr, -Minv @ D]])
-        lam, V = np.linalg.eig(A)
+        key = tuple(codes[r] != 0)
+        if key not in eig_cache:
+            A = np.block([[np.zeros((N, N)), np.eye(N)], [-Minv @ Kr, -Minv @ D]])
+            eig_cache[key] = np.linalg.eig(A)
+        lam, V = eig_cache[key]
         if np.any(lam.imag == 0):
             all_complex = False
         eig.append((lam, V, q_eq))
     omega_max = 2 * math.pi * highest_frequency(M, K + sum((st.stiffness * np.outer(b, b) for st, b in zip(stops, bs)), np.zeros((N, N))), ())
     lam_l, V_l, Vinv_l, w_l, xeq_l = [], [], [], [], []
+    inv_cache = {}
     for lam, V, q_eq in eig:
-        Vinv = np.linalg.inv(V)
+        if id(V) not in inv_cache:
+            inv_cache[id(V)] = np.linalg.inv(V)
+        Vinv = inv_cache[id(V)]
         if all_complex:
             keep = np.flatnonzero(lam.imag > 0)
             if len(keep) != N:
@@ -632,8 +639,8 @@ def _build_tables(M, D, K, stops, B, C, h, ns, dt_load):
     if not Ts:
         Ts = [np.zeros((nx, nxl))]
         trans_to = [0]
-    betaT = np.zeros((nr, _pad8(m), nx))  # slope update rows (loads padded to 8)
-    betaT[:, :m] = -zeta0[:, :, 1]
+    betaT = np.zeros((nr, _pad8(m), nxl))  # slope update rows over xl (loads padded to 8, zero tail:
+    betaT[:, :m, :nx] = -zeta0[:, :, 1]    # a loop of nxl, a multiple of 16, vectorises without remainder)
     cont = np.ascontiguousarray
     return _Tables(
         lam=lam, lr=cont(padm(lam).real), li=cont(padm(lam).imag), lmax=np.abs(lam).max(axis=1),
@@ -660,6 +667,30 @@ _E2, _E3, _E4, _E5, _E6, _E7, _E8, _E9 = (1.0 / math.factorial(k) for k in range
 @numba.njit(cache=True, _nrt=False, fastmath=_FM)
 def _rows8(A, r, g, x, n, out, o):
     """out[o:o+8] = A[r, g:g+8, :n] . x[:n] (eight simultaneous dot products)."""
+    a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = 0.0
+    for i in range(n):
+        xi = x[i]
+        a0 += A[r, g, i] * xi
+        a1 += A[r, g + 1, i] * xi
+        a2 += A[r, g + 2, i] * xi
+        a3 += A[r, g + 3, i] * xi
+        a4 += A[r, g + 4, i] * xi
+        a5 += A[r, g + 5, i] * xi
+        a6 += A[r, g + 6, i] * xi
+        a7 += A[r, g + 7, i] * xi
+    out[o] = a0
+    out[o + 1] = a1
+    out[o + 2] = a2
+    out[o + 3] = a3
+    out[o + 4] = a4
+    out[o + 5] = a5
+    out[o + 6] = a6
+    out[o + 7] = a7
+
+
+@numba.njit(cache=True, _nrt=False, fastmath=_FM, inline="always")
+def _rows8_inline(A, r, g, x, n, out, o):
+    """_rows8 inlined into the caller (the fast path's block rows)."""
     a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = 0.0
     for i in range(n):
         xi = x[i]
@@ -746,7 +777,7 @@ def _expmul(lr, li, Fr, Fi, r, h, tau, zin, zout):
         zout[1, i] = er * b + ei * a
 
 
-@numba.njit(cache=True, _nrt=False, fastmath=_FM)
+@numba.njit(cache=True, _nrt=False, fastmath=_FM, inline="always")
 def _block_advance(Er, Ei, r, n, z):
     """zeta <- e^{lam n h} zeta (tabulated; z: (2, n2p) view)."""
     n2p = Er.shape[2]
@@ -759,10 +790,11 @@ def _block_advance(Er, Ei, r, n, z):
         z[1, i] = er * b + ei * a
 
 
-@numba.njit(cache=True, _nrt=False, fastmath=_FM)
+@numba.njit(cache=True, _nrt=False, fastmath=_FM, inline="always")
 def _slope_update(betaT, r, df, z):
     """zeta += [Re; Im] beta df, df = f'_old - f'_new (padded to a multiple of 8 with zeros): zh =
-    z - z_p stays continuous when the load slope changes. Eight loads per pass over zeta."""
+    z - z_p stays continuous when the load slope changes. Eight loads per pass over z (here the
+    whole extended input, whose tail rows of betaT are zero)."""
     n = z.shape[0]
     for c in range(0, df.shape[0], 8):
         d0 = df[c]
@@ -1066,16 +1098,20 @@ def _crossing_in(ta, tb, da, dda, db, ddb, code, side, s, g, h, margin, kord, pc
     t = min(max(guess, lo), hi)
     for _ in range(100):
         _eval_u(t, kord, pc, ex, us)
-        d, dd, _x = _dist(code, side, g, us[0, s], us[1, s], us[2, s])
+        d, dd, ddd = _dist(code, side, g, us[0, s], us[1, s], us[2, s])
         if d >= 0:
             lo = t
         else:
             hi = t
         if d == 0 or hi - lo < 1e-13 * h:
             return t
-        tn = t - d / dd if dd != 0 else -1.0
+        # Halley step (u'' comes with the evaluation): cubic convergence from the Hermite guess
+        den = 2 * dd * dd - d * ddd
+        tn = t - 2 * d * dd / den if den != 0 else -1.0
         if not (lo < tn < hi):
-            tn = 0.5 * (lo + hi)
+            tn = t - d / dd if dd != 0 else -1.0
+            if not (lo < tn < hi):
+                tn = 0.5 * (lo + hi)
         if abs(tn - t) < 1e-13 * h:
             return tn
         t = tn
@@ -1086,7 +1122,8 @@ def _crossing_in(ta, tb, da, dda, db, ddb, code, side, s, g, h, margin, kord, pc
 def _first_crossing(code, side, s, g, sigma, d0, dd0, d1, dd1, h, mcoef, scan, kord, pc, ex, us, stats):
     """Earliest crossing in (0, sigma] for one boundary (-1 if none). The candidate is verified:
     if the cubic Hermite check on [0, t_c] allows an earlier dip, [0, t_c] is rescanned exactly on
-    8 pieces. scan=True scans the whole segment exactly on 8 pieces (testing aid)."""
+    8 pieces. scan=True scans the whole segment exactly on 8 pieces (testing aid). On return with a
+    crossing, us[0:3] hold u, u', u'' there (within the 1e-13 h tolerance)."""
     tc = sigma
     if not scan:
         margin = mcoef * (sigma / h) ** 4 * max(abs(dd0), abs(dd1))
@@ -1115,7 +1152,10 @@ def _first_crossing(code, side, s, g, sigma, d0, dd0, d1, dd1, h, mcoef, scan, k
         ta = tb
         da = db
         dda = ddb
-    return -1.0 if scan else tc
+    if scan:
+        return -1.0
+    _eval_u(tc, kord, pc, ex, us)  # callers read u, u' at the returned crossing from us[0:2]
+    return tc
 
 
 @numba.njit(cache=True, _nrt=False)
@@ -1195,6 +1235,9 @@ def _event_step(r, z, zv, fs, f1, h, count, tbe, wk, contact_time, n_events, ref
                     tau_c = tc
                     s_c = s
                     side_c = side
+                    for q in range(S):  # u, u' at the crossing (its last evaluation): they start the next segment
+                        us[8, q] = us[0, q]
+                        us[9, q] = us[1, q]
         if s_c < 0:
             if end_ready:
                 for i in range(nx):
@@ -1211,13 +1254,9 @@ def _event_step(r, z, zv, fs, f1, h, count, tbe, wk, contact_time, n_events, ref
         stats[1] += 1
         _expmul(lr, li, Fr, Fi, r, h, tau_c, z0v, xlv)
         _set_load(xl, nx, fs, f1, t_loc + tau_c)
-        if kord > 0:
-            _poly_u(tau_c, kord, pc, us)
-        else:
-            _stop_values(CS, r, xl, S, ev, us, 0)
         for s in range(S):
-            us[3, s] = us[0, s]
-            us[4, s] = us[1, s]
+            us[3, s] = us[8, s]
+            us[4, s] = us[9, s]
         start_known = True
         if count:
             for s in range(S):
@@ -1270,7 +1309,7 @@ def _exact_kernel(loads, dt_load, h, ns, nb, out_every, j0, tbf, tbe, y_out, sum
     df = np.zeros(betaT.shape[1])
     fs = np.zeros(m)
     fk = np.zeros(m)
-    us = np.zeros((8, S))
+    us = np.zeros((10, S))
     x0 = np.zeros(nxl)
     xe = np.zeros(nxl)
     xs = np.zeros(nxl)
@@ -1298,14 +1337,14 @@ def _exact_kernel(loads, dt_load, h, ns, nb, out_every, j0, tbf, tbe, y_out, sum
             df[l] = f1[l] - f1n
             f1[l] = f1n
         if k > 0:
-            _slope_update(betaT, r, df, z)
+            _slope_update(betaT, r, df, xl)
         j = 0
         while j < ns:
             mb = min(nb, ns - j)
             # u, u' at the ends of the next mb sub-steps: col = UC[r] [zeta; f_j; f'; 1]
             _set_load(xl, nx, fk, f1, j * h)
             for g in range(0, mb * S2, 8):
-                _rows8(UC, r, g, xl, nxl, col, g)
+                _rows8_inline(UC, r, g, xl, nxl, col, g)
             flag_m = -1
             for mm in range(1, mb + 1):
                 flagged = refine_all
@@ -1550,22 +1589,21 @@ def _result(y, rms, cf, ne, dts, stops, Cm, sensor_names, output_dt, j0, method,
     if len(sensors) != n_obs:
         raise SpecificationError("sensor_names", sensor_names, f"must have n_obs = {n_obs} names")
     stop_names = [s.name or f"stop{i}" for i, s in enumerate(stops)]
-    real = np.arange(R)
-    obs = None
+    coords = {"realisation": np.arange(R), "sensor": sensors, "stop": stop_names}
+    data = {
+        "rms": (("realisation", "sensor"), rms, {"long_name": "RMS (not centred) of C q at output_dt, t >= discard"}),
+        "contact_fraction": (("realisation", "stop"), cf, {"long_name": "fraction of time with |u| > gap"}),
+        "contact_events": (("realisation", "stop"), ne, {"long_name": "number of open -> contact transitions"}),
+        "dt": (("realisation",), np.asarray(dts), {"units": "s"}),
+    }
     if y is not None:
-        t = (j0 + np.arange(y.shape[1])) * output_dt
-        obs = xr.DataArray(y, dims=("realisation", "time", "sensor"),
-                           coords={"realisation": real, "time": t, "sensor": sensors},
-                           attrs={"long_name": "observation C q", "time_units": "s"})
+        coords["time"] = (j0 + np.arange(y.shape[1])) * output_dt
+        data["observations"] = (("realisation", "time", "sensor"), y,
+                                {"long_name": "observation C q", "time_units": "s"})
+    ds = xr.Dataset(data, coords=coords)  # one set of indexes, shared by the arrays below
     return TransientResult(
-        observations=obs,
-        rms=xr.DataArray(rms, dims=("realisation", "sensor"), coords={"realisation": real, "sensor": sensors},
-                         attrs={"long_name": "RMS (not centred) of C q at output_dt, t >= discard"}),
-        contact_fraction=xr.DataArray(cf, dims=("realisation", "stop"), coords={"realisation": real, "stop": stop_names},
-                                      attrs={"long_name": "fraction of time with |u| > gap"}),
-        contact_events=xr.DataArray(ne, dims=("realisation", "stop"), coords={"realisation": real, "stop": stop_names},
-                                    attrs={"long_name": "number of open -> contact transitions"}),
-        dt=xr.DataArray(np.asarray(dts), dims=("realisation",), coords={"realisation": real}, attrs={"units": "s"}),
+        observations=ds["observations"] if y is not None else None, rms=ds["rms"],
+        contact_fraction=ds["contact_fraction"], contact_events=ds["contact_events"], dt=ds["dt"],
         method=method, output_dt=output_dt, discard=discard)
 
 
