@@ -301,42 +301,54 @@ def test_input_validation():
         simulate(M, D, K, [], B, np.eye(4), F, DT_LOAD, method="euler")
 
 
-def test_tabulated_taylor_polynomial_matches_exact_propagation():
-    """The event path's tabulated Taylor rows of u (order from the truncation rule) against the
-    exact modal propagation at points of the sub-step, every regime; and the tabulated
-    exponential e^{lam tau} of the propagation against numpy's complex exp."""
+def test_exact_evaluation_matches_block_rows_numpy_exp_and_its_derivatives():
+    """The event path's exact evaluation of u, u', u'' (tabulated e^{lam tau} times a short series,
+    then one row product) against: the fast path's block rows at tau = h (different tables),
+    numpy's complex exp for the propagated modal state, and finite differences of itself, every
+    regime, random homogeneous state and piecewise-linear load."""
     from tubeid.dynamics import solver as so
 
     M, D, K, stop, B, C, F = contact_setup()
     h = choose_step(highest_frequency(M, K, [stop]), DT_LOAD)
     ns = int(round(DT_LOAD / h))
     tb = so._build_tables(M, D, K, (stop,), B, C, h, ns, DT_LOAD)
-    rng = rng_for(4, "taylor-table")
+    rng = rng_for(4, "exact-evaluation")
     n2, n2p, m = tb.lam.shape[1], tb.n2p, B.shape[1]
     nx, nxl = 2 * n2p, tb.UC.shape[2]
+
+    def evaluate(r, x0, f0, fdot, tau):
+        xl, us = np.zeros(nxl), np.zeros((3, 1))
+        ex = (tb.lr, tb.li, tb.Fr, tb.Fi, tb.CS, r, h, x0[:nx].reshape(2, n2p), xl, xl[:nx].reshape(2, n2p),
+              np.zeros(4), f0, fdot, 0.0)
+        so._exact_u(tau, ex, us)
+        return us[:, 0], xl[:nx]
+
     for r in range(tb.lam.shape[0]):
         x0 = np.zeros(nxl)  # [zeta; f; f'; 1] at the segment start
         x0[:n2], x0[n2p:n2p + n2] = rng.normal(size=(2, n2)) * 1e-6
         f0, fdot = rng.normal(size=m), rng.normal(size=m) / DT_LOAD
         so._set_load(x0, nx, f0, fdot, 0.0)
-        pc = np.zeros((1, 3, so._TAYLOR_K + 1))
-        kord = so._taylor_order(np.abs(tb.lam[r]).max() * h)
-        so._taylor_u(tb.Tay, r, kord, x0, np.zeros(so._TAYLOR_KP), pc)
-        xl = np.zeros(nxl)
-        ex = (tb.lr, tb.li, tb.Fr, tb.Fi, tb.CS, r, h, x0[:nx].reshape(2, n2p), xl, xl[:nx].reshape(2, n2p),
-              np.zeros(4), f0, fdot, 0.0)
+        # u, u' at tau = h from the block rows (table e^{lam h}, quasi-static rows at mm = 1):
+        # same quantity from different tables, round-off only (1e-12 of the scale)
+        (u, ud, udd), zt = evaluate(r, x0, f0, fdot, h)
+        col = np.zeros(tb.UC.shape[1])
+        so._rows8(tb.UC, r, 0, x0, nxl, col, 0)
+        assert abs(col[0] - u) <= 1e-12 * abs(u) and abs(col[1] - ud) <= 1e-12 * abs(ud), (r, col[:2], u, ud)
         for tau in (0.0, 0.37 * h, h):
-            a, b = np.zeros((7, 1)), np.zeros((7, 1))
-            so._eval_u(tau, kord, pc, ex, a)
-            so._eval_u(tau, 0, pc, ex, b)
-            # u, u', u'': agreement to 1e-9 of each quantity's scale (round-off of sums of modal
-            # terms; truncation of the polynomial is < 1e-18 relative by the order rule)
-            for row in range(3):
-                scale = max(abs(b[row, 0]), 1e-300)
-                assert abs(a[row, 0] - b[row, 0]) <= 1e-9 * scale, (r, tau, row, a[row, 0], b[row, 0])
-            # the propagated homogeneous state itself: e^{lam tau} z to 1e-14 relative (the table
-            # times a degree-9 series: truncation < 1e-19, the rest is round-off)
+            (u, ud, udd), zt = evaluate(r, x0, f0, fdot, tau)
+            # the propagated homogeneous state: e^{lam tau} z to 1e-14 relative (table times a
+            # degree-9 series: truncation < 1e-19, the rest is round-off)
             zc = x0[:n2] + 1j * x0[n2p:n2p + n2]
             want = np.exp(tb.lam[r] * tau) * zc
-            got = xl[:n2] + 1j * xl[n2p:n2p + n2]
+            got = zt[:n2] + 1j * zt[n2p:n2p + n2]
             assert np.max(np.abs(got - want)) <= 1e-14 * np.max(np.abs(want))
+            # u' and u'' against central differences of u and u' (step 1e-3 h: truncation ~1e-7
+            # of the scale at the highest frequency, round-off ~1e-10): tolerance 1e-5
+            e = 1e-3 * h
+            t1, t2 = (tau - e, tau + e) if 0 < tau < h else ((tau, tau + 2 * e) if tau == 0 else (tau - 2 * e, tau))
+            (ua, uda, _), _z = evaluate(r, x0, f0, fdot, t1)
+            (ub, udb, _), _z = evaluate(r, x0, f0, fdot, t2)
+            mid = 0.5 * (t1 + t2)
+            (um, udm, uddm), _z = evaluate(r, x0, f0, fdot, mid)
+            assert abs((ub - ua) / (t2 - t1) - udm) <= 1e-5 * max(abs(udm), abs(um) / h), (r, tau)
+            assert abs((udb - uda) / (t2 - t1) - uddm) <= 1e-5 * max(abs(uddm), abs(udm) / h), (r, tau)

@@ -18,8 +18,8 @@ beta = -W/lam^2), so the homogeneous part zh = z - z_p obeys zh(t + s) = e^{lam 
 solver keeps zh (as zeta = [Re zh; Im zh]); at a load sample zh += beta (F'_old - F'_new), and
 every observable is a row over zeta plus its quasi-static part (linear in F and F'). Between
 regimes nothing is approximated except the location of the switching instants, found by
-safeguarded Newton on the exact closed form u(t) = b^T q(t) (tolerance ~1e-13 dt). A switch
-maps [zeta; F; F'] through a precomputed real transition matrix (continuity of x). (The
+safeguarded Halley iterations on the exact closed form u(t) = b^T q(t) (tolerance ~1e-13 dt). A
+switch maps [zeta; F; F'; 1] through a precomputed real transition matrix (continuity of x). (The
 particular part can exceed z itself in the lowest mode: on the paper model by ~10x, i.e. one
 digit of round-off, ~1e-15 relative.)
 
@@ -32,24 +32,22 @@ Event detection. A sub-step is flagged when the distance to a boundary (g - u, u
 changes sign, or when the cubic Hermite interpolant of (u, u') over the sub-step has an interior
 minimum that comes within a margin of the boundary (margin = 4 (w h)^4/384 max|u'|/w,
 w = 2 pi f_max: the Hermite error of a component at the highest frequency, safety factor 4).
-A flagged sub-step is integrated exactly: u on the sub-step is replaced by its Taylor polynomial,
-whose coefficients are tabulated rows over zeta plus the quasi-static part (K + 1 dot products), of
-order K = the smallest with (max|lam| sigma)^(K+1)/(K+1)! <= 1e-18 (K = 17 at the default step,
-max|lam| h ~ 0.74; used while max|lam| sigma <= 1.6, K <= 23; otherwise exact propagation),
-interior minima are located by Newton on u' = 0, and the first crossing by safeguarded
-Newton (tolerance 1e-13 h) from the Hermite guess; if the Hermite check on [0, t_c] still allows
-an earlier dip, [0, t_c] is rescanned exactly on 8 pieces. Exact propagation within a sub-step is
-e^{lam tau} = (table at tau = k h/64) x (degree-9 series of the rest). After a switch the end
-state of the remaining segment is propagated first and its u, u' pre-checked; the polynomial is
-built only if that check flags the segment. The only approximation left is to miss a grazing
-excursion whose depth is below the (4x safety) Hermite error bound.
+A flagged sub-step is integrated exactly: every evaluation of u, u', u'' inside it is exact
+(e^{lam tau} = table at tau = k h/64 times the degree-9 series of the rest, then one row product),
+interior minima are located by Newton on u' = 0, and the first crossing by safeguarded Halley
+iterations (tolerance 1e-13 h) from the root of the Hermite cubic; if the Hermite check on
+[0, t_c] still allows an earlier dip, [0, t_c] is rescanned exactly on 8 pieces. After a switch
+u and u' continue from their values at the crossing, the end state of the remaining segment is
+propagated and its u, u' pre-checked, and a crossing is searched only if that check flags the
+segment. The only approximation left is to miss a grazing excursion whose depth is below the
+(4x safety) Hermite error bound.
 
 Step rule (``choose_step``): with f_max the highest undamped frequency with every stop
 closed (it bounds every regime), the default step is the largest divisor of dt_load and
 output_dt with dt <= 1/(STEP_POINTS_PER_PERIOD f_max) (4 points per shortest period; 250 us for
 the paper model). Between events the solution is exact whatever the step: the step only sets the
 resolution of the Hermite pre-check (error bound (w h)^4/384 = 1.6 % of the highest mode's
-amplitude at 4 points, margin 4x that) and the Taylor order (K = 22). Measured on the paper
+amplitude at 4 points, margin 4x that). Measured on the paper
 model (random stiffness, paper load): the default pre-check finds exactly the contact events of
 an exact re-examination of every step (30 s, 3 realisations, at 4 and at 3 points per period),
 and the 220 s PSD at the stop node matches a 4x smaller step within the statistical scatter of
@@ -73,7 +71,6 @@ block, event path with array views and reference counting), 0.62x for the fast p
 
 from __future__ import annotations
 
-import cmath
 import math
 import warnings
 from dataclasses import dataclass
@@ -367,7 +364,7 @@ def _regime_codes(S):
     return codes
 
 
-_FINE = 64  # e^{lam tau} on [0, h]: tabulated at tau = k h / _FINE, times a degree-_EXP_DEG series in the rest
+_FINE = 64  # e^{lam tau} on [0, h]: tabulated at tau = k h / _FINE, times a degree-9 series in the rest
 
 
 def _pad8(n):
@@ -376,15 +373,6 @@ def _pad8(n):
 
 def _pad4(n):
     return -(-n // 4) * 4
-
-
-def _order_py(x):
-    """Python twin of _taylor_order (same rule)."""
-    K, t = 3, x**4 / 24.0
-    while t > _TAYLOR_TOL and K < _TAYLOR_K:
-        K += 1
-        t = t * x / (K + 1)
-    return K
 
 
 def _stack(cmat, n2p):
@@ -411,8 +399,6 @@ class _Tables:
     lam: np.ndarray  # (nr, n2) complex eigenvalues kept
     lr: np.ndarray  # (nr, n2p) real part (0 on padded modes)
     li: np.ndarray  # (nr, n2p)
-    lmax: np.ndarray  # (nr,) max |lam|
-    kord_h: np.ndarray  # (nr,) int64 Taylor order of a whole sub-step (0: exact propagation)
     Er: np.ndarray  # (nr, nb+1, n2p) Re e^{lam mm h}
     Ei: np.ndarray  # (nr, nb+1, n2p)
     Fr: np.ndarray  # (nr, _FINE+1, n2p) Re e^{lam k h/_FINE}
@@ -426,7 +412,6 @@ class _Tables:
     YC: np.ndarray  # (nr, (nb+1) nobp, nxl) outputs at mm h: row mm nobp + o (nobp = n_obs padded to 8)
     CS: np.ndarray  # (nr, 3 S padded to 8, nxl) rows 3s, 3s+1, 3s+2: u, u', u'' now
     CY: np.ndarray  # (nr, nobp, nxl) outputs now
-    Tay: np.ndarray  # (nr, S _TAYLOR_KP, nxl) row s KP + k: u_s^(k)(0)/k!
     codes: np.ndarray  # (nr, S) int64
     trans_id: np.ndarray  # (nr, S, 2) int64 (-1: none)
     trans_to: np.ndarray  # (nt,) int64
@@ -445,8 +430,8 @@ class _Tables:
         """(fast path, event path) arrays, in the order _exact_kernel and _event_step unpack them."""
         fast = (self.Er, self.Ei, self.betaT, self.zeta0, self.UC, self.YC, self.CY, self.codes, self.gaps,
                 float(mcoef))
-        event = (self.lr, self.li, self.lmax, self.kord_h, self.Fr, self.Fi, self.CS, self.Tay, self.TF, self.codes,
-                 self.trans_id, self.trans_to, self.gaps, float(mcoef))
+        event = (self.lr, self.li, self.Fr, self.Fi, self.CS, self.TF, self.codes, self.trans_id, self.trans_to,
+                 self.gaps, float(mcoef))
         return fast, event
 
 
@@ -565,20 +550,6 @@ def _build_tables(M, D, K, stops, B, C, h, ns, dt_load):
                                          np.stack([Q0[:, 2 * s_], z1, z1], axis=1))
     CY = np.zeros((nr, nobp, nxl))
     CY[:, :n_obs] = xrows(cy, qs[:, 2 * S:, 0], qs[:, 2 * S:, 1], Q0[:, 2 * S:])
-    # Taylor rows u_s^(k)/k! about the segment start: the quasi-static part enters k = 0 and 1
-    fact = np.array([math.factorial(k) for k in range(_TAYLOR_KP)], dtype=float)
-    lpow = lam[:, None, :] ** np.arange(_TAYLOR_KP)[None, :, None] / fact[None, :, None]  # (nr, KP, n2)
-    Tay = np.zeros((nr, S, _TAYLOR_KP, nxl))
-    for s_ in range(S):
-        A = np.zeros((nr, _TAYLOR_KP, m))
-        Bc = np.zeros((nr, _TAYLOR_KP, m))
-        c0 = np.zeros((nr, _TAYLOR_KP))
-        A[:, 0] = qs[:, 2 * s_, 0]
-        Bc[:, 0] = qs[:, 2 * s_, 1]
-        Bc[:, 1] = qs[:, 2 * s_, 0]
-        c0[:, 0] = Q0[:, 2 * s_]
-        Tay[:, s_] = xrows(cu[:, s_, None, :] * lpow, A, Bc, c0)
-    Tay = Tay.reshape(nr, S * _TAYLOR_KP, nxl)
     tmm = h * np.arange(nb + 1)
 
     def qs_rows(ab, const, mm):  # ab (nr, 2, m), const (nr,), mm (K,) -> (nr, K, nxl - nx)
@@ -643,11 +614,10 @@ def _build_tables(M, D, K, stops, B, C, h, ns, dt_load):
     betaT[:, :m, :nx] = -zeta0[:, :, 1]    # a loop of nxl, a multiple of 16, vectorises without remainder)
     cont = np.ascontiguousarray
     return _Tables(
-        lam=lam, lr=cont(padm(lam).real), li=cont(padm(lam).imag), lmax=np.abs(lam).max(axis=1),
-        kord_h=np.array([_order_py(x) if x <= _TAYLOR_LIMIT else 0 for x in np.abs(lam).max(axis=1) * h], np.int64),
+        lam=lam, lr=cont(padm(lam).real), li=cont(padm(lam).imag),
         Er=cont(padm(Em).real), Ei=cont(padm(Em).imag), Fr=cont(padm(Ef).real), Fi=cont(padm(Ef).imag),
         betaT=cont(betaT), zeta0=cont(zeta0), UC=cont(UC), YC=cont(YC), CS=cont(CS), CY=cont(CY),
-        Tay=cont(Tay), codes=codes.astype(np.int64), trans_id=trans_id, trans_to=np.array(trans_to, dtype=np.int64),
+        codes=codes.astype(np.int64), trans_id=trans_id, trans_to=np.array(trans_to, dtype=np.int64),
         TF=cont(np.array(Ts)), gaps=np.array([s.gap for s in stops], float),
         nb=nb, n2p=n2p, omega_max=omega_max, V=[e[1] for e in eig], half=all_complex)
 
@@ -967,51 +937,6 @@ def _cubic_first_root(d0, dd0, d1, dd1, sigma, smax):
     return -1.0
 
 
-_TAYLOR_K = 24
-_TAYLOR_KP = 32  # rows tabulated per stop (a multiple of 8 for _rows8)
-_TAYLOR_LIMIT = 1.6  # max |lam| sigma for the Taylor polynomial of u (order 24: truncation < 1e-20 relative)
-#: Order rule of the Taylor polynomial of u on a segment: the smallest K with x^(K+1)/(K+1)! <= _TAYLOR_TOL,
-#: x = max|lam| sigma (K = 17 at the default step, x <= 0.74; K = 23 at x = 1.6).
-_TAYLOR_TOL = 1e-18
-
-
-#: 1/k for the order rule (multiplications instead of divisions)
-_INV = np.array([0.0] + [1.0 / k for k in range(1, _TAYLOR_K + 2)])
-
-
-@numba.njit(cache=True, inline="always")
-def _taylor_order(x):
-    """Smallest K in [3, _TAYLOR_K] with x^(K+1)/(K+1)! <= _TAYLOR_TOL (x = max|lam| sigma)."""
-    K = 3
-    t = x * x * x * x / 24.0
-    while t > _TAYLOR_TOL and K < _TAYLOR_K:
-        K += 1
-        t = t * x * _INV[K + 1]
-    return K
-
-
-@numba.njit(cache=True, _nrt=False, fastmath=_FM)
-def _taylor_u(Tay, r, kord, x0, acc, pc):
-    """pc[s, 0, k] = u_s^(k)(0)/k!, pc[s, 1, k] = u_s^(k+1)(0)/k!, pc[s, 2, k] = u_s^(k+2)(0)/k!,
-    k <= kord, about the segment start: rows Tay[r, s KP + k] over x0 = [zeta; f; f'; 1] (load at
-    the segment start)."""
-    S = pc.shape[0]
-    n = kord + 1
-    nx = x0.shape[0]
-    for s in range(S):
-        for g in range(0, n, 8):
-            _rows8(Tay, r, s * _TAYLOR_KP + g, x0, nx, acc, g)
-        for k in range(n):
-            pc[s, 0, k] = acc[k]
-        for k in range(n - 1):
-            pc[s, 1, k] = (k + 1) * acc[k + 1]
-        for k in range(n - 2):
-            pc[s, 2, k] = (k + 1) * (k + 2) * acc[k + 2]
-        pc[s, 1, n - 1] = 0.0
-        pc[s, 2, n - 1] = 0.0
-        pc[s, 2, n - 2] = 0.0
-
-
 @numba.njit(cache=True, _nrt=False)
 def _stop_values(CS, r, x, S, ev, us, row):
     """us[row, s], us[row+1, s], us[row+2, s] = u, u', u'' of every stop from x = [zeta; f; f'; 1]
@@ -1025,23 +950,6 @@ def _stop_values(CS, r, x, S, ev, us, row):
         us[row + 2, s] = ev[3 * s + 2]
 
 
-@numba.njit(cache=True, inline="always")
-def _poly_u(tau, kord, pc, us):
-    """u, u', u'' of every stop at tau from the Taylor coefficients pc (Horner, order kord)."""
-    K = kord
-    for s in range(pc.shape[0]):
-        a = pc[s, 0, K]
-        b = pc[s, 1, K]
-        c = pc[s, 2, K]
-        for k in range(K - 1, -1, -1):
-            a = a * tau + pc[s, 0, k]
-            b = b * tau + pc[s, 1, k]
-            c = c * tau + pc[s, 2, k]
-        us[0, s] = a
-        us[1, s] = b
-        us[2, s] = c
-
-
 @numba.njit(cache=True, _nrt=False)
 def _exact_u(tau, ex, us):
     """u, u', u'' of every stop at tau by exact propagation from the segment start (ex: tables,
@@ -1053,17 +961,7 @@ def _exact_u(tau, ex, us):
 
 
 @numba.njit(cache=True, inline="always")
-def _eval_u(tau, kord, pc, ex, us):
-    """u, u', u'' of every stop at tau (us rows 0-2): Taylor polynomial of order kord (pc[s, 0/1/2, k]:
-    u, u', u'' coefficients) or, for kord = 0, exact propagation."""
-    if kord > 0:
-        _poly_u(tau, kord, pc, us)
-    else:
-        _exact_u(tau, ex, us)
-
-
-@numba.njit(cache=True, inline="always")
-def _crossing_in(ta, tb, da, dda, db, ddb, code, side, s, g, h, margin, kord, pc, ex, us):
+def _crossing_in(ta, tb, da, dda, db, ddb, code, side, s, g, h, margin, ex, us):
     """First crossing (d < 0) in (ta, tb] of the exact solution, given d and d' at the ends;
     -1 if none. Cubic Hermite guess, exact Newton on d' = 0 for an interior minimum, then
     safeguarded Newton on d for the root (tolerance 1e-13 h)."""
@@ -1081,7 +979,7 @@ def _crossing_in(ta, tb, da, dda, db, ddb, code, side, s, g, h, margin, kord, pc
         tm = ta + sm * sig
         dm = 1.0
         for _ in range(12):
-            _eval_u(tm, kord, pc, ex, us)
+            _exact_u(tm, ex, us)
             dm, ddm, dddm = _dist(code, side, g, us[0, s], us[1, s], us[2, s])
             if dm < 0 or dddm <= 0:
                 break
@@ -1097,7 +995,7 @@ def _crossing_in(ta, tb, da, dda, db, ddb, code, side, s, g, h, margin, kord, pc
         guess = ta + sg * sig if sg > 0 else 0.5 * (lo + hi)
     t = min(max(guess, lo), hi)
     for _ in range(100):
-        _eval_u(t, kord, pc, ex, us)
+        _exact_u(t, ex, us)
         d, dd, ddd = _dist(code, side, g, us[0, s], us[1, s], us[2, s])
         if d >= 0:
             lo = t
@@ -1119,7 +1017,7 @@ def _crossing_in(ta, tb, da, dda, db, ddb, code, side, s, g, h, margin, kord, pc
 
 
 @numba.njit(cache=True, _nrt=False)
-def _first_crossing(code, side, s, g, sigma, d0, dd0, d1, dd1, h, mcoef, scan, kord, pc, ex, us, stats):
+def _first_crossing(code, side, s, g, sigma, d0, dd0, d1, dd1, h, mcoef, scan, ex, us, stats):
     """Earliest crossing in (0, sigma] for one boundary (-1 if none). The candidate is verified:
     if the cubic Hermite check on [0, t_c] allows an earlier dip, [0, t_c] is rescanned exactly on
     8 pieces. scan=True scans the whole segment exactly on 8 pieces (testing aid). On return with a
@@ -1127,10 +1025,10 @@ def _first_crossing(code, side, s, g, sigma, d0, dd0, d1, dd1, h, mcoef, scan, k
     tc = sigma
     if not scan:
         margin = mcoef * (sigma / h) ** 4 * max(abs(dd0), abs(dd1))
-        tc = _crossing_in(0.0, sigma, d0, dd0, d1, dd1, code, side, s, g, h, margin, kord, pc, ex, us)
+        tc = _crossing_in(0.0, sigma, d0, dd0, d1, dd1, code, side, s, g, h, margin, ex, us)
         if tc <= 0:
             return tc
-        _eval_u(tc, kord, pc, ex, us)
+        _exact_u(tc, ex, us)
         dc, ddc, _x = _dist(code, side, g, us[0, s], us[1, s], us[2, s])
         mc = mcoef * (tc / h) ** 4 * max(abs(dd0), abs(ddc))
         sm, vm = _cubic_min(max(d0, 0.0), dd0, max(dc, 0.0), ddc, tc)
@@ -1143,10 +1041,10 @@ def _first_crossing(code, side, s, g, sigma, d0, dd0, d1, dd1, h, mcoef, scan, k
     dda = dd0
     for p in range(1, n + 1):
         tb = tc * p / n
-        _eval_u(tb, kord, pc, ex, us)
+        _exact_u(tb, ex, us)
         db, ddb, _x = _dist(code, side, g, us[0, s], us[1, s], us[2, s])
         mp = mcoef * ((tb - ta) / h) ** 4 * max(abs(dda), abs(ddb))
-        t2 = _crossing_in(ta, tb, da, dda, db, ddb, code, side, s, g, h, mp, kord, pc, ex, us)
+        t2 = _crossing_in(ta, tb, da, dda, db, ddb, code, side, s, g, h, mp, ex, us)
         if t2 >= 0:
             return t2
         ta = tb
@@ -1154,28 +1052,28 @@ def _first_crossing(code, side, s, g, sigma, d0, dd0, d1, dd1, h, mcoef, scan, k
         dda = ddb
     if scan:
         return -1.0
-    _eval_u(tc, kord, pc, ex, us)  # callers read u, u' at the returned crossing from us[0:2]
+    _exact_u(tc, ex, us)  # callers read u, u' at the returned crossing from us[0:2]
     return tc
 
 
 @numba.njit(cache=True, _nrt=False)
 def _event_step(r, z, zv, fs, f1, h, count, tbe, wk, contact_time, n_events, refine_all, stats):
     """Integrate one sub-step [0, h] exactly from zeta = z (regime r) with event location; z is
-    replaced by zeta at h (zv: its (2, n2p) view) and wk's us[5], us[6] by u, u' at h. The load
-    over the sub-step is fs + f1 t.
+    replaced by zeta at h (zv: its (2, n2p) view). The load over the sub-step is fs + f1 t. On
+    entry wk's us[3], us[4] hold u, u' at 0 and us[5], us[6] at h (the fast path's rows); on
+    return us[5], us[6] hold u, u' at h.
 
-    First segment (the fast path flagged it): u on [0, h] is its tabulated Taylor polynomial (order
-    from _taylor_order) when max|lam| h <= _TAYLOR_LIMIT, else exact propagation. After a switch
-    at t_loc: the end state is propagated first and u, u' at both ends of [t_loc, h] pre-checked;
-    the Taylor polynomial of the new segment is built only if that check flags it. A switch maps
-    [zeta; f; f'; 1] through the transition table. Returns the final regime."""
-    (lr, li, lmax, kord_h, Fr, Fi, CS, Tay, TF, codes, trans_id, trans_to, gaps, mcoef) = tbe
-    x0, xe, xl, z0v, zev, xlv, ev, acc, pc, us = wk  # x0, xe, xl: [zeta; f; f'; 1] at the segment
-    S = gaps.shape[0]                                 # start, end, and a scratch time; *v: (2, n2p) views
+    Every evaluation is exact (e^{lam tau} from the table times a short series, then one row
+    product for u, u', u''). After a switch at t_loc: u, u' at t_loc are those at the crossing
+    (continuity), the end state is propagated and u, u' at h pre-checked; a crossing is searched
+    only if that check flags the remaining segment. A switch maps [zeta; f; f'; 1] through the
+    transition table. Returns the final regime."""
+    (lr, li, Fr, Fi, CS, TF, codes, trans_id, trans_to, gaps, mcoef) = tbe
+    x0, xe, xl, z0v, zev, xlv, ev, us = wk  # x0, xe, xl: [zeta; f; f'; 1] at the segment start, end and
+    S = gaps.shape[0]                       # a scratch time; *v: their (2, n2p) views
     nx = z.shape[0]
     t_loc = 0.0
     just_switched = False
-    start_known = False  # u, u' at the segment start already in us[3], us[4] (continuity at a switch)
     for i in range(nx):
         x0[i] = z[i]
     for it in range(201):
@@ -1184,33 +1082,10 @@ def _event_step(r, z, zv, fs, f1, h, count, tbe, wk, contact_time, n_events, ref
         sigma = h - t_loc
         _set_load(x0, nx, fs, f1, t_loc)
         ex = (lr, li, Fr, Fi, CS, r, h, z0v, xl, xlv, ev, fs, f1, t_loc)
-        x = lmax[r] * sigma
-        if t_loc == 0.0:
-            kord = kord_h[r]
-        else:
-            kord = _taylor_order(x) if x <= _TAYLOR_LIMIT else 0
-        if kord == 0:
-            stats[3] += 1
-        poly_done = False
-        end_ready = False
-        if just_switched or kord == 0:
-            if not start_known:
-                _stop_values(CS, r, x0, S, ev, us, 3)  # rows 3, 4 (5 overwritten below)
-            _expmul(lr, li, Fr, Fi, r, h, sigma, z0v, zev)  # end state, kept in case no event occurs
+        if just_switched:  # end state of the remaining segment, kept in case no event occurs
+            _expmul(lr, li, Fr, Fi, r, h, sigma, z0v, zev)
             _set_load(xe, nx, fs, f1, h)
             _stop_values(CS, r, xe, S, ev, us, 5)  # rows 5, 6, 7
-            end_ready = True
-        else:
-            _taylor_u(Tay, r, kord, x0, acc, pc)
-            stats[2] += 1
-            poly_done = True
-            for s in range(S):
-                us[3, s] = pc[s, 0, 0]
-                us[4, s] = pc[s, 1, 0]
-            _eval_u(sigma, kord, pc, ex, us)
-            for s in range(S):
-                us[5, s] = us[0, s]
-                us[6, s] = us[1, s]
         tau_c = 1e308
         s_c = -1
         side_c = -1
@@ -1225,12 +1100,8 @@ def _event_step(r, z, zv, fs, f1, h, count, tbe, wk, contact_time, n_events, ref
                 margin = mcoef * (sigma / h) ** 4 * max(abs(dd0), abs(dd1))
                 if not (refine_all or _flag(d0, dd0, d1, dd1, sigma, margin)):
                     continue
-                if kord > 0 and not poly_done:
-                    _taylor_u(Tay, r, kord, x0, acc, pc)
-                    stats[2] += 1
-                    poly_done = True
                 tc = _first_crossing(code, side, s, gaps[s], sigma, d0, dd0, d1, dd1, h, mcoef,
-                                     refine_all and d1 >= 0, kord, pc, ex, us, stats)
+                                     refine_all and d1 >= 0, ex, us, stats)
                 if tc >= 0 and tc < tau_c:
                     tau_c = tc
                     s_c = s
@@ -1239,10 +1110,10 @@ def _event_step(r, z, zv, fs, f1, h, count, tbe, wk, contact_time, n_events, ref
                         us[8, q] = us[0, q]
                         us[9, q] = us[1, q]
         if s_c < 0:
-            if end_ready:
+            if just_switched:
                 for i in range(nx):
                     z[i] = xe[i]
-            else:  # u, u' at the end already in us[5], us[6] (polynomial)
+            else:  # u, u' at h already in us[5], us[6] (fast path)
                 _expmul(lr, li, Fr, Fi, r, h, sigma, z0v, zv)
             if count:
                 for s in range(S):
@@ -1257,7 +1128,6 @@ def _event_step(r, z, zv, fs, f1, h, count, tbe, wk, contact_time, n_events, ref
         for s in range(S):
             us[3, s] = us[8, s]
             us[4, s] = us[9, s]
-        start_known = True
         if count:
             for s in range(S):
                 if codes[r, s] != 0:
@@ -1314,7 +1184,7 @@ def _exact_kernel(loads, dt_load, h, ns, nb, out_every, j0, tbf, tbe, y_out, sum
     xe = np.zeros(nxl)
     xs = np.zeros(nxl)
     wk = (x0, xe, xs, x0[:nx].reshape((2, n2p)), xe[:nx].reshape((2, n2p)), xs[:nx].reshape((2, n2p)),
-          np.zeros(max(tbe[6].shape[1], 4)), np.zeros(_TAYLOR_KP), np.zeros((S, 3, _TAYLOR_K + 1)), us)
+          np.zeros(max(tbe[4].shape[1], 4)), us)
     r = 0
     # initial state q = q' = 0 (regime 0, no preload): zh = -z_p(0)
     for l in range(m):
@@ -1408,6 +1278,12 @@ def _exact_kernel(loads, dt_load, h, ns, nb, out_every, j0, tbf, tbe, y_out, sum
                 stats[0] += 1
                 for l in range(m):
                     fs[l] = fk[l] + f1[l] * (j * h)
+                base = (flag_m - 1) * S2
+                for s in range(S):  # u, u' at both ends of the flagged sub-step, from the block rows
+                    us[3, s] = u0[s]
+                    us[4, s] = ud0[s]
+                    us[5, s] = col[base + 2 * s]
+                    us[6, s] = col[base + 2 * s + 1]
                 r = _event_step(r, z, zv, fs, f1, h, step >= count_from, tbe, wk, contact_time, n_events,
                                 refine_all, stats)
                 for s in range(S):
