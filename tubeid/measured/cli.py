@@ -62,6 +62,8 @@ def _cmd_diagnose(args) -> int:
         std = load["delta_F_std"]
         print(f"delta_F: {load['delta_F']:.3g}" + (f" ± {std:.2g} (Monte Carlo)" if std is not None else "")
               + (" — the likelihood is flat: not identified" if load["delta_F_flat"] else ""))
+        if load["load_dispersion"] != load["delta_F"]:
+            print(f"  the band uses delta_F = {load['load_dispersion']:g}: {load['load_dispersion_reason']}")
     out = result.store.parent
     print(f"report: {out / 'report.json'}, {out / 'report.md'}, {out / 'residual.png'}")
     return 0

@@ -39,7 +39,13 @@ task of the runner pipeline :mod:`tubeid.measured.pipeline` (one Zarr store in `
    likelihood then measures how far that state lies from the mean model rather than the spread
    of states. The likelihood is reported ``flat`` when it varies by less than a factor
    e² ≈ 7.4 over the whole grid (δ_F not identified by these data), ``identified`` when both ends
-   of the grid are excluded by that factor. ``load_dispersion`` = a number imposes δ_F instead.
+   of the grid are excluded by that factor. The band uses the argmax, except when the likelihood
+   is flat, excludes neither end, or is largest at the grid's upper end: then ``delta_f_fallback``
+   (the paper's 0.04), and the report says why. An argmax at the largest admissible δ_F means the
+   observed J_s exceed what any admissible load dispersion makes them — not an estimate but a
+   sign that the model misses something (what the loop looks for: a missing damping, measured,
+   inflates the peak-dominated J_s and drove δ_F there), and a band widened to that limit would
+   hide it. ``load_dispersion`` = a number imposes δ_F instead.
 3. **Residual** of the held-out PSD against the stochastic model's confidence band at
    (δ, δ_F, r_opt) (per sensor and frequency, ``level`` 0.95, Monte Carlo of ``realisations``
    records with the held-out blocks' length, so the band includes the same estimator scatter as
@@ -157,7 +163,8 @@ class DiagnoseSettings:
     dispersion of B's stiffness (given). ``load_dispersion``: δ_F; ``None`` (default) identifies
     it by maximum likelihood of J_s over ``delta_f_grid`` (``None``: :func:`default_delta_f_grid`)
     with ``delta_f_realisations`` Monte Carlo records per grid value and ``n_bootstrap``
-    bootstrap replicates; a number imposes it. ``load``: see :data:`LOAD_MODELS`;
+    bootstrap replicates (``delta_f_fallback``: the band's δ_F when the likelihood does not
+    identify it, see the module docstring); a number imposes it. ``load``: see :data:`LOAD_MODELS`;
     ``correlation_length`` [m] of the distributed load; ``load_x`` [m]: position of the
     force-and-moment load on the non-linear tube. ``r0``: starting r (N²/Hz, (N·m)²/Hz; default
     the paper's levels). ``r_points``, ``r_step`` [decades], ``r_fine_points``, ``r_fine_span``
@@ -180,6 +187,7 @@ class DiagnoseSettings:
     load_dispersion: float | None = None
     delta_f_grid: tuple[float, ...] | None = None
     delta_f_realisations: int = 30
+    delta_f_fallback: float = 0.04
     n_bootstrap: int = 200
     load: str = "distributed"
     correlation_length: float = 4.0
@@ -233,6 +241,7 @@ class DiagnoseSettings:
         num("delta", strict=False, hi=1.0)
         if self.load_dispersion is not None:
             num("load_dispersion", strict=False, hi=1.0)
+        num("delta_f_fallback", strict=False, hi=1.0)
         num("penalty", strict=False, hi=1.0)
         num("min_relative_score", strict=False, hi=1.0)
         num("null_margin", lo=1.0, strict=False)
@@ -532,7 +541,8 @@ def delta_f_identification(samples: xr.DataArray, observations, m: int, settings
 
     ``samples``: J_s (delta_F, realisation) Monte Carlo with common random numbers across δ_F;
     ``observations``: the data's J_s, one per fitting block. Returns ``delta_F`` (parabola-refined
-    argmax), ``delta_F_std`` (bootstrap over realisations), ``delta_F_std_observations``
+    argmax), ``delta_F_used`` (by the band: the argmax or ``delta_f_fallback``, see the module
+    docstring) and ``used_reason`` ('' for the argmax), ``delta_F_std`` (bootstrap over realisations), ``delta_F_std_observations``
     (bootstrap over observations; None with one observation), the grid, ``log_likelihood``
     relative to its maximum (floored at −1000), ``likelihood`` (max 1), ``flat``, ``identified``,
     ``at_boundary`` and ``note``.
@@ -567,6 +577,13 @@ def delta_f_identification(samples: xr.DataArray, observations, m: int, settings
         elif not identified:
             note = ("only an upper bound: small δ_F are not excluded" if rel[0] > -FLAT_LOG_RATIO
                     else "only a lower bound: large δ_F are not excluded")
+    used, reason = opt, ""
+    if flat or note.startswith("neither") or not np.any(np.isfinite(ll)):
+        used, reason = settings.delta_f_fallback, "the likelihood does not identify δ_F"
+    elif np.isfinite(ll[-1]) and int(np.argmax(ll)) == ll.size - 1:
+        used, reason = settings.delta_f_fallback, (
+            "the likelihood is largest at the grid's upper end: the observed J_s exceed what any admissible load "
+            "dispersion gives, a sign of a missing effect rather than an estimate of δ_F")
     std_mc = lik.attrs["argmax_std"]
     std_obs = None
     if obs.size > 1 and settings.n_bootstrap > 1 and np.any(np.isfinite(ll)):
@@ -579,6 +596,8 @@ def delta_f_identification(samples: xr.DataArray, observations, m: int, settings
             std_obs = float(np.nanstd(arg, ddof=1))
     return {
         "delta_F": opt,
+        "delta_F_used": float(used),
+        "used_reason": reason,
         "delta_F_std": float(std_mc) if np.isfinite(std_mc) else None,
         "delta_F_std_observations": std_obs,
         "grid": [float(v) for v in grid],
@@ -702,9 +721,11 @@ def _context(data: xr.Dataset, spec0: BundleSpec, settings: DiagnoseSettings) ->
     spec = _spec_for(spec0, meas)
     m = load_dimension(spec, settings)
     dmax = delta_max(m)
-    if settings.load_dispersion is not None and settings.load_dispersion >= dmax:
-        raise SpecificationError("settings.load_dispersion", settings.load_dispersion,
-                                 f"must be < δ_max = {dmax:.4f} for the {settings.load} load (SG+ of size m = {m})")
+    for name in ("load_dispersion", "delta_f_fallback"):
+        v = getattr(settings, name)
+        if v is not None and v >= dmax:
+            raise SpecificationError(f"settings.{name}", v, f"must be < δ_max = {dmax:.4f} for the {settings.load} load "
+                                     f"(SG+ of size m = {m})")
     grid = settings.delta_f_grid or default_delta_f_grid(m)
     if max(grid) >= dmax:
         raise SpecificationError("settings.delta_f_grid", grid, f"must lie in (0, {dmax:.4f}) for the {settings.load} load (m = {m})")
@@ -859,7 +880,7 @@ def _check_out(store: Path, key: str) -> None:
 
 def diagnose(data, model="paper-simplified", settings: DiagnoseSettings = DiagnoseSettings(), *, out=None,
              workers: int | None = 0, scheduler: str | None = None, overwrite: bool = False,
-             progress: bool = False, quiet: bool = True) -> Diagnosis:
+             progress: bool | None = False, quiet: bool = True) -> Diagnosis:
     """Run the loop of the module docstring on ``data`` (a measurement Dataset or a path readable by
     :func:`tubeid.measured.read_measurements`) for the declared ``model`` (built-in name, spec file
     or :class:`BundleSpec`). Returns a :class:`Diagnosis`.
@@ -1005,12 +1026,13 @@ def assemble(store, ctx: DiagnoseContext) -> Diagnosis:
                             + st["load_r_fine"].sizes.get("r1", 0) * st["load_r_fine"].sizes.get("r2", 1)),
             "r_fine_at_boundary": bool(st["load_r_fine"].attrs["at_boundary"]),
             "delta": s.delta, "delta_F": float(dF["delta_F"]), "delta_F_given": bool(dF["delta_F_given"]),
-            "load_dispersion": float(dF["delta_F"]), "m": ctx.m}
+            "load_dispersion": float(dF["delta_F_used"]), "m": ctx.m}
     if not dF["delta_F_given"]:
         load.update({
             "delta_F_std": dF.get("delta_F_std"), "delta_F_std_observations": dF.get("delta_F_std_observations"),
             "delta_F_flat": bool(dF["flat"]), "delta_F_identified": bool(dF["identified"]),
             "delta_F_at_boundary": bool(dF["at_boundary"]), "delta_F_note": dF["note"],
+            "load_dispersion_reason": dF["used_reason"] or "the maximum-likelihood δ_F",
             "delta_F_likelihood": {"grid": dF["grid"], "log_likelihood": dF["log_likelihood"], "likelihood": dF["likelihood"],
                                    "n_realisations": dF["n_realisations"], "n_observations": len(dF["J_s_observed"])},
             "J_s_observed": dF["J_s_observed"], "J_s_units": JS_UNITS,

@@ -52,6 +52,9 @@ def _delta_f_lines(load: dict) -> list[str]:
                      "(argmax) carries no precision.")
     elif load["delta_F_note"]:
         lines.append(f"- δ_F: {load['delta_F_note']}.")
+    if load["load_dispersion"] != load["delta_F"]:
+        lines.append(f"- **The band uses δ_F = {load['load_dispersion']:g}** (the fallback), not the argmax: "
+                     f"{load['load_dispersion_reason']}.")
     lines.append("- δ_F assumes the fitting blocks are independent load states; blocks of one continuous record "
                  "share one, and then δ_F measures how far it lies from the mean model.")
     return lines
@@ -125,8 +128,11 @@ def _delta_f_figure(load: dict, path: Path) -> None:
     lik = load["delta_F_likelihood"]
     fig, ax = plt.subplots(figsize=(5, 3.2))
     ax.plot(lik["grid"], lik["likelihood"], "o-", color="C2", ms=3, label="joint likelihood (max 1)")
-    ax.axvline(load["delta_F"], color="k", lw=0.8, ls="--", label=f"δ_F = {load['delta_F']:.3g}")
-    ax.set_xlabel("δ_F")
+    ax.axvline(load["delta_F"], color="k", lw=0.8, ls="--", label=f"argmax δ_F = {load['delta_F']:.3g}")
+    if load["load_dispersion"] != load["delta_F"]:
+        ax.axvline(load["load_dispersion"], color="C3", lw=0.8, ls=":", label=f"band's δ_F = {load['load_dispersion']:g} (fallback)")
+    ax.set_xscale("log")
+    ax.set_xlabel("δ_F (log scale)")
     ax.set_ylabel("likelihood / max")
     ax.set_title("δ_F by maximum likelihood of J_s" + (" (flat)" if load["delta_F_flat"] else ""), fontsize=9)
     ax.legend(fontsize=7)

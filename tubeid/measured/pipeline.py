@@ -15,7 +15,8 @@ trials of one grid share one stream: common random numbers):
 ``load_r``           coarse trial grid of r, mean model, fitting blocks → log-spectral distance
 ``load_r_fine``      fine grid around the levelled coarse minimum → r_opt
 ``load_delta_f``     J_s of block-length records of the stochastic model at (δ, r_opt) over a δ_F
-                     grid × realisations → δ_F by maximum likelihood (or skipped: δ_F given)
+                     grid × realisations → δ_F by maximum likelihood, and the δ_F of the band
+                     (the argmax, or the fallback when not identified; skipped when δ_F is given)
 ``band``             the model band before: stochastic model at (δ, δ_F, r_opt), held-out layout
 ``probe``            a tone's probe and baseline (only when ``tone`` is a candidate to fit)
 ``candidates``       trial grids of the leading candidates (mean model, fitting blocks)
@@ -174,7 +175,8 @@ def delta_f_block(block, rng, *, data, data_sha256, model, settings, r):
 def summarize_delta_f(ds):
     ctx = _ctx(_params(ds))
     if dg.skipped(ds):
-        return {"delta_F": float(ctx.settings.load_dispersion), "delta_F_given": True}
+        v = float(ctx.settings.load_dispersion)
+        return {"delta_F": v, "delta_F_used": v, "delta_F_given": True}
     out = dg.delta_f_identification(ds["J_s"], ctx.j_s_observed, ctx.m, ctx.settings)
     out["delta_F_given"] = False
     return out
@@ -257,7 +259,7 @@ def band(results, *, data, data_sha256, model, settings):
     base = _base(data, data_sha256, model, settings)
     ctx = _ctx(base)
     return _band_study("band", base, ctx, results["load_r_fine"].attrs["r_opt"], "[]",
-                       results["load_delta_f"].attrs["delta_F"], "before")
+                       results["load_delta_f"].attrs["delta_F_used"], "before")
 
 
 # -- tracing and fitting ------------------------------------------------------------------------------------
@@ -374,7 +376,7 @@ def candidate_bands(results, *, data, data_sha256, model, settings):
     best = dg.best_trials(ctx, results["candidates"], trials)
     names = list(best)
     r0 = results["load_r_fine"].attrs["r_opt"]
-    dF = float(results["load_delta_f"].attrs["delta_F"])
+    dF = float(results["load_delta_f"].attrs["delta_F_used"])
     return Study(
         name="candidate_bands", seed=SEED,
         description=f"confidence bands of the best trial of {names} at delta_F = {dF:.4g} (common random numbers across candidates)",
@@ -419,7 +421,7 @@ def band_after(results, *, data, data_sha256, model, settings):
     if chosen is None:
         return _skipped("band_after", "no effect chosen", summarize_band)
     return _band_study("band_after", base, ctx, results["load_r_after"].attrs["r_opt"], chosen[0],
-                       results["load_delta_f"].attrs["delta_F"], "after, with the chosen effect")
+                       results["load_delta_f"].attrs["delta_F_used"], "after, with the chosen effect")
 
 
 study = Pipeline(
