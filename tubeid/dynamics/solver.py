@@ -682,7 +682,7 @@ def _rows8_inline(A, r, g, x, n, out, o):
     out[o + 7] = a7
 
 
-@numba.njit(cache=True, _nrt=False, fastmath=_FM)
+@numba.njit(cache=True, _nrt=False, fastmath=_FM, inline="always")
 def _rows4(A, r, g, x, n, out, o):
     """out[o:o+4] = A[r, g:g+4, :n] . x[:n] (small row groups: observables, u/u'/u'')."""
     a0 = a1 = a2 = a3 = 0.0
@@ -698,7 +698,7 @@ def _rows4(A, r, g, x, n, out, o):
     out[o + 3] = a3
 
 
-@numba.njit(cache=True, _nrt=False, fastmath=_FM)
+@numba.njit(cache=True, _nrt=False, fastmath=_FM, inline="always")
 def _expmul(lr, li, Fr, Fi, r, h, tau, zin, zout):
     """zout = e^{lam tau} zin for 0 <= tau <= h (zin, zout: (2, n2p) views [Re; Im] of the padded modes): tabulated
     e^{lam k h/_FINE} times the degree-9 series of e^{lam delta}, delta = tau - k h/_FINE in
@@ -937,7 +937,7 @@ def _cubic_first_root(d0, dd0, d1, dd1, sigma, smax):
     return -1.0
 
 
-@numba.njit(cache=True, _nrt=False)
+@numba.njit(cache=True, _nrt=False, fastmath=_FM, inline="always")
 def _stop_values(CS, r, x, S, ev, us, row):
     """us[row, s], us[row+1, s], us[row+2, s] = u, u', u'' of every stop from x = [zeta; f; f'; 1]
     (rows CS, 3 per stop)."""
@@ -950,7 +950,7 @@ def _stop_values(CS, r, x, S, ev, us, row):
         us[row + 2, s] = ev[3 * s + 2]
 
 
-@numba.njit(cache=True, _nrt=False)
+@numba.njit(cache=True, _nrt=False, fastmath=_FM)
 def _exact_u(tau, ex, us):
     """u, u', u'' of every stop at tau by exact propagation from the segment start (ex: tables,
     segment state z0v, scratch xl and its (2, n2p) view, load fs + f1 (t0 + tau))."""
@@ -960,7 +960,7 @@ def _exact_u(tau, ex, us):
     _stop_values(CS, r, xl, us.shape[1], ev, us, 0)
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, _nrt=False, fastmath=_FM)
 def _crossing_in(ta, tb, da, dda, db, ddb, code, side, s, g, h, margin, ex, us):
     """First crossing (d < 0) in (ta, tb] of the exact solution, given d and d' at the ends;
     -1 if none. Cubic Hermite guess, exact Newton on d' = 0 for an interior minimum, then
@@ -1016,7 +1016,7 @@ def _crossing_in(ta, tb, da, dda, db, ddb, code, side, s, g, h, margin, ex, us):
     return t
 
 
-@numba.njit(cache=True, _nrt=False)
+@numba.njit(cache=True, _nrt=False, fastmath=_FM)
 def _first_crossing(code, side, s, g, sigma, d0, dd0, d1, dd1, h, mcoef, scan, ex, us, stats):
     """Earliest crossing in (0, sigma] for one boundary (-1 if none). The candidate is verified:
     if the cubic Hermite check on [0, t_c] allows an earlier dip, [0, t_c] is rescanned exactly on
@@ -1056,7 +1056,7 @@ def _first_crossing(code, side, s, g, sigma, d0, dd0, d1, dd1, h, mcoef, scan, e
     return tc
 
 
-@numba.njit(cache=True, _nrt=False)
+@numba.njit(cache=True, _nrt=False, fastmath=_FM)
 def _event_step(r, z, zv, fs, f1, h, count, tbe, wk, contact_time, n_events, refine_all, stats):
     """Integrate one sub-step [0, h] exactly from zeta = z (regime r) with event location; z is
     replaced by zeta at h (zv: its (2, n2p) view). The load over the sub-step is fs + f1 t. On
