@@ -964,7 +964,8 @@ def _exact_u(tau, ex, us):
 def _crossing_in(ta, tb, da, dda, db, ddb, code, side, s, g, h, margin, ex, us):
     """First crossing (d < 0) in (ta, tb] of the exact solution, given d and d' at the ends;
     -1 if none. Cubic Hermite guess, exact Newton on d' = 0 for an interior minimum, then
-    safeguarded Newton on d for the root (tolerance 1e-13 h)."""
+    safeguarded Halley iterations on d for the root (tolerance 1e-13 h). With a root, us[0:3]
+    hold u, u', u'' at the returned instant."""
     sig = tb - ta
     da = max(da, 0.0)
     if db < 0:
@@ -1011,8 +1012,9 @@ def _crossing_in(ta, tb, da, dda, db, ddb, code, side, s, g, h, margin, ex, us):
             if not (lo < tn < hi):
                 tn = 0.5 * (lo + hi)
         if abs(tn - t) < 1e-13 * h:
-            return tn
+            return t  # converged; us[0:3] hold u, u', u'' at t
         t = tn
+    _exact_u(t, ex, us)
     return t
 
 
@@ -1028,8 +1030,7 @@ def _first_crossing(code, side, s, g, sigma, d0, dd0, d1, dd1, h, mcoef, scan, e
         tc = _crossing_in(0.0, sigma, d0, dd0, d1, dd1, code, side, s, g, h, margin, ex, us)
         if tc <= 0:
             return tc
-        _exact_u(tc, ex, us)
-        dc, ddc, _x = _dist(code, side, g, us[0, s], us[1, s], us[2, s])
+        dc, ddc, _x = _dist(code, side, g, us[0, s], us[1, s], us[2, s])  # _crossing_in evaluated at tc
         mc = mcoef * (tc / h) ** 4 * max(abs(dd0), abs(ddc))
         sm, vm = _cubic_min(max(d0, 0.0), dd0, max(dc, 0.0), ddc, tc)
         if sm < 0 or vm >= mc:
