@@ -62,11 +62,17 @@ when w_max dt > 0.5 (frequency error of the highest mode (w dt)^2/24 above ~1 %)
 w_max dt <= 0.25. The paper's 3 ms is the OUTPUT sampling (MODEL.md section 3.7): as an
 integration step it is refused by both methods.
 
-Cost (paper-simplified model, N = 23, 1 stop, 7 loads, 220 s, h = 125 us: 1.76e6 sub-steps,
-~17 000 contacts, ~34 000 flagged sub-steps with one switch each; one core of a shared 2-core
-machine, ratios measured in one process): this formulation integrates a realisation in 0.57x
-the time of the previous one (rows over [z; F_j; F'] advanced with the forcing terms every
-block, event path with array views and reference counting), 0.62x for the fast path alone.
+Cost (paper-simplified model, N = 23, 1 stop, 7 loads, 220 s, default h = 250 us: 8.8e5 sub-steps,
+~17 000 contacts, ~34 000 flagged sub-steps with one switch each; one core of the shared 2-core
+machine at load ~2.8, best of 9, this version and the one before the rewrite (8244f36) in the
+same process): 0.081 s
+per realisation (was 0.225 s: 0.36x). Fast path 0.035 s (gap opened; was 0.085 s at 125 us):
+~40 ns per sub-step, i.e. per 1 ms load interval the 8 x 64 block rows, the flags, the slope
+update of zeta and the diagonal advance (~5x the flop bound: short loops, call and loop overheads).
+Event handling 0.046 s (was 0.140 s): ~1.35 us per flagged sub-step, of which ~0.45 us for the
+transition (the 48 x 64 table of the switch, ~24 KB, streamed from L2 at every event) and ~0.5 us
+for the crossing (Hermite guess, two exact evaluations with Halley steps). Cold-cache compilation
+~20 s (numba cache on disk afterwards).
 """
 
 from __future__ import annotations
