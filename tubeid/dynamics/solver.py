@@ -415,8 +415,8 @@ class _Tables:
     # f the load at the reference time of the row; rows include the quasi-static part:
     UC: np.ndarray  # (nr, ncp, nxl) fast path, f = load at the block start: row (mm-1) 2S + 2s + d is
     #                 u_s (d = 0) or u'_s (d = 1) at mm h
-    YC: np.ndarray  # (nr, (nb+1) nobp, nxl) outputs at mm h: row mm nobp + o (nobp = n_obs padded to 8)
-    CS: np.ndarray  # (nr, 3 S padded to 8, nxl) rows 3s, 3s+1, 3s+2: u, u', u'' now
+    YC: np.ndarray  # (nr, (nb+1) nobp, nxl) outputs at mm h: row mm nobp + o (nobp = n_obs padded to 4)
+    CS: np.ndarray  # (nr, 3 S padded to 4, nxl) rows 3s, 3s+1, 3s+2: u, u', u'' now
     CY: np.ndarray  # (nr, nobp, nxl) outputs now
     codes: np.ndarray  # (nr, S) int64
     trans_id: np.ndarray  # (nr, S, 2) int64 (-1: none)
@@ -632,8 +632,10 @@ def _build_tables(M, D, K, stops, B, C, h, ns, dt_load):
 # ----------------------------------------------------------------------------------------------
 #
 # Loops are written for LLVM's loop vectoriser (numba does not run the SLP vectoriser): no array
-# views in hot code, inner loops over the contiguous last axis, and matrix-vector products as
-# eight simultaneous reductions (_rows8) rather than one reduction per row.
+# views in hot code, inner loops over the contiguous last axis, matrix-vector products as eight
+# (or four) simultaneous reductions (_rows8, _rows4) rather than one reduction per row. Functions
+# that only read and write preallocated arrays are compiled without NRT (_nrt=False: no atomic
+# reference counting of the arrays they receive), and small helpers are inlined where hot.
 
 _FM = {"reassoc", "contract"}  # reassociation (vectorised sums) and FMA; no NaN/Inf assumptions
 #: 1/k! for the e^x series of _expmul
@@ -1163,8 +1165,8 @@ def _exact_kernel(loads, dt_load, h, ns, nb, out_every, j0, tbf, tbe, y_out, sum
     """Main loop over load intervals and blocks of up to nb sub-steps. Fast path: u, u' of every
     stop at the nb sub-step ends from the block rows UC over [zeta; f_j; f'; 1] (one block
     matrix-vector product); the block is then advanced by the diagonal e^{lam n h}. A flagged
-    sub-step goes to _event_step. stats: flagged sub-steps, switches, Taylor builds, exact
-    segments, rescans."""
+    sub-step goes to _event_step. stats: [0] flagged sub-steps, [1] switches, [4] exact 8-piece
+    rescans of a segment."""
     Er, Ei, betaT, zeta0, UC, YC, CY, codes, gaps, mcoef = tbf
     n_int = loads.shape[0] - 1
     n2p = Er.shape[2]
@@ -1549,7 +1551,6 @@ def simulate(M, D, K, stops, B, C, loads, dt_load, *, output_dt=3e-3, dt=None, m
                           bool(_refine_all), stats)
             if _diagnostics is not None:
                 _diagnostics.append({"flagged_steps": int(stats[0]), "switches": int(stats[1]),
-                                     "taylor_builds": int(stats[2]), "exact_segments": int(stats[3]),
                                      "rescans": int(stats[4]), "steps": n_steps_total, "cond_V": tb.cond_max(),
                                      "half_modes": tb.half, "n_modes": tb.lam.shape[1]})
         else:
