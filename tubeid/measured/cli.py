@@ -77,17 +77,18 @@ def register(subparsers) -> None:
                     "(tone, stop, added_mass, damping, sensor_noise) or 'none', re-identify and report. "
                     "Grids and Monte Carlo run as a runner pipeline in DIR/diagnose.zarr: rerun the same "
                     "command to resume.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+)
     p.add_argument("data", help="measured record: NetCDF, Zarr, CSV (+ .sensors.csv) or UFF 58")
-    p.add_argument("--model", default="paper-simplified", help="built-in model name or a .yaml/.toml specification")
+    p.add_argument("--model", default="paper-simplified", help="built-in model name or a .yaml/.toml specification (default: paper-simplified)")
     p.add_argument("--out", default="diagnosis",
-                   help="output directory (report.json, report.md, residual.png, delta_f.png, diagnose.zarr)")
+                   help="output directory: report.json, report.md, residual.png, delta_f.png, the validated record and "
+                        "the pipeline store diagnose.zarr (default: diagnosis)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--workers", type=int, default=None,
                    help="embedded LocalCluster worker processes (default: one per core; 0 = sequentially in this process)")
     g.add_argument("--scheduler", default=None, help="address of an existing dask scheduler (default: DASK_SCHEDULER_ADDRESS)")
     p.add_argument("--overwrite", action="store_true",
-                   help="replace a diagnosis of other data, model or settings in --out (default: refuse)")
+                   help="replace whatever diagnosis --out holds (default: resume the same one, refuse another)")
     p.add_argument("--realisations", type=int, default=None, help="Monte Carlo size of the band (default 40)")
     p.add_argument("--blocks", type=int, default=None, help="time blocks; even ones fit, odd ones held out (default 4)")
     p.add_argument("--segment-seconds", type=float, default=None, help="Welch segment in s (default 2)")
