@@ -37,6 +37,8 @@ from tubeid.mechanics.effects import effect_from_dict, effect_to_dict
 from tubeid.runner.pipeline import Pipeline
 from tubeid.runner.study import Output, Parameter, Study
 
+__all__ = ["study", "SEED"]
+
 # the module, not the function tubeid.measured.diagnose re-exported by the package
 dg = importlib.import_module("tubeid.measured.diagnose")
 
