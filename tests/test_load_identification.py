@@ -378,8 +378,7 @@ def test_log_band_distance_is_the_weighted_sum_and_exact_records_give_the_truth(
     def lev(P):
         return np.stack([np.log(P[..., (F > a) & (F <= b)].sum(-1) * 0.5) for a, b in zip(edges[:-1], edges[1:])], -1)
     Lm, Le = lev(m.values), lev(rec.values).mean(0)
-    i = np.unravel_index(np.argmin(((Lm.mean(2) - Le) ** 2).sum(-1)), (5, 5))
-    w = 1 / (Lm[i].var(0, ddof=1) * (1 / 8 + 1 / 8))
+    w = 1 / (Lm.var(2, ddof=1).mean((0, 1)) * (1 / 8 + 1 / 8))  # variance pooled over the grid
     np.testing.assert_allclose(ds.D.values, (w * (Lm.mean(2) - Le) ** 2).sum(-1), rtol=1e-12)
     # the truth is off the grid; the quadratic surrogate of the log levels finds it within 0.5 %
     assert np.all(_rel_err(ds.attrs["r_opt"]) < 0.005), ds.attrs["r_opt"]
@@ -415,3 +414,7 @@ def test_log_band_distance_refusals():
         log_band_distance_map(m.isel(realisation=[0]), EXP, n_bootstrap=0)
     with pytest.raises(SpecificationError, match="energy > 0"):
         log_band_distance_map(m.where(m.frequency > 10, 0.0), EXP, n_bootstrap=0)
+    with pytest.raises(SpecificationError, match="psd_model.frequency"):  # one bin: no band to form
+        log_band_distance_map(m.isel(frequency=[0]), EXP.isel(frequency=[0]), band_hz=1.0, n_bootstrap=0)
+    with pytest.raises(SpecificationError, match="psd_model.frequency"):  # stops short of the band
+        log_band_distance_map(m.sel(frequency=slice(0, 50)), EXP.sel(frequency=slice(0, 50)), n_bootstrap=0)

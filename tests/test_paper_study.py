@@ -43,6 +43,10 @@ def test_report_recovers_delta_and_compares_with_the_truth(store, tmp_path):
     assert 0 < q["std"] < 0.06 and abs(q["value"] - 0.3) < 3 * q["std"], q
     lr = s["details"]["load_r"]
     assert lr["distance"] == "bands" and {"r_opt_paper", "r_opt_relative", "r_opt_bands"} <= set(lr)
+    for key in ("r1_opt", "r2_opt"):  # quick size: too coarse to hold r, but it must be a number on the grid
+        r = s["quantities"][key]
+        g = lr[f"{key[:2]}_grid"]
+        assert g[0] <= r["value"] <= g[1], (key, r, g)
     for name in ("fig4_mean_model.png", "fig5_delta_likelihood.png", "fig6_confidence_region.png", "d_map.png", "delta_f_likelihood.png"):
         assert (tmp_path / name).stat().st_size > 10_000
     assert "| truth |" in (tmp_path / "summary.md").read_text()

@@ -379,6 +379,7 @@ def _stage_load_r(store, out, n_bootstrap, seed, sensor, written, notes) -> dict
         notes.append(f"the study's distance {used!r} could not be recomputed; the table uses the paper's D")
         used = "paper"
     a = maps[used].attrs
+    # D_min, D_units, D_min_relative: always the paper's D (the summary line says so)
     quantities, details = {}, {"distance": used, "D_min": dm.attrs["D_min"], "D_units": dm.attrs["D_units"],
                                "D_min_relative": dm.attrs["D_min"] / dm.attrs["J_s_exp"] if dm.attrs["J_s_exp"] > 0 else None,
                                "r_opt_corr": a["r_opt_corr"], "grid_dims": a["grid_dims"],
@@ -571,7 +572,7 @@ def _markdown(summary: dict) -> str:
                          f"{100 * r['confidence_region_coverage']:.0f} % of the frequency bins in 0–{r['band_hz']:g} Hz.")
     if "load_r" in det:
         lr = det["load_r"]
-        lines.append(f"- D(r): minimum {_fmt(lr['D_min'])} {lr['D_units']} "
+        lines.append(f"- The paper's D(r): minimum {_fmt(lr['D_min'])} {lr['D_units']} "
                      f"({_fmt(100 * lr['D_min_relative'] if lr['D_min_relative'] is not None else None)} % of "
                      "J_s,exp); bootstrap correlation of the r components: "
                      f"{_fmt(lr['r_opt_corr'][0][1] if len(lr['r_opt_corr']) > 1 else None, 2)}.")

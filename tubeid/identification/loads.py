@@ -394,10 +394,9 @@ def _grid_inputs(psd_model, psd_exp, band_hz, n_bootstrap, rng, dim, fit, confid
     N = psd_model.sizes[dim]
     if N < 1 or (n_bootstrap > 0 and N < 2):
         raise SpecificationError(dim, N, "need at least 2 model realisations for the bootstrap (1 without)")
-    if n_bootstrap > 0:
-        gen = _generator(rng, key)
     sl = _band_slice(f, band)
-    # distance() checks the grid (starts at 0 Hz, increasing, reaches the band)
+    # distance_map's distance() checks the grid (starts at 0 Hz, increasing, reaches the band);
+    # log_band_distance_map checks it itself
     P = psd_model.transpose(*grid_dims, dim, "frequency", *sensor_dims).isel(frequency=sl).values
     E = psd_exp.transpose(*exp_extra, "frequency", *sensor_dims).isel(frequency=sl).values
     if not np.all(np.isfinite(P)):
@@ -589,8 +588,8 @@ def log_band_distance_map(psd_model, psd_exp, band_hz: float = 100.0, band_width
     For each auto-spectrum a (sensor) and frequency band b = (k w, (k + 1) w] ⊂ (0, band] (w =
     ``band_width_hz``), the band energy e = Σ_b S_aa Δf [m²] of each model realisation and of each
     experimental record is taken in log. With L̄(r) the mean over realisations at grid point r, L̄_exp
-    the mean over records and σ²_ab the variance of one realisation's log energy (model, at the grid
-    point of the unweighted minimum),
+    the mean over records and σ²_ab the variance of one realisation's log energy (model, pooled over
+    the grid points),
 
         D(r) = Σ_ab (L̄_ab(r) − L̄_exp,ab)² / (σ²_ab (1/N + 1/n_exp)),
 
@@ -603,7 +602,9 @@ def log_band_distance_map(psd_model, psd_exp, band_hz: float = 100.0, band_width
     (a single record gives none; the experiment is assumed a draw
     of the model class). Inputs, bootstrap (realisations resampled jointly across the grid, records
     independently) and the returned Dataset are those of :func:`distance_map` (``D`` dimensionless);
-    the refinement is its ``"spectrum"`` method applied to the log band energies, in log r.
+    the refinement is its ``"spectrum"`` method applied to the log band energies, in log r. The
+    comparison assumes each record is estimated like one model realisation (same record length and
+    PSD estimator), so that both have the same log-level variance.
     """
     if not isinstance(refine, (bool, np.bool_)):
         raise SpecificationError("refine", refine, "must be True or False")
@@ -616,7 +617,11 @@ def log_band_distance_map(psd_model, psd_exp, band_hz: float = 100.0, band_width
         g_[k] for k in ("grid_dims", "axes", "sensor_dims", "exp_extra", "f", "band", "N", "gen"))
     n_bootstrap, confidence, P, E = g_["n_bootstrap"], g_["confidence"], g_["P"], g_["E"]
     fb = f[g_["sl"]]
-    df = float(fb[1] - fb[0]) if fb.size > 1 else 0.0
+    if fb.size < 2 or fb[0] != 0.0 or not np.allclose(np.diff(fb), fb[1] - fb[0], rtol=1e-6, atol=0.0) \
+            or fb[-1] < band * (1 - 1e-12):
+        raise SpecificationError("psd_model.frequency", _Desc(f"{f.size} bins, {f[0]:g}..{f[-1]:g} Hz"),
+                                 f"must be a uniform grid from 0 Hz reaching the band {band:g} Hz (at least 2 bins)")
+    df = float(fb[1] - fb[0])
     if not (math.isfinite(width) and width > 0) or width < df or width > band:
         raise SpecificationError("band_width_hz", band_width_hz, f"must lie between the bin width {df:g} Hz and the band {band:g} Hz")
     if N < 2:
@@ -630,14 +635,14 @@ def log_band_distance_map(psd_model, psd_exp, band_hz: float = 100.0, band_width
     if not (np.all(np.isfinite(Lm)) and np.all(np.isfinite(Le))):
         raise SpecificationError("psd", _Desc("band energies"), f"every band of width {width:g} Hz must hold energy > 0 "
                                  "in every realisation and record (widen the bands or drop empty channels)")
-    shape = tuple(a.size for a in axes)
     n_exp = Le.shape[0] if exp_extra else 1
     Le_mean = Le.mean(axis=0) if exp_extra else Le
     gax = len(grid_dims)
     Lbar = Lm.mean(axis=gax)  # (*grid, K)
-    D0 = np.sum((Lbar - Le_mean) ** 2, axis=-1)
-    i0 = np.unravel_index(np.argmin(D0), shape)
-    var = Lm[i0].var(axis=0, ddof=1)  # (K,) at the unweighted minimum
+    # variance of one realisation's log band level, pooled over the grid (G (N − 1) degrees of freedom
+    # instead of N − 1 at one point: weights from a handful of realisations would let a band that looks
+    # quiet by chance decide r_opt)
+    var = Lm.var(axis=gax, ddof=1).reshape(-1, Lm.shape[-1]).mean(axis=0)
     var = np.maximum(var, 1e-12 * max(float(np.max(var)), 1e-300))
     w = 1.0 / (var * (1.0 / N + 1.0 / n_exp))
 
