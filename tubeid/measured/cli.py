@@ -5,23 +5,12 @@ resumes (or reuses) it."""
 
 from __future__ import annotations
 
-import argparse
-import ast
 import dataclasses
 import sys
 
+from tubeid.runner.cli import _setting  # NAME=VALUE, the value read as a Python literal
+
 __all__ = ["register"]
-
-
-def _setting(text: str) -> tuple[str, object]:
-    if "=" not in text:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected NAME=VALUE")
-    name, value = text.split("=", 1)
-    try:
-        value = ast.literal_eval(value)
-    except (ValueError, SyntaxError):
-        pass  # a plain string
-    return name.strip(), value
 
 
 def _settings(args):
