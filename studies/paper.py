@@ -239,10 +239,10 @@ def _r_opt(results, name, refine, distance):
     of the model at the coarse grid's minimum (``relative_weight``; from the model, never from the
     experiment, which would favour bins where S_exp is low by chance). ``distance="bands"`` (beyond
     the paper): generalised least squares of the log 5 Hz band energies (``log_band_distance_map``).
-    Measured on the synthetic experiment at paper size (truth (18, 20)): paper (17.6 ± 2.1, 18.2 ± 4.3),
-    relative (20.3 ± 2.8, 22.2 ± 5.5), bands (18.7 ± 0.7, 19.7 ± 1.3). Against the reference model
+    Measured on the synthetic experiment at paper size (truth (18, 20)): paper (17.6 ± 2.1, 18.2 ± 4.2),
+    relative (20.6 ± 2.8, 22.0 ± 5.4), bands (18.8 ± 0.7, 20.1 ± 1.3). Against the reference model
     the simplified model's form error (35–100 Hz, Figure 4) moves the weighted distances away (the
-    band levels' mean squared standardised residual is 783 there, 2.6 on the synthetic data): hence
+    band levels' mean squared standardised residual is 576 there, 2.5 on the synthetic data): hence
     the paper's D by default, the band levels for the synthetic proof. The report gives all three.
     """
     ref = results["reference"]

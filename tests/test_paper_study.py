@@ -54,10 +54,9 @@ def test_report_recovers_delta_and_compares_with_the_truth(store, tmp_path):
 
 @pytest.mark.slow
 def test_full_synthetic_proof_recovers_the_truth(tmp_path):
-    """The full proof (paper size, ~4 min on 2 cores at load 2): ``experiment=synthetic``,
-    ``distance=bands``. Measured: δ 0.2715 ± 0.020 (truth 0.3), r (18.74 ± 0.67, 19.63 ± 1.3) (truth
-    (18, 20)), δ_F 0.005 ± 0.052 (truth 0.04, a flat likelihood: the stiffness dispersion dominates
-    J_s). Tolerances: r within 10 % (the issue's; 2.6 and 1.5 bootstrap σ), δ and δ_F within 2
+    """The full proof (paper size, ~2–4 min on 2 cores): ``experiment=synthetic``, ``distance=bands``.
+    Measured: δ 0.2715 ± 0.020 (truth 0.3), r (18.83 ± 0.67, 20.08 ± 1.3) (truth (18, 20)), δ_F
+    0.010 ± 0.054 (truth 0.04, a flat likelihood: the stiffness dispersion dominates J_s). Tolerances: r within 10 % (the issue's; 2.6 and 1.5 bootstrap σ), δ and δ_F within 2
     bootstrap σ (σ includes the Monte Carlo error of the model and the sampling of the observations)."""
     path = tmp_path / "synthetic.zarr"
     run(STUDY, path, quiet=True, progress=False, overrides={"experiment": "synthetic", "distance": "bands"})
