@@ -212,3 +212,19 @@ def test_bootstrap_with_several_observations_includes_their_sampling_error():
     true_sd = np.std(arg, ddof=1)
     assert 0.6 < np.mean(arg_sd) / true_sd < 1.6, (np.mean(arg_sd), true_sd)
     assert true_sd == pytest.approx(0.1 / np.sqrt(10), rel=0.35)  # the observations dominate
+
+
+def test_observations_far_from_the_samples_give_a_finite_bootstrap():
+    # 50 observations far in the tail: the joint log-likelihood is hugely negative and a replicate's
+    # maximum can exceed the curve's by far more than exp can hold; the bootstrap normalises each
+    # replicate by its own maximum, so no overflow (an error here) and finite spreads.
+    import warnings
+
+    grid = np.linspace(0.1, 0.6, 11)
+    s = grid[:, None] + 0.01 * rng_for(1, "far").standard_normal(100)
+    obs = 0.9 + 0.01 * np.arange(50)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ds = likelihood_curve(s, obs, grid, "theta", n_bootstrap=50, rng=1)
+    assert np.all(np.isfinite(ds.likelihood_std.values)) and ds.attrs["argmax"] == pytest.approx(0.6)
+    assert float(ds.likelihood.max()) == pytest.approx(1.0)

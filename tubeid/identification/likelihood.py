@@ -148,7 +148,8 @@ def likelihood_curve(samples, x_ref, grid, grid_name: str = "delta", n_bootstrap
     Bootstrap replicates resample realisation indices jointly across the grid; each replicate
     recomputes its Silverman bandwidth. With several observations each replicate also resamples
     them (with replacement), so ``argmax_std`` includes the sampling error of the observations, not
-    only the Monte Carlo error of the model. Without bootstrap, the bootstrap fields are NaN.
+    only the Monte Carlo error of the model; each replicate's likelihood is then taken relative to its
+    own maximum, like the curve. Without bootstrap, the bootstrap fields are NaN.
     """
     # ---- validation (all up front) ----
     if not isinstance(grid_name, str) or not grid_name:
@@ -221,7 +222,11 @@ def likelihood_curve(samples, x_ref, grid, grid_name: str = "delta", n_bootstrap
                 lb = per_obs[pick.T, np.arange(b)[None, :], :].sum(axis=0)
             else:
                 lb = joint(res, h_b)
-            boot_p.append(np.exp(lb - log_scale))
+            # several observations: each replicate relative to its own maximum, as the curve itself
+            # (a replicate's joint density can exceed the curve's maximum by far more than exp can hold)
+            scale_b = np.max(lb, axis=-1, keepdims=True) if xs.size > 1 else 0.0
+            with np.errstate(invalid="ignore"):
+                boot_p.append(np.exp(lb - scale_b))
             d_b, r_b = _refine_argmax(g, lb)
             boot_arg.append(r_b if refine else d_b)
         bp, ba = np.concatenate(boot_p), np.concatenate(boot_arg)
