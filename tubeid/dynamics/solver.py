@@ -642,33 +642,9 @@ _FM = {"reassoc", "contract"}  # reassociation (vectorised sums) and FMA; no NaN
 _E2, _E3, _E4, _E5, _E6, _E7, _E8, _E9 = (1.0 / math.factorial(k) for k in range(2, 10))
 
 
-@numba.njit(cache=True, _nrt=False, fastmath=_FM)
-def _rows8(A, r, g, x, n, out, o):
-    """out[o:o+8] = A[r, g:g+8, :n] . x[:n] (eight simultaneous dot products)."""
-    a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = 0.0
-    for i in range(n):
-        xi = x[i]
-        a0 += A[r, g, i] * xi
-        a1 += A[r, g + 1, i] * xi
-        a2 += A[r, g + 2, i] * xi
-        a3 += A[r, g + 3, i] * xi
-        a4 += A[r, g + 4, i] * xi
-        a5 += A[r, g + 5, i] * xi
-        a6 += A[r, g + 6, i] * xi
-        a7 += A[r, g + 7, i] * xi
-    out[o] = a0
-    out[o + 1] = a1
-    out[o + 2] = a2
-    out[o + 3] = a3
-    out[o + 4] = a4
-    out[o + 5] = a5
-    out[o + 6] = a6
-    out[o + 7] = a7
-
-
 @numba.njit(cache=True, _nrt=False, fastmath=_FM, inline="always")
 def _rows8_inline(A, r, g, x, n, out, o):
-    """_rows8 inlined into the caller (the fast path's block rows)."""
+    """out[o:o+8] = A[r, g:g+8, :n] . x[:n] (eight simultaneous dot products), inlined into the caller."""
     a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = 0.0
     for i in range(n):
         xi = x[i]
@@ -688,6 +664,12 @@ def _rows8_inline(A, r, g, x, n, out, o):
     out[o + 5] = a5
     out[o + 6] = a6
     out[o + 7] = a7
+
+
+@numba.njit(cache=True, _nrt=False, fastmath=_FM)
+def _rows8(A, r, g, x, n, out, o):
+    """_rows8_inline as an ordinary call (the event path: keeps its callers quick to compile)."""
+    _rows8_inline(A, r, g, x, n, out, o)
 
 
 @numba.njit(cache=True, _nrt=False, fastmath=_FM, inline="always")
