@@ -2,9 +2,10 @@
 
 from tubeid.identification.delta import identify_delta, reference_j
 from tubeid.identification.likelihood import kde_pdf, likelihood_curve, silverman_bandwidth
-from tubeid.identification.loads import delta_f_likelihood, distance_map, refine_grid, relative_weight
+from tubeid.identification.loads import (delta_f_likelihood, distance_map, log_band_distance_map, refine_grid,
+                                        relative_weight)
 
 __all__ = [
     "identify_delta", "reference_j", "likelihood_curve", "kde_pdf", "silverman_bandwidth",
-    "distance_map", "relative_weight", "refine_grid", "delta_f_likelihood",
+    "distance_map", "log_band_distance_map", "relative_weight", "refine_grid", "delta_f_likelihood",
 ]
