@@ -129,7 +129,9 @@ def test_scalar_real_and_one_by_one_complex_psds_agree():
     assert b.attrs["grid_dims"] == ["r2", "r1"]  # grid axes keep the input's order
     np.testing.assert_allclose(b.D.transpose("r1", "r2").values, a.D.values, rtol=1e-12)
     for d in ("r1", "r2"):
-        assert b.attrs[f"{d}_opt"] == pytest.approx(a.attrs[f"{d}_opt"], rel=1e-10)
+        # the refined optimum minimises a function that is flat at its minimum: round-off of order ε in
+        # its values moves the argmin by about √ε ≈ 1.5e-8 relative (2.6e-10 seen between machines)
+        assert b.attrs[f"{d}_opt"] == pytest.approx(a.attrs[f"{d}_opt"], rel=1e-7, abs=0)
         assert b.attrs[f"{d}_opt_std"] == pytest.approx(a.attrs[f"{d}_opt_std"], rel=1e-6)
 
 

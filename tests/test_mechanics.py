@@ -341,7 +341,7 @@ def test_bad_effects_are_refused(effect, field):
 def test_numbers_given_as_text_are_refused():
     d = spec_to_dict(builtin_spec("paper-simplified"))
     d["tubes"][0]["length"] = "16"
-    with pytest.raises(SpecificationError, match=r"tubes\[0\]\.length.*must be a number"):
+    with pytest.raises(SpecificationError, match=r"tubes\[0\]\.length.*must be a finite number"):
         spec_from_dict(d)
     d = spec_to_dict(builtin_spec("paper-simplified"))
     d["tubes"][0]["damping_ratio"] = "high"

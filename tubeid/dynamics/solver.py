@@ -86,6 +86,7 @@ import numpy as np
 import scipy.linalg
 import xarray as xr
 
+from tubeid._validation import positive
 from tubeid.errors import SpecificationError
 
 __all__ = [
@@ -246,10 +247,6 @@ def _validate_stops(stops, n):
     return stops
 
 
-def _positive(name, v):
-    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not math.isfinite(v) or v <= 0:
-        raise SpecificationError(name, v, "must be a finite number > 0 (s)")
-    return float(v)
 
 
 def _frac(x):
@@ -335,11 +332,11 @@ def choose_step(f_max, dt_load, output_dt=3e-3, method="exact", dt=None):
     """
     if method not in _METHODS:
         raise SpecificationError("method", method, f"must be one of {_METHODS}")
-    f_max = _positive("f_max", f_max)
-    dt_load = _positive("dt_load", dt_load)
-    output_dt = _positive("output_dt", output_dt)
+    f_max = positive("f_max", f_max, "Hz")
+    dt_load = positive("dt_load", dt_load, "s")
+    output_dt = positive("output_dt", output_dt, "s")
     if dt is not None:
-        dt = _positive("dt", dt)
+        dt = positive("dt", dt, "s")
         check_step(dt, f_max, method)
         for nm, big in (("dt_load", dt_load), ("output_dt", output_dt)):
             if not _divides(dt, big):
@@ -1434,8 +1431,8 @@ def _prepare(M, D, K, stops, B, C, loads, dt_load, output_dt, discard, method, k
     for nm, a in (("M", Ms), ("D", Ds), ("K", Ks)):
         if len(a) not in (1, R):
             raise SpecificationError(f"{nm}.shape", a.shape, f"realisation axis must be 1 or match loads (R = {R})")
-    dt_load = _positive("dt_load", dt_load)
-    output_dt = _positive("output_dt", output_dt)
+    dt_load = positive("dt_load", dt_load, "s")
+    output_dt = positive("output_dt", output_dt, "s")
     duration = (L.shape[1] - 1) * dt_load
     if isinstance(discard, bool) or not isinstance(discard, (int, float, np.integer, np.floating)) \
             or not math.isfinite(discard) or discard < 0 or discard >= duration:

@@ -54,6 +54,7 @@ import numpy as np
 import xarray as xr
 
 from tubeid.dynamics.spectra import distance, j_s
+from tubeid._validation import integer, open_unit
 from tubeid.errors import Described as _Desc, SpecificationError
 from tubeid.identification.likelihood import likelihood_curve
 from tubeid.seeds import rng_for
@@ -79,16 +80,8 @@ def _generator(rng, key: str) -> np.random.Generator:
                                          "when n_bootstrap > 0")
 
 
-def _check_int(name, value, minimum) -> int:
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (numbers.Integral, np.integer)) or value < minimum:
-        raise SpecificationError(name, value, f"must be an integer >= {minimum}")
-    return int(value)
 
 
-def _check_confidence(confidence) -> float:
-    if not (isinstance(confidence, (numbers.Real, np.floating)) and 0 < float(confidence) < 1):
-        raise SpecificationError("confidence", confidence, "must lie in the open interval (0, 1)")
-    return float(confidence)
 
 
 # ---------------------------------------------------------------------- minimiser refinement
@@ -350,8 +343,8 @@ def _grid_inputs(psd_model, psd_exp, band_hz, n_bootstrap, rng, dim, fit, confid
         raise SpecificationError("band_hz", band_hz, "must be a number (Hz)") from None
     if not (math.isfinite(band) and band > 0):
         raise SpecificationError("band_hz", band_hz, "must be > 0 (Hz)")
-    n_bootstrap = _check_int("n_bootstrap", n_bootstrap, 0)
-    confidence = _check_confidence(confidence)
+    n_bootstrap = integer("n_bootstrap", n_bootstrap, minimum=0)
+    confidence = open_unit("confidence", confidence)
     sensor_dims = tuple(d for d in _SENSOR_DIMS if d in psd_model.dims)
     if tuple(d for d in _SENSOR_DIMS if d in psd_exp.dims) != sensor_dims:
         raise SpecificationError("psd_exp.dims", psd_exp.dims,
@@ -701,7 +694,7 @@ def refine_grid(r_opt, factor: float, n: int):
         raise SpecificationError("factor", factor, "must be a number > 1") from None
     if not (math.isfinite(fac) and fac > 1):
         raise SpecificationError("factor", factor, "must be a finite number > 1")
-    n = _check_int("n", n, 2)
+    n = integer("n", n, minimum=2)
     as_map = isinstance(r_opt, dict)
     items = list(r_opt.items()) if as_map else list(enumerate(np.atleast_1d(r_opt)))
     if not items:
@@ -732,7 +725,7 @@ def delta_f_likelihood(j_s_samples, j_s_exp, grid=None, *, n_bootstrap: int = 20
     ``delta_F_opt``, ``delta_F_opt_std``, ``delta_F_opt_low``, ``delta_F_opt_high``, ``J_s_exp``,
     ``J_s_units``, and the samples as ``J_s``.
     """
-    m = _check_int("m", m, 1)
+    m = integer("m", m, minimum=1)
     if isinstance(j_s_samples, xr.DataArray):
         if grid_name not in j_s_samples.dims or j_s_samples.ndim != 2:
             raise SpecificationError("j_s_samples.dims", j_s_samples.dims,

@@ -20,6 +20,7 @@ import pathlib
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
+from tubeid._validation import non_negative, positive
 from tubeid.errors import SpecificationError
 
 __all__ = [
@@ -39,17 +40,6 @@ END_CONDITIONS = ("clamped", "pinned", "free")
 LOAD_KINDS = ("force", "moment")
 _NODE_TOL = 1e-9  # m: a position closer than this to a node is that node
 
-
-def _positive(field_name: str, value, *, allow_zero: bool = False) -> float:
-    if isinstance(value, (str, bool)):
-        raise SpecificationError(field_name, value, "must be a number")
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise SpecificationError(field_name, value, "must be a number") from None
-    if not math.isfinite(v) or (v < 0 if allow_zero else v <= 0):
-        raise SpecificationError(field_name, value, "must be >= 0" if allow_zero else "must be > 0")
-    return v
 
 
 @dataclass(frozen=True)
@@ -76,14 +66,14 @@ class TubeSpec:
         if not isinstance(self.name, str) or not self.name:
             raise SpecificationError(f"{where}.name", self.name, "must be a non-empty string")
         for f in ("length", "outer_radius", "wall", "density", "youngs_modulus"):
-            _positive(f"{where}.{f}", getattr(self, f))
+            positive(f"{where}.{f}", getattr(self, f))
         if self.wall > self.outer_radius:
             raise SpecificationError(f"{where}.wall", self.wall, f"must be <= outer_radius ({self.outer_radius} m)")
         if not isinstance(self.n_elements, int) or isinstance(self.n_elements, bool) or self.n_elements < 1:
             raise SpecificationError(f"{where}.n_elements", self.n_elements, "must be an integer >= 1")
         if len(self.ends) != 2 or any(e not in END_CONDITIONS for e in self.ends):
             raise SpecificationError(f"{where}.ends", self.ends, f"must be two of {END_CONDITIONS}")
-        if _positive(f"{where}.damping_ratio", self.damping_ratio, allow_zero=True) >= 1.0:
+        if non_negative(f"{where}.damping_ratio", self.damping_ratio) >= 1.0:
             raise SpecificationError(f"{where}.damping_ratio", self.damping_ratio, "must be in [0, 1)")
 
     @property
@@ -180,7 +170,7 @@ class ReductionSpec:
         for f in ("b_cutoff_hz", "a_cutoff_hz"):
             v = getattr(self, f)
             if v is not None:
-                _positive(f"{where}.{f}", v)
+                positive(f"{where}.{f}", v)
 
 
 @dataclass(frozen=True)
@@ -218,7 +208,7 @@ class BundleSpec:
             t.validate(f"tubes[{i}]")
             if names.index(t.name) != i:
                 raise SpecificationError(f"tubes[{i}].name", t.name, "tube names must be unique")
-        _positive("band_hz", self.band_hz)
+        positive("band_hz", self.band_hz)
         self.reduction.validate()
 
         def tube_of(where: str, name: str) -> TubeSpec:
@@ -238,7 +228,7 @@ class BundleSpec:
             w = f"links[{i}]"
             t = tube_of(f"{w}.tube", link.tube)
             on_tube(f"{w}.x", t, link.x)
-            _positive(f"{w}.stiffness", link.stiffness)
+            positive(f"{w}.stiffness", link.stiffness)
             if t.node_index(link.x) is None:
                 raise SpecificationError(f"{w}.x", link.x, f"must be a node of tube {t.name!r} (nodes {list(t.nodes)})")
             if link.to_tube is not None:
@@ -252,7 +242,7 @@ class BundleSpec:
             w = f"stops[{i}]"
             t = tube_of(f"{w}.tube", s.tube)
             on_tube(f"{w}.x", t, s.x)
-            _positive(f"{w}.gap", s.gap, allow_zero=True)
+            non_negative(f"{w}.gap", s.gap, "m")
             try:
                 k = float(s.stiffness)
             except (TypeError, ValueError):

@@ -30,6 +30,7 @@ from typing import Sequence
 
 import numpy as np
 
+from tubeid._validation import positive
 from tubeid.errors import SpecificationError
 
 __all__ = [
@@ -189,7 +190,7 @@ class LoadSpectrum:
             raise SpecificationError("x", self.x, "must be positions in m (numbers)") from None
         if len(x) != m or not all(np.isfinite(x)):
             raise SpecificationError("x", self.x, f"must be {m} finite positions (m)")
-        band = _positive("band", self.band, "Hz")
+        band = positive("band", self.band, "Hz")
         values = np.asarray(self.values)
         if not (np.issubdtype(values.dtype, np.number)):
             raise SpecificationError("values", self.values, "must be numeric PSD matrices")
@@ -319,14 +320,6 @@ class LoadSpectrum:
         return 2.0 * np.trapezoid(S.real, grid, axis=0)
 
 
-def _positive(name, value, unit) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise SpecificationError(name, value, f"must be a number ({unit})") from None
-    if not np.isfinite(v) or v <= 0:
-        raise SpecificationError(name, value, f"must be > 0 and finite ({unit})")
-    return v
 
 
 def _check_germ(G, m) -> np.ndarray:
@@ -360,8 +353,8 @@ def coherent_forces(x: Sequence[float] = (2.0, 4.0, 6.0, 8.0, 10.0, 12.0, 14.0),
     x = np.atleast_1d(np.asarray(x, dtype=float))
     if x.ndim != 1 or x.size == 0 or not np.all(np.isfinite(x)):
         raise SpecificationError("x", x, "must be a non-empty list of finite positions (m)")
-    level = _positive("level", level, "N^2/Hz")
-    lam = _positive("correlation_length", correlation_length, "m")
+    level = positive("level", level, "N^2/Hz")
+    lam = positive("correlation_length", correlation_length, "m")
     S = level * np.exp(-np.abs(x[:, None] - x[None, :]) / (2.0 * lam))
     m = x.size
     return LoadSpectrum(tuple(f"F{i + 1}" for i in range(m)), ("force",) * m, tube, tuple(x), band, S)
@@ -373,8 +366,8 @@ def force_and_moment(r1: float, r2: float, x: float = 8.0, band: float = 100.0,
 
     Independent, constant on |f| <= band (Hz): S = diag(r1, r2) (paper Eq. 7).
     """
-    r1 = _positive("r1", r1, "N^2/Hz")
-    r2 = _positive("r2", r2, "(N m)^2/Hz")
+    r1 = positive("r1", r1, "N^2/Hz")
+    r2 = positive("r2", r2, "(N m)^2/Hz")
     return LoadSpectrum(("T", "M"), ("force", "moment"), tube, (x, x), band, np.diag([r1, r2]))
 
 

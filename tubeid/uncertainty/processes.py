@@ -51,7 +51,8 @@ import numpy as np
 import scipy.fft
 
 from tubeid.errors import SpecificationError
-from tubeid.uncertainty.loads import _positive, check_psd_matrices, psd_factor
+from tubeid._validation import positive
+from tubeid.uncertainty.loads import check_psd_matrices, psd_factor
 
 __all__ = ["gaussian_loads", "synthesis_grid", "INTERPOLATIONS"]
 
@@ -60,8 +61,8 @@ INTERPOLATIONS = ("linear", "none")
 
 def synthesis_grid(duration: float, dt: float) -> tuple[int, int]:
     """(n_t, N): number of output samples round(duration/dt) + 1 and the FFT length N >= n_t."""
-    duration = _positive("duration", duration, "s")
-    dt = _positive("dt", dt, "s")
+    duration = positive("duration", duration, "s")
+    dt = positive("dt", dt, "s")
     n_steps = int(round(duration / dt))
     if n_steps < 1:
         raise SpecificationError("duration", duration, f"must be at least one time step dt = {dt:g} s")
@@ -85,7 +86,7 @@ def gaussian_loads(spectrum, duration: float, dt: float, rngs: Sequence[np.rando
     for attr in ("matrix", "band", "names"):
         if not hasattr(spectrum, attr):
             raise SpecificationError("spectrum", type(spectrum).__name__, f"must have a '{attr}' (a LoadSpectrum)")
-    band = _positive("spectrum.band", spectrum.band, "Hz")
+    band = positive("spectrum.band", spectrum.band, "Hz")
     n_t, N = synthesis_grid(duration, dt)
     dt = float(dt)
     if not 1.0 / (2.0 * dt) > band:

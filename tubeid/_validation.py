@@ -1,0 +1,124 @@
+"""Argument checks shared by the whole package: one place, one wording.
+
+Every check raises :class:`tubeid.errors.SpecificationError` naming the field, the value and the
+rule (``tubes[0].length = -2.0: must be a finite number > 0 (m)``) and returns the value converted
+to its plain Python type. Booleans are never numbers here (``True`` is not 1), strings are never
+numbers (a specification reader that wants to accept ``"7.5e8"`` converts it before checking), and
+NaN or infinity is refused wherever a number is asked for.
+
+This module is private: the public functions of each sub-package call it up front, before any
+computation, in the manner of scikit-learn's ``_param_validation``.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from collections.abc import Iterable
+from typing import Any
+
+import numpy as np
+
+from tubeid.errors import SpecificationError
+
+__all__ = ["real", "positive", "non_negative", "integer", "open_unit", "one_of", "seed", "is_number"]
+
+
+def _unit(unit: str | None) -> str:
+    return f" ({unit})" if unit else ""
+
+
+def is_number(value: Any) -> bool:
+    """True for a real number (Python or NumPy), never for ``bool``, strings or complex values."""
+    return (isinstance(value, (numbers.Real, np.floating, np.integer))
+            and not isinstance(value, (bool, np.bool_)))
+
+
+def real(field: str, value: Any, *, unit: str | None = None, low: float | None = None, high: float | None = None,
+         low_open: bool = False, high_open: bool = False) -> float:
+    """A finite real number, optionally within [low, high] (either end open), as ``float``.
+
+    Parameters
+    ----------
+    field : str
+        What the value is, as the user wrote it (``"tubes[0].length"``, ``"dt"``).
+    value : object
+        The value to check.
+    unit : str, optional
+        Shown in the rule, e.g. ``"m"``.
+    low, high : float, optional
+        Bounds; ``None`` for none.
+    low_open, high_open : bool
+        Whether the bound itself is excluded.
+
+    Returns
+    -------
+    float
+    """
+    rule = "must be a finite number"
+    if low is not None and high is not None:
+        rule += f" in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+    elif low is not None:
+        rule += f" {'>' if low_open else '>='} {low:g}"
+    elif high is not None:
+        rule += f" {'<' if high_open else '<='} {high:g}"
+    rule += _unit(unit)
+    if not is_number(value):
+        raise SpecificationError(field, value, rule)
+    v = float(value)
+    if not math.isfinite(v):
+        raise SpecificationError(field, value, rule)
+    if low is not None and (v < low or (low_open and v == low)):
+        raise SpecificationError(field, value, rule)
+    if high is not None and (v > high or (high_open and v == high)):
+        raise SpecificationError(field, value, rule)
+    return v
+
+
+def positive(field: str, value: Any, unit: str | None = None) -> float:
+    """A finite number > 0, as ``float``."""
+    return real(field, value, unit=unit, low=0.0, low_open=True)
+
+
+def non_negative(field: str, value: Any, unit: str | None = None) -> float:
+    """A finite number >= 0, as ``float``."""
+    return real(field, value, unit=unit, low=0.0)
+
+
+def integer(field: str, value: Any, *, minimum: int | None = None, maximum: int | None = None) -> int:
+    """An integer (Python or NumPy, never ``bool`` or a float such as 3.0) within [minimum, maximum]."""
+    if minimum is not None and maximum is not None:
+        rule = f"must be an integer in [{minimum}, {maximum}]"
+    elif minimum is not None:
+        rule = f"must be an integer >= {minimum}"
+    elif maximum is not None:
+        rule = f"must be an integer <= {maximum}"
+    else:
+        rule = "must be an integer"
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (numbers.Integral, np.integer)):
+        raise SpecificationError(field, value, rule)
+    v = int(value)
+    if (minimum is not None and v < minimum) or (maximum is not None and v > maximum):
+        raise SpecificationError(field, value, rule)
+    return v
+
+
+def open_unit(field: str, value: Any) -> float:
+    """A number in the open interval (0, 1) (a probability or confidence level), as ``float``."""
+    return real(field, value, low=0.0, high=1.0, low_open=True, high_open=True)
+
+
+def one_of(field: str, value: Any, choices: Iterable) -> Any:
+    """``value`` if it is one of ``choices`` (compared with ``==``, strings never match numbers)."""
+    choices = tuple(choices)
+    for c in choices:
+        if type(c) is type(value) and c == value or (c is None and value is None):
+            return value
+    raise SpecificationError(field, value, f"must be one of {', '.join(repr(c) for c in choices)}")
+
+
+def seed(field: str, value: Any) -> int:
+    """A seed: a non-negative integer."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (numbers.Integral, np.integer)) or value < 0:
+        raise SpecificationError(field, value, "must be a non-negative integer")
+    return int(value)
