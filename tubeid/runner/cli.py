@@ -36,17 +36,22 @@ def register(sub) -> None:
     s = p.add_mutually_exclusive_group()
     s.add_argument("--new-store", action="store_true",
                    help="if the store holds another study definition, write <store>-<hash>.zarr instead")
-    s.add_argument("--overwrite", action="store_true", help="replace whatever is at --store")
+    s.add_argument("--overwrite", action="store_true",
+                   help="replace the store at --store (only what tubeid wrote in it is removed; other files are kept)")
+    p.add_argument("--no-verify", action="store_true",
+                   help="on a resume, trust the finished blocks' flags instead of checking every block's checksum")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_run)
 
     p = sub.add_parser("status", help="blocks done / total of a study store, per stage for a pipeline (works while it runs)")
-    p.add_argument("store")
+    p.add_argument("store", help="the Zarr store (a directory) written by `tubeid run`")
     p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.add_argument("--verify", action="store_true",
+                   help="read every finished block back and check its checksum; exit code 1 if anything is damaged")
     p.set_defaults(func=_status)
 
     p = sub.add_parser("show", help="summary of a study store: provenance and labelled results")
-    p.add_argument("store")
+    p.add_argument("store", help="the Zarr store (a directory) written by `tubeid run`")
     p.add_argument("--source", action="store_true", help="also print the study source text")
     p.add_argument("--stage", action="append", help="pipeline store: show only this stage (repeatable)")
     p.set_defaults(func=_show)
@@ -65,7 +70,7 @@ def _run(args) -> int:
     try:
         run(args.study, args.store, workers=args.workers, scheduler=args.scheduler,
             overrides=dict(args.overrides), new_store=new_store, overwrite=args.overwrite,
-            progress=False if args.no_progress else None)
+            verify_blocks=not args.no_verify, progress=False if args.no_progress else None)
     except KeyboardInterrupt:
         print("\ntubeid: interrupted; finished blocks are kept: rerun the same command to resume", file=sys.stderr)
         return 130
@@ -80,16 +85,44 @@ def _stage_line(name, st) -> str:
     return f"  {name}: {st['done']}/{st['total']} blocks done ({pct:.1f} %), {state}"
 
 
+def _lock_line(st) -> str | None:
+    from tubeid.runner.lock import describe_holder, holder_state, LOCK_NAME
+    import pathlib
+
+    rec = st.get("lock")
+    if rec is None:
+        return None
+    if not rec:
+        return "  lock file unreadable"
+    state, why = holder_state(rec, pathlib.Path(st["path"]) / LOCK_NAME)
+    return (f"  {'being written' if state == 'alive' else 'stale lock'} by {describe_holder(rec)} ({why})")
+
+
+def _verifications(store, st):
+    from tubeid.runner.integrity import verify
+
+    if "stages" in st:
+        return {name: verify(store, name) for name, s in st["stages"].items() if s["started"]}
+    return {None: verify(store)}
+
+
 def _status(args) -> int:
     from tubeid.runner.store import store_status
 
     st = store_status(args.store)
+    st["path"] = args.store
     a = st["attrs"]
     keys = ("study_name", "study_hash", "started", "finished")
+    checks = _verifications(args.store, st) if args.verify else {}
+    damaged = any(not v.ok for v in checks.values())
     if args.json:
         extra = {"stages": st["stages"]} if "stages" in st else {}
+        if args.verify:
+            extra["verified"] = {str(k): {"checked": v.checked, "ok": v.ok, "findings": v.lines(limit=1000)}
+                                 for k, v in checks.items()}
+        extra["lock"] = st.get("lock")
         print(json.dumps({k: st[k] for k in ("done", "total", "complete")} | {k: a.get(k) for k in keys} | extra))
-        return 0
+        return 1 if damaged else 0
     if "stages" in st:
         n_done = sum(s["complete"] for s in st["stages"].values())
         state = "complete" if st["complete"] else "incomplete"
@@ -102,22 +135,50 @@ def _status(args) -> int:
         print(f"{a.get('study_name')}: {st['done']}/{st['total']} blocks done ({pct:.1f} %), {state}")
     print(f"  started {a.get('started')}" + (f", finished {a['finished']}" if a.get("finished") else "")
           + f", runs: {len(a.get('runs', []))}")
-    return 0
+    line = _lock_line(st)
+    if line:
+        print(line)
+    for group, v in checks.items():
+        where = f"stage {group}" if group else "blocks"
+        if v.ok:
+            print(f"  verified: {where}: {v.checked} finished blocks match their checksums")
+        else:
+            print(f"  DAMAGED: {where}: " + "\n    ".join(["", *v.lines()]).lstrip("\n")
+                  + f"\n    rerun `tubeid run` on its study to repair (only the damaged blocks are recomputed)")
+    return 1 if damaged else 0
 
 
-def _print_dataset(ds) -> None:
-    """The dataset without its attributes, then summary statistics of each output written so far."""
+def _print_dataset(ds, store, group=None) -> None:
+    """The dataset without its attributes, then summary statistics of each output written so far.
+
+    A chunk that cannot be decoded never ends in a traceback: the output's statistics are replaced
+    by the damaged chunks' names (from the store's verification).
+    """
     import numpy as np
 
     shown = ds.copy()
     shown.attrs = {}
     print(shown)
+    damage = None
     for name, var in ds.data_vars.items():
-        if var.size <= 50_000_000:
+        if var.size > 50_000_000:
+            continue
+        try:
             v = np.asarray(var.values, dtype=float)
-            ok = np.isfinite(v)
-            stats = f"mean {v[ok].mean():.6g}, min {v[ok].min():.6g}, max {v[ok].max():.6g}" if ok.any() else "no data yet"
-            print(f"  {name} [{var.attrs.get('units', '')}]: {stats} ({ok.mean():.0%} written)")
+        except Exception as exc:
+            if damage is None:
+                from tubeid.runner.integrity import verify
+
+                damage = verify(store, group)
+            bad = [f"block {i}: {r}" for i, r in sorted(damage.damaged.items()) if f"{name}/c/" in r]
+            print(f"  {name} [{var.attrs.get('units', '')}]: DAMAGED, cannot be read ({type(exc).__name__}); "
+                  + ("; ".join(bad[:5]) or "see `tubeid status --verify`")
+                  + ("" if len(bad) <= 5 else f"; ... {len(bad) - 5} more")
+                  + "; rerun `tubeid run` on its study to recompute")
+            continue
+        ok = np.isfinite(v)
+        stats = f"mean {v[ok].mean():.6g}, min {v[ok].min():.6g}, max {v[ok].max():.6g}" if ok.any() else "no data yet"
+        print(f"  {name} [{var.attrs.get('units', '')}]: {stats} ({ok.mean():.0%} finite)")
 
 
 def _show(args) -> int:
@@ -140,7 +201,7 @@ def _show(args) -> int:
         print("  model specification: " + a["model_specification"].splitlines()[0][:100] + " ...")
     if a.get("summary_keys"):
         print("  summary: " + ", ".join(f"{k} = {a[k]}" for k in a["summary_keys"]))
-    _print_dataset(ds)
+    _print_dataset(ds, args.store)
     if args.source:
         print("\n# study source\n" + a.get("study_source", ""))
     return 0
@@ -168,7 +229,7 @@ def _show_pipeline(args, st) -> int:
         print(f"  streams keyed by {sa.get('stream_key')} + {sa.get('seed_axes')}, parameters {sa.get('parameters')}")
         if sa.get("summary_keys"):
             print("  summary: " + ", ".join(f"{k} = {sa[k]}" for k in sa["summary_keys"]))
-        _print_dataset(ds)
+        _print_dataset(ds, args.store, name)
     if args.source:
         print("\n# pipeline source\n" + a.get("study_source", ""))
     return 0

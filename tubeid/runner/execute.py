@@ -23,9 +23,12 @@ import time
 
 from tubeid import config
 from tubeid.errors import SpecificationError
+from tubeid.runner.integrity import repair_structure, verify
+from tubeid.runner.lock import StoreLock
 from tubeid.runner.pipeline import Pipeline, stage_hash
-from tubeid.runner.store import (block_flags, check_blocks, check_stage, check_store, init_pipeline_store, init_stage, init_store, now,
-                                 prepare_path, read_attrs, tubeid_version, update_attrs, write_block)
+from tubeid.runner.store import (append_history, block_flags, check_blocks, check_stage, check_store, history_line,
+                                 init_pipeline_store, init_stage, init_store, now, prepare_path, read_attrs, remove_store,
+                                 set_flags, tubeid_version, update_attrs, write_block)
 from tubeid.runner.study import _plain, load_definition, load_study
 
 __all__ = ["run", "run_block", "run_stage_block", "stage_study", "RunReport", "PipelineReport", "default_store",
@@ -47,6 +50,8 @@ class RunReport:
     finalise: float = 0.0     # provenance update
     compute: float = 0.0      # sum over tasks of the study task itself
     write: float = 0.0        # sum over tasks of the region + flag writes
+    warmup: float = 0.0       # once-per-machine warm-up (e.g. compiling), 0 if none was needed
+    repaired: int = 0         # finished blocks found damaged by verification (recomputed)
     dashboard: str = ""
 
     @property
@@ -66,12 +71,14 @@ class PipelineReport:
     startup: float = 0.0
     prepare: float = 0.0      # root store creation / checks
     finalise: float = 0.0     # root provenance update
+    warmup: float = 0.0       # the pipeline's once-per-machine warm-up
     dashboard: str = ""
 
     total = property(lambda self: sum(r.total for r in self.stages.values()))
     computed = property(lambda self: sum(r.computed for r in self.stages.values()))
     skipped = property(lambda self: sum(r.skipped for r in self.stages.values()))
     compute = property(lambda self: sum(r.compute for r in self.stages.values()))
+    repaired = property(lambda self: sum(r.repaired for r in self.stages.values()))
 
     @property
     def wall(self) -> float:
@@ -102,7 +109,7 @@ def stage_study(pipeline: Pipeline, key: str, store, name: str):
     """
     import xarray as xr
 
-    from tubeid.runner.store import FLAG, store_status
+    from tubeid.runner.store import store_status
 
     names = pipeline.stage_names
     results, upstream = {}, []
@@ -110,7 +117,7 @@ def stage_study(pipeline: Pipeline, key: str, store, name: str):
         st = store_status(store, earlier)
         if not st["complete"]:
             raise SpecificationError(f"stages.{name}", name, f"needs stage {earlier!r} complete in {store}")
-        results[earlier] = xr.open_zarr(str(store), group=earlier, chunks=None).drop_vars(FLAG)
+        results[earlier] = xr.open_zarr(str(store), group=earlier, chunks=None)
         a = st["attrs"]
         upstream.append((earlier, a["stage_hash"], {k: a[k] for k in a.get("summary_keys", [])}))
     study = pipeline.stage(name, results)
@@ -144,11 +151,9 @@ def _summary(study, store, group=None) -> dict:
         return {}
     import xarray as xr
 
-    from tubeid.runner.store import FLAG
-
     ds = (xr.open_zarr(str(store), group=group, chunks=None) if group else xr.open_zarr(str(store), chunks=None))
     attrs = dict(ds.attrs)
-    values = study.summarize(ds.drop_vars(FLAG))
+    values = study.summarize(ds)
     if not isinstance(values, dict):
         raise SpecificationError("summarize", type(values).__name__, "must return a dict {name: plain value}")
     out = {}
@@ -175,158 +180,364 @@ def _log(msg, quiet):
         print(msg, file=sys.stderr, flush=True)
 
 
-@contextlib.contextmanager
-def _client(workers: int | None, scheduler: str | None, quiet: bool):
-    """A distributed Client: to ``scheduler`` if given, else to an embedded loopback LocalCluster."""
-    import dask
-    from distributed import Client, LocalCluster
+def _connect(scheduler: str):
+    """A Client to ``scheduler``, or a SpecificationError saying why not (never a library traceback)."""
+    from distributed import Client
 
-    if scheduler:
-        try:
-            client = Client(scheduler, timeout=config.get("runner.connect-timeout", "20s"))
-        except (OSError, TypeError, ValueError) as exc:  # unreachable, refused, or TLS misconfigured
-            raise SpecificationError("scheduler", scheduler, f"cannot connect: {type(exc).__name__}: {exc}") from exc
-        with client:
-            client.run(_warm)
-            yield client
+    timeout = config.get("runner.connect-timeout", "20s")
+    try:
+        return Client(scheduler, timeout=timeout)
+    except Exception as exc:  # unreachable, refused, TLS expected or misconfigured, timed out
+        text = f"{type(exc).__name__}: {exc}"
+        hint = ""
+        if scheduler.startswith("tcp://") and ("TLS" in text or "tls" in text or "ssl" in text.lower()
+                                               or isinstance(exc, (RuntimeError, OSError))):
+            hint = ("; if the scheduler uses TLS, give its tls:// address and the client certificates "
+                    "(DASK_CONFIG, see cluster/tls)")
+        raise SpecificationError("scheduler", scheduler,
+                                 f"cannot connect within tubeid.runner.connect-timeout = {timeout} ({text[:300]}){hint}") from exc
+
+
+def _embedded_security(quiet: bool):
+    """Ephemeral TLS credentials for the embedded cluster (only processes holding them may connect)."""
+    if not config.get("runner.embedded-tls", True):
+        return None
+    try:
+        from distributed.security import Security
+
+        return Security.temporary()
+    except ImportError as exc:  # the `cryptography` package is missing
+        raise SpecificationError("runner.embedded-tls", True, f"needs the `cryptography` package ({exc}); install it "
+                                 "or set tubeid.runner.embedded-tls: false (any local user could then submit work "
+                                 "to the embedded cluster)") from exc
+
+
+@contextlib.contextmanager
+def _client(workers: int | None, scheduler: str | None, client, quiet: bool):
+    """``(client, where)``: the Client to run on and a description of it for the progress line.
+
+    ``client`` if given (never closed here); else a new Client to ``scheduler``; else, if ``workers``
+    is None, the Client already open in this process (``distributed.default_client()``, e.g. a
+    notebook's dask-jobqueue or dask-kubernetes cluster; never closed here); else an embedded
+    loopback LocalCluster authenticated by ephemeral TLS.
+    """
+    import dask
+    from distributed import LocalCluster
+
+    if client is not None:
+        client.run(_warm)
+        yield client, f"the given dask Client (scheduler {client.scheduler.address})"
         return
+    if scheduler:
+        own = _connect(scheduler)
+        with own:
+            own.run(_warm)
+            yield own, scheduler
+        return
+    if workers is None:
+        from distributed import default_client
+
+        try:
+            existing = default_client()
+        except ValueError:
+            existing = None
+        if existing is not None and existing.status == "running":
+            existing.run(_warm)
+            yield existing, (f"the dask Client already open in this process (scheduler {existing.scheduler.address}, "
+                             "from distributed.default_client())")
+            return
+    from distributed import Client
+
     n = workers or config.get("runner.workers") or os.cpu_count() or 1
+    security = _embedded_security(quiet)
     with dask.config.set({"distributed.scheduler.allowed-failures": config.get("runner.allowed-failures", 3)}):
         cluster = LocalCluster(n_workers=int(n), threads_per_worker=int(config.get("runner.threads-per-worker", 1)),
                                processes=True, host=config.get("runner.host", "127.0.0.1"),
                                dashboard_address=config.get("runner.dashboard-address", "127.0.0.1:0"),
-                               silence_logs=logging.CRITICAL)
-    with cluster, Client(cluster) as client:
-        client.run(_warm)  # imports once per worker, before the clock of the first task starts
-        yield client
+                               silence_logs=logging.CRITICAL, security=security,
+                               protocol="tls://" if security is not None else None)
+    with cluster, Client(cluster, security=security) as own:
+        own.run(_warm)  # imports once per worker, before the clock of the first task starts
+        tls = ", TLS with ephemeral credentials" if security is not None else ""
+        yield own, f"embedded LocalCluster ({len(cluster.workers)} single-threaded worker processes{tls})"
 
 
 def _warm() -> None:
     import tubeid.runner.store  # noqa: F401  (xarray, zarr)
 
 
+def _warm_up(client, warmup, quiet) -> float:
+    """Do ``warmup`` once per machine where it is needed, saying so first; returns the seconds it took."""
+    if warmup is None:
+        return 0.0
+    t0 = time.perf_counter()
+    if client is None:
+        if warmup.needed():
+            _log(f"tubeid: {warmup.message}", quiet)
+            warmup.run()
+    else:
+        info = client.scheduler_info(n_workers=-1)["workers"]
+        per_host = {}
+        for addr, w in sorted(info.items()):
+            per_host.setdefault(w.get("host", addr), addr)
+        chosen = list(per_host.values())
+        needed = client.run(warmup.needed, workers=chosen)
+        todo = [a for a in chosen if needed.get(a)]
+        if not todo:
+            return 0.0
+        _log(f"tubeid: {warmup.message} ({len(todo)} of {len(chosen)} machines)", quiet)
+        futures = [client.submit(warmup.run, workers=[a], allow_other_workers=False, pure=False,
+                                 key=f"tubeid-warmup-{i}-{time.time_ns()}") for i, a in enumerate(todo)]
+        client.gather(futures)
+    dt = time.perf_counter() - t0
+    if dt > 0.05:
+        _log(f"tubeid: warm-up done in {dt:.1f} s", quiet)
+    return dt
+
+
 def _record_resume(path, quiet) -> None:
-    """Append this start to the store's runs; warn when another tubeid version started it."""
+    """Append this start to the store's runs and history; warn when another tubeid version started it."""
     attrs = read_attrs(path)
     if attrs.get("tubeid_version") != tubeid_version():
         _log(f"tubeid: warning: {path} was started with tubeid {attrs.get('tubeid_version')}, "
              f"resuming with {tubeid_version()}; use --overwrite if the results may differ", quiet)
-    update_attrs(path, runs=list(attrs.get("runs", [])) + [now()])
+    update_attrs(path, runs=list(attrs.get("runs", [])) + [now()],
+                 history=(attrs.get("history", "") + "\n" if attrs.get("history") else "") + history_line("resumed"))
 
 
-def run(study_path, store=None, *, workers: int | None = None, scheduler: str | None = None,
-        overrides: dict | None = None, new_store: bool = False, overwrite: bool = False,
-        progress: bool | None = None, quiet: bool = False) -> RunReport:
+def _verify_and_repair(study, path, group, quiet, where) -> int:
+    """Repair the structure of a resumed store (or stage), verify its blocks, clear the damaged ones' flags.
+
+    Returns the number of blocks to recompute because they were damaged.
+    """
+    repaired = repair_structure(study, path, group)
+    if repaired:
+        _log(f"tubeid: {where}: rewrote {len(repaired)} damaged metadata/coordinate file(s): "
+             + ", ".join(repaired[:5]) + (" ..." if len(repaired) > 5 else ""), quiet)
+    ver = verify(path, group)
+    bad = ver.to_recompute
+    if bad:
+        _log(f"tubeid: {where}: {len(bad)} of {ver.checked + len(ver.unreadable_flags)} finished blocks are damaged; "
+             "recomputing them:\n  " + "\n  ".join(ver.lines()), quiet)
+        set_flags(path, bad, 0, group)
+        if group:
+            update_attrs(path, group, finished="")
+        else:
+            update_attrs(path, finished="")
+        append_history(path, group, f"{len(bad)} damaged block(s) found by verification, recomputed")
+    return len(bad)
+
+
+def run(study_path, store=None, *, workers: int | None = None, scheduler: str | None = None, client=None,
+        overrides: dict | None = None, new_store: bool = False, overwrite: bool = False, verify_blocks: bool = True,
+        progress: bool | None = None, quiet: bool = False) -> RunReport | PipelineReport:
     """Run (or resume) the study in ``study_path`` into the Zarr ``store``; see ``tubeid run --help``.
 
-    workers: embedded LocalCluster size (default: configuration, else one per core; 0 runs the
-    blocks sequentially in this process, for debugging); scheduler: address of an existing
-    scheduler (default: configuration, then DASK_SCHEDULER_ADDRESS).
+    Parameters
+    ----------
+    study_path : path-like
+        A study file defining ``study = Study(...)`` or ``study = Pipeline(...)``.
+    store : path-like, optional
+        The Zarr store (default: ``<tubeid.runner.store-root>/<study name>.zarr``).
+    workers : int, optional
+        Size of an embedded LocalCluster (single-threaded worker processes, TLS-authenticated);
+        0 runs the blocks in this process, for debugging.
+    scheduler : str, optional
+        Address of an existing scheduler (default: configuration, then ``DASK_SCHEDULER_ADDRESS``).
+    client : distributed.Client, optional
+        An open Client to run on (e.g. a dask-jobqueue or dask-kubernetes cluster's); never closed
+        here. Without ``client``, ``workers`` or ``scheduler``, the Client already open in this
+        process (``distributed.default_client()``) is used if there is one, else an embedded cluster.
+        Its workers must see ``store`` at the same path and import tubeid.
+    overrides : dict, optional
+        Parameter values replacing the study's (validated; part of the store's identity).
+    new_store, overwrite : bool
+        If the store holds another study: write ``<store>-<hash8>.zarr`` beside it, or replace what
+        tubeid wrote in it (files tubeid did not write are kept).
+    verify_blocks : bool
+        On a resume (complete or not), check every finished block against its checksum first and
+        recompute the damaged ones (default True).
+    progress, quiet : bool
+        Progress bar on stderr (default: configuration); no messages at all.
+
+    Returns
+    -------
+    RunReport or PipelineReport
+        What the run did (blocks computed, skipped, repaired; timings).
     """
     overrides = dict(overrides or {})
     study, source, key = load_definition(study_path, overrides=overrides)  # validates the definition
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 0):
         raise SpecificationError("workers", workers, "must be a non-negative integer")
-    scheduler = scheduler_address(scheduler) if workers is None else scheduler
+    if client is not None and (workers is not None or scheduler):
+        raise SpecificationError("client", client, "give a client, --workers or --scheduler, not several")
+    if client is not None and not hasattr(client, "submit"):
+        raise SpecificationError("client", client, "must be a distributed.Client")
+    scheduler = scheduler_address(scheduler) if workers is None and client is None else scheduler
     if scheduler and workers is not None:
         raise SpecificationError("workers", workers, "give either --workers or --scheduler, not both")
     path = pathlib.Path(store) if store is not None else default_store(study.name)
     if new_store:
         path = path.with_name(f"{path.name.removesuffix('.zarr')}-{key[:8]}.zarr")
     path = prepare_path(path).resolve()
-    state = "new" if overwrite else check_store(path, key)
+    if not overwrite:
+        check_store(path, key)  # refused before taking the lock (and leaving a lock file) if it is not ours
+    else:
+        remove_store(path, dry_run=True)  # refused up front if it is not a tubeid store
     progress = config.get("runner.progress", True) if progress is None else progress
+    lock = StoreLock(path, log=lambda m: _log(m, quiet))
+    lock.acquire()
+    try:
+        state = "new" if overwrite else check_store(path, key)  # again, holding the lock
+        if overwrite:
+            kept = remove_store(path)
+            if kept:
+                _log(f"tubeid: --overwrite kept {len(kept)} file(s) tubeid did not write in {path}: "
+                     + ", ".join(kept[:5]) + (" ..." if len(kept) > 5 else ""), quiet)
+        ctx = _Run(study=study, source=source, key=key, study_path=study_path, path=path, state=state,
+                   workers=workers, scheduler=scheduler, client=client, overrides=overrides, verify=verify_blocks,
+                   progress=progress and not quiet, quiet=quiet, lock=lock)
+        if isinstance(study, Pipeline):
+            return _run_pipeline(ctx)
+        return _run_study(ctx)
+    finally:
+        lock.release()
+        if lock.created_store and path.is_dir() and all(f.name.startswith(".tubeid-") for f in path.iterdir()):
+            for f in path.iterdir():  # refused or failed before anything was written: leave no trace
+                f.unlink()
+            path.rmdir()
 
-    if isinstance(study, Pipeline):
-        return _run_pipeline(study, source, key, study_path, path, state, workers, scheduler, overrides, progress, quiet)
 
+@dataclasses.dataclass
+class _Run:
+    study: object
+    source: str
+    key: str
+    study_path: object
+    path: pathlib.Path
+    state: str
+    workers: int | None
+    scheduler: str | None
+    client: object
+    overrides: dict
+    verify: bool
+    progress: bool
+    quiet: bool
+    lock: StoreLock
+
+    def cluster(self):
+        if self.workers == 0 and self.client is None:
+            return contextlib.nullcontext((None, "this process"))
+        return _client(self.workers, self.scheduler, self.client, self.quiet)
+
+
+def _run_study(ctx: _Run) -> RunReport:
+    study, path, quiet = ctx.study, ctx.path, ctx.quiet
     report = RunReport(store=path, total=study.n_blocks, computed=0, skipped=0, workers=0)
-    if state == "resume":
+    if ctx.state == "resume":
         check_blocks(path, study)
-    if state == "resume" and block_flags(path).all():
-        report.skipped = study.n_blocks
-        if not read_attrs(path).get("finished"):  # every block written, but stopped before the finalisation
-            update_attrs(path, finished=now(), **_summary(study, path))
-        _log(f"tubeid: {path} is complete ({study.n_blocks} blocks): nothing to do", quiet)
-        return report
+        if ctx.verify:
+            report.repaired = _verify_and_repair(study, path, None, quiet, str(path))
+        if block_flags(path).all():
+            report.skipped = study.n_blocks
+            if not read_attrs(path).get("finished"):  # every block written, but stopped before the finalisation
+                update_attrs(path, finished=now(), **_summary(study, path))
+            checked = f"{study.n_blocks} blocks, verified" if ctx.verify else f"{study.n_blocks} blocks, not verified"
+            _log(f"tubeid: {path} is complete ({checked}): nothing to do", quiet)
+            return report
     t0 = time.perf_counter()
-    with (contextlib.nullcontext() if workers == 0 else _client(workers, scheduler, quiet)) as client:
+    with ctx.cluster() as (client, where):
         report.startup = time.perf_counter() - t0
         t0 = time.perf_counter()
-        if state == "new":
-            init_store(study, path, source=source, study_hash=key, study_file=str(study_path), overrides=overrides)
+        if ctx.state == "new":
+            init_store(study, path, source=ctx.source, study_hash=ctx.key, study_file=str(ctx.study_path),
+                       overrides=ctx.overrides)
             _log(f"tubeid: new store {path} ({study.n_blocks} blocks)", quiet)
         else:
             _record_resume(path, quiet)
         flags = block_flags(path)
         todo = [b.index for b in study.blocks() if not flags[b.index]]
         report.skipped = study.n_blocks - len(todo)
-        if state == "resume":
+        if ctx.state == "resume":
             _log(f"tubeid: resuming {path}: {report.skipped}/{study.n_blocks} blocks already done", quiet)
         report.prepare = time.perf_counter() - t0
-        show = progress and not quiet
-        fn = functools.partial(run_block, str(path), source, overrides)
+        fn = functools.partial(run_block, str(path), ctx.source, ctx.overrides)
+        if client is not None:
+            _describe_cluster(client, where, report, quiet)
+        report.warmup = _warm_up(client, study.warmup, quiet) if todo else 0.0
         if client is None:
-            _run_here(fn, todo, report, show)
+            _run_here(fn, todo, report, ctx.progress, lock=ctx.lock)
         else:
-            _describe_cluster(client, scheduler, report, quiet)
-            _run_dask(client, fn, f"tubeid-{key[:10]}", todo, report, show)
+            _run_dask(client, fn, f"tubeid-{ctx.key[:10]}", todo, report, ctx.progress, lock=ctx.lock)
     t0 = time.perf_counter()
     if not block_flags(path).all():
         raise RuntimeError(f"{path}: run ended with unfinished blocks")  # should not happen
     update_attrs(path, finished=now(), **_summary(study, path))
+    append_history(path, None, f"complete: {report.computed} block(s) computed, {report.skipped} already done")
     report.finalise = time.perf_counter() - t0
     _log(f"tubeid: done: {report.computed} blocks computed, {report.skipped} already done; store {path}", quiet)
     return report
 
 
-def _run_pipeline(pipeline, source, key, study_path, path, state, workers, scheduler, overrides, progress, quiet):
+def _run_pipeline(ctx: _Run) -> PipelineReport:
     from tubeid.runner.store import pipeline_status
 
+    pipeline, path, quiet = ctx.study, ctx.path, ctx.quiet
     report = PipelineReport(store=path)
-    if state == "resume" and pipeline_status(path)["complete"]:
-        _log(f"tubeid: {path} is complete ({len(pipeline.stages)} stages): nothing to do", quiet)
-        return report
-    show = progress and not quiet
     t0 = time.perf_counter()
-    with (contextlib.nullcontext() if workers == 0 else _client(workers, scheduler, quiet)) as client:
+    with ctx.cluster() as (client, where):
         report.startup = time.perf_counter() - t0
         t0 = time.perf_counter()
-        if state == "new":
-            init_pipeline_store(pipeline, path, source=source, study_hash=key, study_file=str(study_path),
-                                overrides=overrides)
+        if ctx.state == "new":
+            init_pipeline_store(pipeline, path, source=ctx.source, study_hash=ctx.key, study_file=str(ctx.study_path),
+                                overrides=ctx.overrides)
             _log(f"tubeid: new pipeline store {path} (stages {', '.join(pipeline.stage_names)})", quiet)
         else:
-            _record_resume(path, quiet)
-            _log(f"tubeid: resuming pipeline store {path}", quiet)
+            complete = pipeline_status(path)["complete"]
+            if not (complete and not ctx.verify):
+                _record_resume(path, quiet)
+            _log(f"tubeid: {'verifying' if complete else 'resuming'} pipeline store {path}", quiet)
         if client is not None:
-            _describe_cluster(client, scheduler, report, quiet)
+            _describe_cluster(client, where, report, quiet)
         report.prepare = time.perf_counter() - t0
+        report.warmup = _warm_up(client, pipeline.warmup, quiet) \
+            if ctx.state == "new" or not pipeline_status(path)["complete"] else 0.0
         for name in pipeline.stage_names:
-            report.stages[name] = _run_stage(pipeline, name, source, key, path, overrides, client, show, quiet)
+            report.stages[name] = _run_stage(ctx, name, client)
             report.workers = max(report.workers, report.stages[name].workers)
     t0 = time.perf_counter()
-    update_attrs(path, finished=now())
+    if report.computed or not read_attrs(path).get("finished"):
+        update_attrs(path, finished=now())
+        append_history(path, None, f"complete: {report.computed} block(s) computed, {report.skipped} already done")
     report.finalise = time.perf_counter() - t0
-    _log(f"tubeid: done: {report.computed} blocks computed, {report.skipped} already done "
-         f"({len(pipeline.stages)} stages); store {path}", quiet)
+    if report.computed == 0 and ctx.state == "resume":
+        checked = "verified" if ctx.verify else "not verified"
+        _log(f"tubeid: {path} is complete ({len(pipeline.stages)} stages, {report.skipped} blocks, {checked}): "
+             "nothing to do", quiet)
+    else:
+        _log(f"tubeid: done: {report.computed} blocks computed, {report.skipped} already done "
+             f"({len(pipeline.stages)} stages); store {path}", quiet)
     return report
 
 
 def _stage_state(path, name, state):
     status = dict(read_attrs(path).get("stage_status", {}))
-    status[name] = state
-    update_attrs(path, stage_status=status)
+    if status.get(name) != state:
+        status[name] = state
+        update_attrs(path, stage_status=status)
 
 
-def _run_stage(pipeline, name, source, key, path, overrides, client, show, quiet) -> RunReport:
+def _run_stage(ctx: _Run, name: str, client) -> RunReport:
+    pipeline, path, quiet = ctx.study, ctx.path, ctx.quiet
     t0 = time.perf_counter()
-    study, shash = stage_study(pipeline, key, path, name)  # refused here (before its tasks) if invalid
+    study, shash = stage_study(pipeline, ctx.key, path, name)  # refused here (before its tasks) if invalid
     _STAGES[(str(path), shash)] = study  # the in-process runner reuses it
     state = check_stage(path, name, shash)
     report = RunReport(store=path, total=study.n_blocks, computed=0, skipped=0, workers=0)
     if state == "resume":
         check_blocks(path, study, name)
+        if ctx.verify:
+            report.repaired = _verify_and_repair(study, path, name, quiet, f"stage {name}")
         attrs = read_attrs(path, name)
         if block_flags(path, name).all() and attrs.get("finished"):
             report.skipped = study.n_blocks
@@ -335,23 +546,27 @@ def _run_stage(pipeline, name, source, key, path, overrides, client, show, quiet
             return report
         update_attrs(path, name, runs=list(attrs.get("runs", [])) + [now()])
     else:
-        init_stage(study, path, name, pipeline_name=pipeline.name, pipeline_hash=key, stage_hash=shash)
+        init_stage(study, path, name, pipeline_name=pipeline.name, pipeline_hash=ctx.key, stage_hash=shash,
+                   references=pipeline.references)
     _stage_state(path, name, "running")
     flags = block_flags(path, name)
     todo = [b.index for b in study.blocks() if not flags[b.index]]
     report.skipped = study.n_blocks - len(todo)
     _log(f"tubeid: stage {name}: {len(todo)} of {study.n_blocks} blocks to compute", quiet)
     report.prepare = time.perf_counter() - t0
-    fn = functools.partial(run_stage_block, str(path), source, overrides, name, shash)
+    fn = functools.partial(run_stage_block, str(path), ctx.source, ctx.overrides, name, shash)
+    if todo:
+        report.warmup = _warm_up(client, study.warmup, quiet)
     if client is None:
-        _run_here(fn, todo, report, show, desc=name)
+        _run_here(fn, todo, report, ctx.progress, desc=name, lock=ctx.lock)
     else:
         report.workers = len(client.scheduler_info(n_workers=-1)["workers"])
-        _run_dask(client, fn, f"tubeid-{shash[:10]}-{name}", todo, report, show, desc=name)
+        _run_dask(client, fn, f"tubeid-{shash[:10]}-{name}", todo, report, ctx.progress, desc=name, lock=ctx.lock)
     t0 = time.perf_counter()
     if not block_flags(path, name).all():
         raise RuntimeError(f"{path}: stage {name} ended with unfinished blocks")  # should not happen
     update_attrs(path, name, finished=now(), **_summary(study, path, name))
+    append_history(path, name, f"stage complete: {report.computed} block(s) computed, {report.skipped} already done")
     _stage_state(path, name, "complete")
     report.finalise = time.perf_counter() - t0
     return report
@@ -371,28 +586,29 @@ def _account(report, res, bar):
     bar.update(1)
 
 
-def _run_here(fn, todo, report, progress, desc=None):
+def _run_here(fn, todo, report, progress, desc=None, lock=None):
     """Run ``fn(index)`` for every block index in this process."""
     report.workers = 1
     t0 = time.perf_counter()
     with _bar(report.total, report.skipped, progress, desc) as bar:
         for index in todo:
+            if lock is not None:
+                lock.check()
             _account(report, fn(index), bar)
     report.tasks = time.perf_counter() - t0
 
 
-def _describe_cluster(client, scheduler, report, quiet):
+def _describe_cluster(client, where, report, quiet):
     info = client.scheduler_info(n_workers=-1)
     report.workers = len(info["workers"])
     link = (getattr(client, "dashboard_link", "") or "") if "dashboard" in info.get("services", {}) else ""
     report.dashboard = link
     if link and importlib.util.find_spec("bokeh") is None:
         link += " (its plots need bokeh>=3.1 installed)"
-    where = scheduler or f"embedded LocalCluster ({report.workers} single-threaded worker processes)"
     _log(f"tubeid: running on {where}" + (f"; dashboard {link}" if link else ""), quiet)
 
 
-def _run_dask(client, fn, prefix, todo, report, progress, desc=None):
+def _run_dask(client, fn, prefix, todo, report, progress, desc=None, lock=None):
     """Submit ``fn(index)`` for every block index (task key ``<prefix>-block-<index>``) and wait for all."""
     from distributed import as_completed
 
@@ -402,6 +618,8 @@ def _run_dask(client, fn, prefix, todo, report, progress, desc=None):
     try:
         with _bar(report.total, report.skipped, progress, desc) as bar:
             for fut in as_completed(futures):
+                if lock is not None:
+                    lock.check()
                 _account(report, fut.result(), bar)
     except BaseException:
         client.cancel(futures)

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from tubeid.errors import SpecificationError
-from tubeid.runner.study import Parameter, Parameterised, Study, _plain, check_name
+from tubeid.runner.study import RESERVED, Parameter, Parameterised, Study, Warmup, _plain, check_name
 
 __all__ = ["Pipeline", "stage_hash"]
 
@@ -37,7 +37,10 @@ class Pipeline(Parameterised):
     name: identifier (store file name); seed: non-negative int, the seed of every stage;
     stages: sequence of ``Study`` or ``stage(results, **parameters) -> Study`` functions;
     parameters: {name: plain value or Parameter} passed to the stage functions that name them
-    (``tubeid run --set name=value`` overrides one); description: one line for the provenance.
+    (``tubeid run --set name=value`` overrides one); description: one line for the provenance
+    (the store's CF ``title``); references: the store's CF ``references`` (default: the method's
+    paper), inherited by stages that give none; warmup: a :class:`~tubeid.runner.study.Warmup` done
+    once per machine before the first stage that has blocks to compute.
     """
 
     name: str
@@ -45,6 +48,8 @@ class Pipeline(Parameterised):
     stages: Sequence[Study | Callable]
     parameters: Mapping[str, Any] = dataclasses.field(default_factory=dict)
     description: str = ""
+    references: str = ""
+    warmup: Warmup | None = None
 
     def __post_init__(self):
         check_name("name", self.name)
@@ -64,6 +69,8 @@ class Pipeline(Parameterised):
             else:
                 raise SpecificationError(f"stages[{i}]", st, "must be a Study or a function stage(results, **parameters) -> Study")
             check_name(f"stages[{i}].name", name)
+            if name == RESERVED:
+                raise SpecificationError(f"stages[{i}].name", name, "is reserved for the store's bookkeeping")
             if name in names:
                 raise SpecificationError(f"stages[{i}].name", name, "is already the name of an earlier stage")
             names.append(name)
@@ -73,6 +80,10 @@ class Pipeline(Parameterised):
             p = p if isinstance(p, Parameter) else Parameter(p)
             params[name] = dataclasses.replace(p, value=p.check(name, p.value))
         object.__setattr__(self, "parameters", params)
+        if not isinstance(self.references, str):
+            raise SpecificationError("references", self.references, "must be a string")
+        if self.warmup is not None and not isinstance(self.warmup, Warmup):
+            raise SpecificationError("warmup", self.warmup, "must be a tubeid.runner.Warmup")
         self._check_signatures()
 
     def _check_signatures(self):

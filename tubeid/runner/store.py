@@ -1,29 +1,40 @@
-"""The Zarr store of a study: layout, provenance, per-block writes and completion flags.
+"""The Zarr store of a study: layout, provenance, per-block writes, checksummed completion flags.
 
 Layout: one variable per output with dims (study axes..., extra dims...), chunked exactly by
-blocks along the axes (whole along extra dims), so each block owns whole chunks; a ``block_done``
-(uint8) variable with dims ``block_<axis>`` and one chunk per block, written after the block's
-data. Unwritten float chunks read as NaN (the fill value). The root attributes hold the
-provenance: ``tubeid_version``, ``study_name``, ``study_file``, ``study_source``, ``study_hash``,
-``seed``, ``seed_axes``, ``parameters`` (JSON), ``model_specification``, ``started`` (first start,
-UTC ISO 8601), ``runs`` (every start), ``finished`` ('' until complete), and the values returned by
-the study's ``summarize`` (names listed in ``summary_keys``).
+blocks along the axes (whole along extra dims), so each block owns whole chunks; coordinates with
+CF ``units`` and ``long_name``. Unwritten float chunks read as NaN (the fill value). The
+bookkeeping lives in the sub-group ``_tubeid`` (hidden from ``xarray.open_zarr(store)``): the array
+``block_done`` (uint64, dims ``block_<axis>``, one chunk per block), 0 until the block is written,
+then the block's checksum (:func:`tubeid.runner.integrity.block_checksum` of the values it
+wrote), written after the block's data; its attributes hold the block layout and checksums of the
+coordinates. The root attributes hold the CF global attributes (``Conventions``, ``title``,
+``references``, ``history``, ``source``) and the provenance: ``tubeid_version``, ``study_name``,
+``study_file``, ``study_source``, ``study_hash``, ``seed``, ``seed_axes``, ``parameters`` (JSON),
+``model_specification``, ``started`` (first start, UTC ISO 8601), ``runs`` (every start),
+``finished`` ('' until complete), and the values returned by the study's ``summarize`` (names
+listed in ``summary_keys``).
 
 A pipeline store holds the same layout once per stage, in a Zarr group named after the stage
-(``xarray.open_zarr(store, group="delta")``), whose attributes hold the stage's provenance
-(``stage_name``, ``stage_hash``, ``pipeline_hash``, seeds, parameters, times, summary). The root
-group holds no arrays; its attributes hold the pipeline provenance (``format`` =
-``tubeid-pipeline-store/1``, source, hash, seed, parameters, ``stages``, ``stage_status``, times).
-Metadata is consolidated per group and at the root after every metadata change.
+(``xarray.open_zarr(store, group="delta")``; its bookkeeping in ``delta/_tubeid``), whose
+attributes hold the stage's provenance (``stage_name``, ``stage_hash``, ``pipeline_hash``, seeds,
+parameters, times, summary). The root group holds no arrays; its attributes hold the pipeline
+provenance (``format`` = ``tubeid-pipeline-store/2``, source, hash, seed, parameters, ``stages``,
+``stage_status``, times). Metadata is consolidated per group and at the root after every change.
+
+What tubeid wrote is listed in the manifest ``<store>/.tubeid-manifest.json`` (every group and
+array it created, before creating it); ``--overwrite`` removes only those nodes' metadata and
+chunk files (and tubeid's own ``.tubeid-*`` files), never anything else put in the store. The
+lock of the runner writing the store is ``<store>/.tubeid-lock`` (:mod:`tubeid.runner.lock`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import json
 import os
 import pathlib
-import shutil
+import re
 import tempfile
 import warnings
 
@@ -32,20 +43,36 @@ import xarray as xr
 import zarr
 
 from tubeid.errors import SpecificationError
+from tubeid.runner.study import RESERVED
 
 __all__ = ["init_store", "init_pipeline_store", "init_stage", "check_store", "check_stage", "check_blocks", "block_flags",
-           "write_block", "update_attrs", "read_attrs", "open_results", "open_pipeline", "store_status",
-           "pipeline_status", "is_pipeline", "prepare_path", "FLAG", "now"]
+           "read_flags", "write_block", "update_attrs", "read_attrs", "open_results", "open_pipeline", "store_status",
+           "pipeline_status", "is_pipeline", "prepare_path", "remove_store", "FLAG", "BOOKKEEPING", "MANIFEST_NAME",
+           "REFERENCES", "now", "history_line"]
 
 FLAG = "block_done"
-FORMAT = "tubeid-study-store/1"
-PIPELINE_FORMAT = "tubeid-pipeline-store/1"
-STAGE_FORMAT = "tubeid-pipeline-stage/1"
+BOOKKEEPING = RESERVED
+FORMAT = "tubeid-study-store/2"
+PIPELINE_FORMAT = "tubeid-pipeline-store/2"
+STAGE_FORMAT = "tubeid-pipeline-stage/2"
+BLOCKS_FORMAT = "tubeid-blocks/1"
+LEGACY_FORMATS = ("tubeid-study-store/1", "tubeid-pipeline-store/1")
+MANIFEST_NAME = ".tubeid-manifest.json"
+CONVENTIONS = "CF-1.10"
+REFERENCES = ("A. Batou and C. Soize, Experimental identification of stochastic processes using an uncertain "
+              "computational non-linear dynamical model, ICIPE 2008, Journal of Physics: Conference Series 135 "
+              "(2008) 012014, doi:10.1088/1742-6596/135/1/012014")
+"""Default CF ``references`` of a store: the method tubeid implements (a study may give its own)."""
 
 
 def now() -> str:
     """Current UTC time, ISO 8601 to the millisecond."""
     return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="milliseconds")
+
+
+def history_line(what: str) -> str:
+    """One CF ``history`` line: ``<UTC time> tubeid <version>: <what>``."""
+    return f"{now()} tubeid {tubeid_version()}: {what}"
 
 
 def tubeid_version() -> str:
@@ -57,17 +84,34 @@ def tubeid_version() -> str:
         return "unknown"
 
 
+_QUIET = ("Consolidated metadata", "is not recognized as a component")
+
+
+@contextlib.contextmanager
+def _quiet():
+    """Silence zarr's notes on consolidated metadata and on files it does not own (a user's, tubeid's lock)."""
+    with warnings.catch_warnings():
+        for text in _QUIET:
+            warnings.filterwarnings("ignore", message=f".*{text}.*")
+        yield
+
+
 def _consolidate(path, group=None):
     """Consolidate the metadata of ``group`` (if any), then of the root (which nests every group's)."""
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="Consolidated metadata", category=UserWarning)
+    with _quiet():
         if group:
             zarr.consolidate_metadata(str(path), path=group)
         zarr.consolidate_metadata(str(path))
 
 
-def _group(path, group=None, mode="r"):
-    return zarr.open_group(str(path), mode=mode, path=group) if group else zarr.open_group(str(path), mode=mode)
+def _group(path, group=None, mode="r", consolidated=None):
+    kw = {} if consolidated is None else {"use_consolidated": consolidated}
+    with _quiet():
+        return zarr.open_group(str(path), mode=mode, path=group, **kw) if group else zarr.open_group(str(path), mode=mode, **kw)
+
+
+def _node(group, name):
+    return f"{group}/{name}" if group else name
 
 
 def _flag_dims(study):
@@ -91,16 +135,26 @@ def prepare_path(path) -> pathlib.Path:
     return p
 
 
+def _own_file(name: str) -> bool:
+    """tubeid's own files at the top of a store (manifest, lock and its temporary files)."""
+    return name.startswith(".tubeid-")
+
+
 def check_store(path, study_hash: str) -> str:
     """``"new"`` if there is no store at ``path``; ``"resume"`` if it holds this study; else refuse."""
     p = pathlib.Path(path)
-    if not p.exists() or (p.is_dir() and not any(p.iterdir())):
+    if not p.exists() or (p.is_dir() and not (p / "zarr.json").exists() and all(_own_file(c.name) for c in p.iterdir())):
         return "new"
     try:
-        attrs = dict(zarr.open_group(str(p), mode="r").attrs)
+        attrs = read_attrs(p)
     except Exception as exc:
-        raise SpecificationError("store", str(p), f"exists but is not a Zarr store ({exc}); choose another path or --overwrite") from exc
-    if attrs.get("format") not in (FORMAT, PIPELINE_FORMAT):
+        raise SpecificationError("store", str(p), f"exists but is not a readable Zarr store ({type(exc).__name__}: "
+                                 f"{exc}); choose another path or --overwrite") from exc
+    fmt = attrs.get("format")
+    if fmt in LEGACY_FORMATS:
+        raise SpecificationError("store", str(p), f"was written by an older tubeid (layout {fmt}): xarray.open_zarr "
+                                 "still reads it; to run, use --new-store or --overwrite")
+    if fmt not in (FORMAT, PIPELINE_FORMAT):
         raise SpecificationError("store", str(p), "exists but is not a tubeid study store; choose another path or --overwrite")
     if attrs.get("study_hash") != study_hash:
         raise SpecificationError(
@@ -111,32 +165,128 @@ def check_store(path, study_hash: str) -> str:
     return "resume"
 
 
-def _remove_store(p: pathlib.Path) -> None:
-    """Delete ``p`` only if it is empty or a tubeid store: ``--overwrite`` never deletes anything else."""
+# -- the manifest: what tubeid wrote, and removing only that ---------------------------------------------
+def _read_manifest(p: pathlib.Path) -> dict:
+    f = p / MANIFEST_NAME
+    if not f.exists():
+        return {}
+    try:
+        doc = json.loads(f.read_text())
+        nodes = doc["nodes"]
+        if not isinstance(nodes, dict):
+            raise TypeError
+        return nodes
+    except (ValueError, KeyError, TypeError, OSError):
+        raise SpecificationError("store", str(p), f"has an unreadable manifest {MANIFEST_NAME}: tubeid cannot tell "
+                                 "what it wrote there and will not delete or replace anything in it") from None
+
+
+def _record_nodes(p: pathlib.Path, nodes: dict) -> None:
+    """Add ``{node path: "group" | "array"}`` to the manifest (atomic replace; the caller holds the lock)."""
+    entries = _read_manifest(p)
+    entries.update(nodes)
+    doc = {"tubeid_manifest": 1, "nodes": dict(sorted(entries.items()))}
+    fd, tmp = tempfile.mkstemp(prefix=".tubeid-tmp-", dir=p)
+    with os.fdopen(fd, "w") as fh:
+        json.dump(doc, fh, indent=1)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, p / MANIFEST_NAME)
+
+
+def _legacy_nodes(p: pathlib.Path) -> dict:
+    """Nodes of a store written before manifests existed (layout /1): every group and array of its hierarchy."""
+    nodes = {"": "group"}
+    with _quiet():
+        for name, node in zarr.open_group(str(p), mode="r", use_consolidated=False).members(max_depth=None):
+            nodes[name] = "array" if isinstance(node, zarr.Array) else "group"
+    return nodes
+
+
+_CHUNK = re.compile(r"^c(/\d+)*$")
+_PARTIAL = re.compile(r"\.[0-9a-f]{32}\.partial$")  # zarr's own temporary files (atomic writes)
+
+
+def _node_files(p: pathlib.Path, node: str, kind: str) -> list[pathlib.Path]:
+    """The files of one recorded node: its ``zarr.json``, its chunks (arrays) and zarr's temporary files."""
+    d = p / node if node else p
+    out = []
+    for name in ("zarr.json",):
+        if (d / name).is_file():
+            out.append(d / name)
+    out += [f for f in d.glob("*") if f.is_file() and (_PARTIAL.search(f.name) or f.name.startswith(".tubeid-tmp-"))]
+    if kind == "array" and (d / "c").is_dir():
+        for f in (d / "c").rglob("*"):
+            rel = f.relative_to(d).as_posix()
+            if f.is_file() and (_CHUNK.match(rel) or (_PARTIAL.search(f.name) and _CHUNK.match(rel[:_PARTIAL.search(rel).start()]))):
+                out.append(f)
+    return out
+
+
+def _remove_nodes(p: pathlib.Path, nodes: dict) -> None:
+    """Remove the files of ``nodes`` and the directories this leaves empty (deepest first)."""
+    dirs = set()
+    for node, kind in nodes.items():
+        for f in _node_files(p, node, kind):
+            f.unlink()
+            dirs.update(parent for parent in f.parents if parent != p and p in parent.parents)
+    for d in sorted(dirs, key=lambda d: len(d.parts), reverse=True):
+        with contextlib.suppress(OSError):  # not empty: something tubeid did not write is inside
+            d.rmdir()
+
+
+def remove_store(path, *, keep_lock: bool = True, dry_run: bool = False) -> list[str]:
+    """Remove what tubeid wrote in the store ``path`` (its manifest's nodes and its own files).
+
+    Anything else in the store (a user's file or array) is kept, with the directories holding it;
+    returns those files' paths (relative to the store). A directory that holds no tubeid store is
+    refused (``SpecificationError``), as is a store whose manifest is unreadable. ``dry_run``: only
+    the refusals, nothing removed.
+    """
+    p = pathlib.Path(path)
     if not p.exists():
-        return
-    if p.is_dir() and any(p.iterdir()):
+        return []
+    if not p.is_dir():
+        raise SpecificationError("store", str(p), "is a file, not a store directory")
+    if (p / "zarr.json").exists() or (p / MANIFEST_NAME).exists():
         try:
             fmt = read_attrs(p).get("format")
-        except Exception:  # not a zarr group at all
+        except Exception:
             fmt = None
-        if fmt not in (FORMAT, PIPELINE_FORMAT):
-            raise SpecificationError("store", str(p), "exists and is not a tubeid store: refusing to delete it (choose another --store)")
-    if p.is_dir():
-        shutil.rmtree(p)
+        nodes = _read_manifest(p)
+        if not nodes:
+            if fmt not in LEGACY_FORMATS:
+                raise SpecificationError("store", str(p), f"has no manifest ({MANIFEST_NAME}) of what tubeid wrote: "
+                                         "refusing to delete anything in it (remove it yourself, or choose another --store)")
+            nodes = _legacy_nodes(p)
+    elif all(_own_file(c.name) for c in p.iterdir()):
+        nodes = {}
     else:
-        raise SpecificationError("store", str(p), "is a file, not a store directory")
+        raise SpecificationError("store", str(p), "exists and is not a tubeid store: refusing to delete it (choose another --store)")
+    if dry_run:
+        return []
+    _remove_nodes(p, nodes)
+    from tubeid.runner.lock import LOCK_NAME
+
+    for f in p.iterdir():
+        if f.is_file() and _own_file(f.name) and not (keep_lock and f.name == LOCK_NAME):
+            f.unlink()
+    return sorted(f.relative_to(p).as_posix() for f in p.rglob("*") if f.is_file() and not _own_file(f.name))
 
 
 def _fresh_root(path, fmt: str, definition, *, source: str, study_hash: str, study_file: str, overrides) -> tuple[pathlib.Path, dict]:
-    """Remove any store at ``path`` and return it with the provenance shared by study and pipeline roots."""
+    """The provenance shared by study and pipeline roots (the caller removed any earlier store)."""
     p = pathlib.Path(path)
-    _remove_store(p)
-    p.parent.mkdir(parents=True, exist_ok=True)
+    p.mkdir(parents=True, exist_ok=True)
     t = now()
+    cmd = f"tubeid run {study_file}" + "".join(f" --set {k}={v!r}" for k, v in sorted(dict(overrides or {}).items()))
     return p, {
-        "format": fmt,
+        "Conventions": CONVENTIONS,
         "title": definition.description or definition.name,
+        "references": getattr(definition, "references", "") or REFERENCES,
+        "source": f"tubeid {tubeid_version()}",
+        "history": history_line(f"created by `{cmd}`"),
+        "format": fmt,
         "tubeid_version": tubeid_version(),
         "study_name": definition.name,
         "study_file": str(study_file),
@@ -152,14 +302,27 @@ def _fresh_root(path, fmt: str, definition, *, source: str, study_hash: str, stu
 
 
 def init_store(study, path, *, source: str, study_hash: str, study_file: str = "", overrides=None) -> None:
-    """Create the store: coordinates, empty (lazy) outputs, zero flags and provenance; no data computed."""
+    """Create the store (the caller removed any earlier one): coordinates, empty outputs, zero flags, provenance."""
     p, attrs = _fresh_root(path, FORMAT, study, source=source, study_hash=study_hash, study_file=study_file, overrides=overrides)
     attrs.update(seed_axes=list(study.seed_axes), model_specification=study.describe_model())
     _write_empty(study, p, attrs)
 
 
+def bookkeeping_attrs(study) -> dict:
+    """Attributes of a study's ``_tubeid`` group: block layout, outputs, checksums of the coordinates."""
+    from tubeid.runner.integrity import CHECKSUM_RULE, values_checksum
+
+    return {"format": BLOCKS_FORMAT, "axes": list(study.axes), "chunks": [int(study.chunks[d]) for d in study.axes],
+            "outputs": sorted(study.outputs), "checksum": CHECKSUM_RULE,
+            "coordinates": {d: values_checksum(v) for d, v in {**study.axes, **study.coords}.items()}}
+
+
 def _write_empty(study, p, attrs, group=None) -> None:
-    """Write coordinates, lazy empty outputs and zero flags of ``study`` (at the root or in ``group``)."""
+    """Write coordinates, lazy empty outputs and zero flags of ``study`` (at the root or in ``group``).
+
+    The nodes are recorded in the manifest first; written with ``mode="a"`` (which creates and never
+    deletes: files already in the directory that tubeid did not write stay).
+    """
     import dask.array as da
 
     axes = list(study.axes)
@@ -168,41 +331,56 @@ def _write_empty(study, p, attrs, group=None) -> None:
     for name, out in study.outputs.items():
         extra = tuple(study.coords[d].size for d in out.dims)
         arr = da.empty(study.shape + extra, chunks=block_chunks + extra, dtype=out.dtype)
-        out_attrs = {k: v for k, v in (("units", out.units), ("long_name", out.long_name)) if v}
+        out_attrs = {"long_name": out.long_name or name, **({"units": out.units} if out.units else {})}
         data_vars[name] = (tuple(axes) + out.dims, arr, out_attrs)
-    data_vars[FLAG] = (_flag_dims(study), da.zeros(study.block_grid, chunks=1, dtype="u1"),
-                       {"long_name": "block completion flag (1 = written)", "chunks": list(block_chunks)})
     coords = {}
     for dim, values in {**study.axes, **study.coords}.items():
-        c_attrs = {"units": study.units[dim]} if dim in study.units else {}
         if values.dtype.kind == "U":  # variable-length strings (fixed-width UTF-32 has no Zarr v3 spec)
             values = values.astype(object)
-        coords[dim] = (dim, values, c_attrs)
+        coords[dim] = (dim, values, study.coordinate_attrs(dim))
     ds = xr.Dataset(data_vars, coords=coords, attrs=attrs)
-    if group:
-        ds.to_zarr(str(p), group=group, mode="w", compute=False, consolidated=False)
-    else:
-        ds.to_zarr(str(p), mode="w", compute=False, consolidated=False)
+    root = pathlib.Path(p)
+    nodes = {group or "": "group", _node(group, BOOKKEEPING): "group", _node(group, f"{BOOKKEEPING}/{FLAG}"): "array"}
+    nodes.update({_node(group, n): "array" for n in [*data_vars, *coords]})
+    _record_nodes(root, nodes)
+    with _quiet():
+        ds.to_zarr(str(p), group=group, mode="a", compute=False, consolidated=False)
+        g = _group(p, group, mode="r+", consolidated=False)
+        bk = g.create_group(BOOKKEEPING, attributes=bookkeeping_attrs(study))
+        bk.create_array(FLAG, shape=study.block_grid, chunks=(1,) * len(axes), dtype="uint64", fill_value=0,
+                        dimension_names=_flag_dims(study),
+                        attributes={"long_name": "block completion flag: 0 = not written, else the block's checksum"})
     _consolidate(p, group)
 
 
 def init_pipeline_store(pipeline, path, *, source: str, study_hash: str, study_file: str = "", overrides=None) -> None:
-    """Create a pipeline store: the root group and its provenance (stage groups come later)."""
+    """Create a pipeline store (the caller removed any earlier one): the root group and its provenance."""
     p, attrs = _fresh_root(path, PIPELINE_FORMAT, pipeline, source=source, study_hash=study_hash, study_file=study_file, overrides=overrides)
     attrs.update(stages=pipeline.stage_names, stage_status={n: "pending" for n in pipeline.stage_names})
-    zarr.open_group(str(p), mode="w", zarr_format=3, attributes=attrs)
+    _record_nodes(p, {"": "group"})
+    with _quiet():
+        zarr.open_group(str(p), mode="a", zarr_format=3, attributes=attrs)
     _consolidate(p)
 
 
-def init_stage(study, path, name: str, *, pipeline_name: str, pipeline_hash: str, stage_hash: str) -> None:
-    """Create (or replace) the group of stage ``name``: the layout of a study store, stage provenance."""
+def init_stage(study, path, name: str, *, pipeline_name: str, pipeline_hash: str, stage_hash: str,
+               references: str = "") -> None:
+    """Create (or replace) the group of stage ``name``: the layout of a study store, stage provenance.
+
+    A stage group already there (e.g. from a run stopped while creating it) is removed first, only
+    what the manifest says tubeid wrote.
+    """
     p = pathlib.Path(path)
-    if (p / name).exists():
-        shutil.rmtree(p / name)
+    nodes = {n: k for n, k in _read_manifest(p).items() if n == name or n.startswith(name + "/")}
+    _remove_nodes(p, nodes)
     t = now()
     attrs = {
-        "format": STAGE_FORMAT,
+        "Conventions": CONVENTIONS,
         "title": study.description or name,
+        "references": study.references or references or REFERENCES,
+        "source": f"tubeid {tubeid_version()}",
+        "history": history_line(f"stage {name} of pipeline {pipeline_name} created"),
+        "format": STAGE_FORMAT,
         "tubeid_version": tubeid_version(),
         "pipeline_name": pipeline_name,
         "pipeline_hash": pipeline_hash,
@@ -221,11 +399,14 @@ def init_stage(study, path, name: str, *, pipeline_name: str, pipeline_hash: str
 
 
 def check_stage(path, name: str, stage_hash: str) -> str:
-    """``"new"`` if stage ``name`` has no group yet; ``"resume"`` if it holds this stage; else refuse."""
+    """``"new"`` if stage ``name`` has no readable group yet; ``"resume"`` if it holds this stage; else refuse."""
     p = pathlib.Path(path) / name
     if not (p / "zarr.json").exists():
         return "new"
-    attrs = read_attrs(path, name)
+    try:
+        attrs = read_attrs(path, name)
+    except Exception:  # its group metadata is damaged: the stage is rebuilt
+        return "new"
     if attrs.get("stage_hash") != stage_hash:
         raise SpecificationError(
             "store", f"{path} (stage {name})",
@@ -237,26 +418,60 @@ def check_stage(path, name: str, stage_hash: str) -> str:
 
 def update_attrs(path, group=None, **attrs) -> None:
     """Update the attributes (provenance) of the root or of ``group`` and re-consolidate the metadata."""
-    g = _group(path, group, mode="r+")
+    g = _group(path, group, mode="r+", consolidated=False)
     g.attrs.update(attrs)
     _consolidate(path, group)
 
 
+def append_history(path, group=None, what: str = "") -> None:
+    """Add a line to the CF ``history`` of the root or of ``group``."""
+    old = read_attrs(path, group).get("history", "")
+    update_attrs(path, group, history=(old + "\n" if old else "") + history_line(what))
+
+
 def read_attrs(path, group=None) -> dict:
-    return dict(_group(path, group).attrs)
+    return dict(_group(path, group, consolidated=False).attrs)
 
 
 def is_pipeline(path) -> bool:
     return read_attrs(path).get("format") == PIPELINE_FORMAT
 
 
+def _flag_array(path, group=None, mode="r"):
+    return _group(path, group, mode=mode, consolidated=False)[f"{BOOKKEEPING}/{FLAG}"]
+
+
+def read_flags(path, group=None) -> tuple[np.ndarray, list[tuple[int, ...]]]:
+    """``(flags, unreadable)``: the uint64 flags over the block grid (0 = not done, else the block's
+    checksum) and the indices of flag chunks that could not be decoded (read as 0: not done)."""
+    arr = _flag_array(path, group)
+    try:
+        return np.asarray(arr[...]), []
+    except Exception:  # a damaged flag chunk: read them one by one
+        flags = np.zeros(arr.shape, dtype=np.uint64)
+        bad = []
+        for index in np.ndindex(*arr.shape):
+            try:
+                flags[index] = arr[index]
+            except Exception:
+                bad.append(tuple(int(i) for i in index))
+        return flags, bad
+
+
 def block_flags(path, group=None) -> np.ndarray:
-    """The completion flags (uint8 array over the block grid)."""
-    return np.asarray(_group(path, group)[FLAG][...])
+    """The completion flags (uint8 array over the block grid: 1 = written and checksummed)."""
+    return (read_flags(path, group)[0] != 0).astype(np.uint8)
 
 
-def _check_blocks(path, study, flag_array, group=None) -> None:
-    stored = [int(c) for c in flag_array.attrs.get("chunks", [])]
+def set_flags(path, indices, value: int = 0, group=None) -> None:
+    """Set the flags of blocks ``indices`` (0 = not done: the block is recomputed by the next run)."""
+    arr = _flag_array(path, group, mode="r+")
+    for index in indices:
+        arr[tuple(index)] = value
+
+
+def _check_blocks(path, study, chunks, group=None) -> None:
+    stored = [int(c) for c in chunks]
     now_ = [int(study.chunks[d]) for d in study.axes]
     if stored != now_:
         where = f"{path}" + (f" (stage {group})" if group else "")
@@ -269,37 +484,46 @@ def _check_blocks(path, study, flag_array, group=None) -> None:
 
 def check_blocks(path, study, group=None) -> None:
     """Refuse to resume ``path`` (or its stage ``group``) with a block layout other than the one it was written with."""
-    _check_blocks(path, study, _group(path, group)[FLAG], group)
+    _check_blocks(path, study, _group(path, group, consolidated=False)[BOOKKEEPING].attrs.get("chunks", []), group)
 
 
 def write_block(path, study, block, outputs, group=None) -> None:
-    """Write one block's outputs into their own region (whole chunks), then its completion flag.
+    """Write one block's outputs into their own region (whole chunks), then its flag (their checksum).
 
     Written with zarr directly into the arrays xarray created (same bytes as an xarray region
     write: no scale/offset encodings are used), which costs a few ms per block instead of ~10.
     The block layout is checked against the store's first (a worker with another default chunk
     size would otherwise write the wrong region).
     """
+    from tubeid.runner.integrity import block_checksum
+
     g = _group(path, group, mode="r+")
-    _check_blocks(path, study, g[FLAG], group)
+    _check_blocks(path, study, g[BOOKKEEPING].attrs.get("chunks", []), group)
     region = tuple(block.slices.values())
     for name, arr in outputs.items():
         g[name][region] = arr
-    g[FLAG][tuple(block.index)] = 1
+    g[f"{BOOKKEEPING}/{FLAG}"][tuple(block.index)] = block_checksum(outputs)
 
 
 def store_status(path, group=None) -> dict:
-    """``{"done", "total", "complete", "attrs"}`` of a study store or of one stage of a pipeline store.
+    """``{"done", "total", "complete", "attrs", "lock", "unreadable_flags"}`` of a study store or of one
+    stage of a pipeline store (``lock``: the record of the runner writing it, or None).
 
     Readable while a run writes it. For a pipeline store without ``group``, see ``pipeline_status``.
+    Flags are trusted here; :func:`tubeid.runner.integrity.verify` checks them against the data.
     """
+    from tubeid.runner.lock import LOCK_NAME, read_lock
+
     p = pathlib.Path(path)
     if not p.is_dir():
         raise SpecificationError("store", str(path), "no such store")
     try:
         root = read_attrs(p)
     except Exception as exc:
-        raise SpecificationError("store", str(path), f"is not a readable tubeid study store ({exc})") from exc
+        raise SpecificationError("store", str(path), f"is not a readable tubeid study store ({type(exc).__name__}: {exc})") from exc
+    if root.get("format") in LEGACY_FORMATS:
+        raise SpecificationError("store", str(path), f"was written by an older tubeid (layout {root.get('format')}): "
+                                 "xarray.open_zarr still reads it; rerun its study with --overwrite for the current layout")
     if group is None and root.get("format") == PIPELINE_FORMAT:
         return pipeline_status(p)
     if group is not None:
@@ -309,19 +533,25 @@ def store_status(path, group=None) -> dict:
             raise SpecificationError("group", group, f"is not a stage of {path} (stages: {root.get('stages')})")
         if not (p / group / "zarr.json").exists():
             raise SpecificationError("group", group, f"stage not started yet in {path}")
+    elif root.get("format") != FORMAT:
+        raise SpecificationError("store", str(path), "is not a tubeid study store")
     try:
         attrs = read_attrs(p, group) if group else root
-        flags = block_flags(p, group)
+        flags, bad = read_flags(p, group)
     except Exception as exc:
-        raise SpecificationError("store", str(path), f"is not a readable tubeid study store ({exc})") from exc
-    done, total = int(flags.sum()), int(flags.size)
-    complete = done == total and (group is None or bool(attrs.get("finished")))
-    return {"done": done, "total": total, "complete": complete, "attrs": attrs}
+        raise SpecificationError("store", str(path) + (f" (stage {group})" if group else ""),
+                                 f"has damaged bookkeeping ({type(exc).__name__}: {exc}): `tubeid run` repairs it") from exc
+    done, total = int(np.count_nonzero(flags)), int(flags.size)
+    complete = done == total and bool(attrs.get("finished"))
+    return {"done": done, "total": total, "complete": complete, "attrs": attrs, "lock": read_lock(p / LOCK_NAME),
+            "unreadable_flags": bad}
 
 
 def pipeline_status(path) -> dict:
-    """Per-stage status of a pipeline store: ``{"attrs", "stages": {name: {"started", "done", "total",
+    """Per-stage status of a pipeline store: ``{"attrs", "lock", "stages": {name: {"started", "done", "total",
     "complete"}}, "done", "total", "complete"}`` (blocks summed over the stages started so far)."""
+    from tubeid.runner.lock import LOCK_NAME, read_lock
+
     p = pathlib.Path(path)
     attrs = read_attrs(p)
     stages = {}
@@ -331,7 +561,7 @@ def pipeline_status(path) -> dict:
             stages[name] = {"started": True, "done": st["done"], "total": st["total"], "complete": st["complete"]}
         else:
             stages[name] = {"started": False, "done": 0, "total": None, "complete": False}
-    return {"attrs": attrs, "stages": stages,
+    return {"attrs": attrs, "stages": stages, "lock": read_lock(p / LOCK_NAME),
             "done": sum(s["done"] for s in stages.values()), "total": sum(s["total"] or 0 for s in stages.values()),
             "complete": all(s["complete"] for s in stages.values())}
 
@@ -339,11 +569,12 @@ def pipeline_status(path) -> dict:
 def open_results(path, group: str | None = None, *, flags: bool = False) -> xr.Dataset:
     """The study results as a labelled ``xarray.Dataset`` (lazy, dask-backed).
 
-    Blocks not yet written read as NaN (float outputs). The attributes ``blocks_done`` and
-    ``blocks_total`` say how complete the store is; ``flags=True`` keeps the ``block_done`` variable.
-    For a pipeline store: ``group=STAGE`` gives that stage's Dataset; without ``group``, a Dataset
-    with no variables whose attributes are the pipeline provenance plus ``stage_blocks``
-    ({stage: [done, total or None]}) and ``stages_complete`` (list of complete stages).
+    The same variables as ``xarray.open_zarr(path[, group=...])`` (the science: outputs and their
+    coordinates), plus the attributes ``blocks_done`` and ``blocks_total`` saying how complete the
+    store is; ``flags=True`` adds the ``block_done`` variable (1 = block written, dims ``block_<axis>``).
+    Blocks not yet written read as NaN (float outputs). For a pipeline store: ``group=STAGE`` gives
+    that stage's Dataset; without ``group``, a Dataset with no variables whose attributes are the
+    pipeline provenance plus ``stage_blocks`` ({stage: [done, total or None]}) and ``stages_complete``.
     """
     st = store_status(path, group)
     if "stages" in st and group is None:
@@ -351,9 +582,12 @@ def open_results(path, group: str | None = None, *, flags: bool = False) -> xr.D
         ds.attrs.update(stage_blocks={n: [s["done"], s["total"]] for n, s in st["stages"].items()},
                         stages_complete=[n for n, s in st["stages"].items() if s["complete"]])
         return ds
-    ds = xr.open_zarr(str(path), group=group) if group else xr.open_zarr(str(path))
-    if not flags:
-        ds = ds.drop_vars(FLAG)
+    with _quiet():
+        ds = xr.open_zarr(str(path), group=group) if group else xr.open_zarr(str(path))
+    if flags:
+        arr = _flag_array(path, group)
+        ds[FLAG] = xr.DataArray((read_flags(path, group)[0] != 0).astype(np.uint8),
+                                dims=tuple(arr.metadata.dimension_names))
     ds.attrs.update(blocks_done=st["done"], blocks_total=st["total"])
     return ds
 

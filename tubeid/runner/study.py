@@ -12,6 +12,7 @@ chunking, worker count, order, retries or resumes. It returns ``{output name: ar
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import hashlib
@@ -27,13 +28,33 @@ from typing import Any
 
 import numpy as np
 
-from tubeid.errors import SpecificationError
+from tubeid.errors import Described, SpecificationError
 from tubeid.seeds import rng_for
 
-__all__ = ["Study", "Output", "Parameter", "pointwise", "load_study", "load_definition", "study_hash", "Block",
-           "RngFactory", "check_name"]
+__all__ = ["Study", "Output", "Parameter", "Warmup", "pointwise", "load_study", "load_definition", "study_hash", "Block",
+           "RngFactory", "check_name", "COORDINATE_DEFAULTS", "RESERVED"]
 
 _PLAIN = (bool, int, float, str, type(None))
+
+RESERVED = "_tubeid"
+"""Name of the bookkeeping sub-group of a store: no axis, coordinate, output or stage may take it."""
+
+COORDINATE_DEFAULTS: dict[str, tuple[str | None, str]] = {
+    # dim: (units, long_name) used when a study declares none; units None: a label, no units (CF)
+    "realisation": ("1", "Monte Carlo realisation index"),
+    "experiment": ("1", "experimental record index"),
+    "record": ("1", "record index"),
+    "trial": ("1", "trial index"),
+    "delta": ("1", "dispersion parameter delta of the random matrices"),
+    "delta_F": ("1", "dispersion parameter delta_F of the random load spectrum"),
+    "frequency": ("Hz", "frequency"),
+    "time": ("s", "time"),
+    "quantile": ("1", "quantile level"),
+    "sensor": (None, "sensor name"),
+    "component": (None, "component"),
+    "statistic": (None, "statistic"),
+}
+"""Units and long names of common axes, for coordinates a study gives none (``Study.units`` / ``long_names``)."""
 
 
 def _plain(value, field):
@@ -59,20 +80,56 @@ def _scalar(value):
     return value.item() if isinstance(value, np.generic) else value
 
 
+_TYPES = {bool: "a boolean (True or False)", int: "an integer", float: "a number", str: "a string",
+          list: "a list"}
+
+
+def _type_of(value) -> type | None:
+    """The parameter type a default value implies (None: any plain value)."""
+    for t in (bool, int, float, str):  # bool before int: True is an int in Python
+        if isinstance(value, t):
+            return t
+    return list if isinstance(value, (list, tuple)) else None
+
+
 @dataclasses.dataclass(frozen=True)
 class Parameter:
-    """A study parameter: its value and what is admissible (``choices`` and/or inclusive ``bounds``)."""
+    """A study parameter: its value and what is admissible.
+
+    value: the default (a plain value: bool, int, float, str, None or a list of them);
+    choices: admissible values; bounds: inclusive ``(low, high)`` (``None``: open end);
+    type: one of ``bool, int, float, str, list``; default: the type of ``value`` (an int value
+    admits integers only, a float value any real number, converted to float; a ``None`` value
+    admits any plain value); units, doc: for the reader.
+    """
 
     value: Any
     choices: Sequence | None = None
     bounds: tuple[float | None, float | None] | None = None
     units: str = ""
     doc: str = ""
+    type: type | None = None
+
+    def __post_init__(self):
+        if self.type is not None and self.type not in _TYPES:
+            raise SpecificationError("parameter type", self.type, f"must be one of {[t.__name__ for t in _TYPES]}")
 
     def check(self, name: str, value) -> Any:
         """Return ``value`` (made plain) if admissible, else raise ``SpecificationError``."""
         field = f"parameters.{name}"
         value = _plain(value, field)
+        want = self.type if self.type is not None else _type_of(self.value)
+        if want is not None:
+            ok = {bool: lambda v: isinstance(v, bool),
+                  int: lambda v: isinstance(v, int) and not isinstance(v, bool),
+                  float: lambda v: isinstance(v, (int, float)) and not isinstance(v, bool),
+                  str: lambda v: isinstance(v, str),
+                  list: lambda v: isinstance(v, list)}[want](value)
+            if not ok:
+                default = f" (the default is {self.value!r})" if self.type is None else ""
+                raise SpecificationError(field, value, f"must be {_TYPES[want]}{default}")
+            if want is float:
+                value = float(value)
         if self.choices is not None and value not in list(self.choices):
             raise SpecificationError(field, value, f"must be one of {list(self.choices)!r}")
         if self.bounds is not None:
@@ -86,12 +143,20 @@ class Parameter:
 
 @dataclasses.dataclass(frozen=True)
 class Output:
-    """A result variable: extra dims beyond the study axes (coordinates in ``Study.coords``), dtype, units."""
+    """A result variable of a study.
+
+    dims: extra dims beyond the study axes (their coordinates in ``Study.coords``); dtype: a numeric
+    numpy dtype (the task's values are cast to it: integer dtypes refuse values outside their
+    range or not whole, instead of wrapping); units, long_name: CF attributes; finite: if True
+    (default) every value a block returns must be finite (NaN or infinity fails the block, which
+    is then not marked done); False stores NaN/inf as given (e.g. "not defined here").
+    """
 
     dims: tuple[str, ...] = ()
     dtype: str = "float64"
     units: str = ""
     long_name: str = ""
+    finite: bool = True
 
     def __post_init__(self):
         object.__setattr__(self, "dims", tuple(self.dims))
@@ -101,6 +166,85 @@ class Output:
             raise SpecificationError("output.dtype", self.dtype, "must be a numpy dtype") from exc
         if dt.kind not in "biufc":
             raise SpecificationError("output.dtype", self.dtype, "must be a numeric dtype")
+        if not isinstance(self.finite, bool):
+            raise SpecificationError("output.finite", self.finite, "must be True or False")
+
+    def cast(self, name: str, values, block_index) -> np.ndarray:
+        """``values`` as this output's dtype, refusing what the cast would silently change.
+
+        Raises ``SpecificationError`` naming the output, the block and the rule: a non-finite value
+        (unless ``finite=False``); for an integer dtype, a value outside its range, not whole or
+        not finite; for a bool dtype, a value other than 0/1.
+        """
+        arr = np.asarray(values)
+        dt = np.dtype(self.dtype)
+        field = f"outputs.{name}"
+
+        def refuse(mask, rule):
+            bad = np.argwhere(mask)[0]
+            where = tuple(int(i) for i in bad)
+            raise SpecificationError(field, Described(f"{arr[where]!r} at position {where} of block {tuple(block_index)}"),
+                                     rule)
+
+        if arr.dtype.kind not in "biufc":
+            raise SpecificationError(field, Described(f"{arr.dtype} values from block {tuple(block_index)}"),
+                                     f"must be numbers castable to {dt}")
+        if arr.dtype.kind in "fc" and (dt.kind in "biu" or self.finite):
+            finite = np.isfinite(arr)
+            if not finite.all():
+                rule = (f"must be finite: {dt} cannot hold NaN or infinity" if dt.kind in "biu" else
+                        "must be finite (declare Output(finite=False) to store NaN or infinity)")
+                refuse(~finite, rule)
+        if dt.kind in "iu" and arr.dtype.kind in "biufc":
+            if arr.dtype.kind == "c":
+                raise SpecificationError(field, Described(f"complex values from block {tuple(block_index)}"),
+                                         f"must be real to be stored as {dt}")
+            info = np.iinfo(dt)
+            if arr.dtype.kind == "f":
+                refuse_if = arr != np.round(arr)
+                if refuse_if.any():
+                    refuse(refuse_if, f"must be whole numbers to be stored as {dt}")
+            if arr.size and arr.dtype.kind in "iuf":
+                out = (arr < info.min) | (arr > info.max)
+                if out.any():
+                    refuse(out, f"must lie in [{info.min}, {info.max}], the range of {dt} (not wrapped)")
+        if dt.kind == "b" and arr.dtype.kind != "b":
+            bad = (arr != 0) & (arr != 1)
+            if np.any(bad):
+                refuse(bad, "must be 0 or 1 (or booleans) to be stored as bool")
+        if dt.kind == "f" and arr.dtype.kind == "c":
+            bad = np.imag(arr) != 0
+            if bad.any():
+                refuse(bad, f"must be real to be stored as {dt} (declare dtype='complex128')")
+            arr = arr.real
+        cast = arr.astype(dt, copy=False)
+        if dt.kind in "fc" and self.finite and not np.isfinite(cast).all():
+            refuse(~np.isfinite(cast), f"must be finite once stored as {dt} (a value overflows it)")
+        return cast
+
+
+@dataclasses.dataclass(frozen=True)
+class Warmup:
+    """Work a study's tasks need done once per machine before the first block (e.g. compiling numba code).
+
+    message: what the runner prints before doing it (e.g. "compiling the solver, once per machine,
+    ~30 s"); run: ``run()`` does the work in a worker process (idempotent; its result is ignored);
+    needed: ``needed() -> bool`` says, cheaply and in a worker process, whether the work is still to do
+    on that machine (e.g. a cold numba cache); the runner runs ``needed`` on one worker per host and
+    ``run`` (with the message) only where it says True. Both must be importable functions (they are
+    pickled to the workers).
+    """
+
+    message: str
+    run: Callable[[], Any]
+    needed: Callable[[], bool]
+
+    def __post_init__(self):
+        if not isinstance(self.message, str) or not self.message:
+            raise SpecificationError("warmup.message", self.message, "must be a non-empty string")
+        for f in ("run", "needed"):
+            if not callable(getattr(self, f)):
+                raise SpecificationError(f"warmup.{f}", getattr(self, f), "must be callable without arguments")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -164,6 +308,9 @@ class Study(Parameterised):
     description: str = ""
     summarize: Callable | None = None
     stream_key: tuple[str, ...] = ()
+    long_names: Mapping[str, str] = dataclasses.field(default_factory=dict)
+    references: str = ""
+    warmup: Warmup | None = None
 
     def __post_init__(self):
         from tubeid import config
@@ -213,7 +360,7 @@ class Study(Parameterised):
             for dim in out.dims:
                 if dim not in coords:
                     raise SpecificationError(f"outputs.{name}.dims", out.dims, f"dim {dim!r} needs coordinates in Study.coords")
-            if name in axes or name in coords or name == "block_done":
+            if name in axes or name in coords or name == RESERVED:
                 raise SpecificationError(f"outputs.{name}", name, "clashes with a dimension or reserved name")
         seed_axes = tuple(axes) if self.seed_axes is None else tuple(self.seed_axes)
         for dim in seed_axes:
@@ -231,6 +378,18 @@ class Study(Parameterised):
         if not all(isinstance(k, str) for k in key):
             raise SpecificationError("stream_key", key, "must be a tuple of strings")
         object.__setattr__(self, "stream_key", key)
+        for field, mapping in (("units", self.units), ("long_names", self.long_names)):
+            for dim, text in mapping.items():
+                if dim not in axes and dim not in coords:
+                    raise SpecificationError(f"{field}.{dim}", text, f"is not a coordinate (axes {list(axes)}, coords {list(coords)})")
+                if not isinstance(text, str):
+                    raise SpecificationError(f"{field}.{dim}", text, "must be a string")
+        if RESERVED in axes or RESERVED in coords:
+            raise SpecificationError("axes", RESERVED, "is reserved for the store's bookkeeping")
+        if not isinstance(self.references, str):
+            raise SpecificationError("references", self.references, "must be a string")
+        if self.warmup is not None and not isinstance(self.warmup, Warmup):
+            raise SpecificationError("warmup", self.warmup, "must be a tubeid.runner.Warmup")
         self._check_signature()
         if self.check is not None:
             self.check(self)
@@ -251,6 +410,16 @@ class Study(Parameterised):
         for name, p in kw.items():
             if p.default is p.empty and p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD) and name not in self.parameters:
                 raise SpecificationError(f"parameters.{name}", None, "required by the task but not given")
+
+    def coordinate_attrs(self, dim: str) -> dict[str, str]:
+        """CF attributes of coordinate ``dim``: ``long_name`` always, ``units`` unless it is a label (strings)."""
+        values = self.axes[dim] if dim in self.axes else self.coords[dim]
+        d_units, d_long = COORDINATE_DEFAULTS.get(dim, (None, dim))
+        units = self.units.get(dim, d_units)
+        attrs = {"long_name": self.long_names.get(dim, d_long)}
+        if units is not None and values.dtype.kind != "U" and units != "":
+            attrs["units"] = units
+        return attrs
 
     # -- geometry -----------------------------------------------------------------------------
     @property
@@ -300,7 +469,7 @@ class Study(Parameterised):
             shape = block.shape + tuple(self.coords[d].size for d in spec.dims)
             if arr.shape != shape:
                 raise SpecificationError(f"task result {name}.shape", arr.shape, f"must be {shape} for block {block.index}")
-            out[name] = arr.astype(spec.dtype, copy=False)
+            out[name] = spec.cast(name, arr, block.index)
         return out
 
     def describe_model(self) -> str:
@@ -328,7 +497,8 @@ class Study(Parameterised):
             "name": self.name, "seed": int(self.seed), "stream_key": list(self.stream_key),
             "axes": {d: a.tolist() for d, a in self.axes.items()}, "chunks": dict(self.chunks),
             "coords": {d: a.tolist() for d, a in self.coords.items()}, "units": dict(self.units),
-            "seed_axes": list(self.seed_axes), "parameters": self.values,
+            "seed_axes": list(self.seed_axes), "parameters": self.values, "long_names": dict(self.long_names),
+            "references": self.references,
             "outputs": {n: dataclasses.asdict(o) for n, o in self.outputs.items()},
             "model": self.describe_model(), "description": self.description,
             "task": getattr(self.task, "__qualname__", type(self.task).__name__),
@@ -429,6 +599,10 @@ def load_definition(path: str | pathlib.Path | None = None, *, source: str | Non
         except SyntaxError as exc:
             raise SpecificationError("study", str(path), f"is not valid Python: {exc}") from exc
         sys.modules[module.__name__] = module  # dataclasses and pickling look modules up here
+        with contextlib.suppress(Exception):  # its functions (e.g. a Warmup's) reach workers by value
+            import cloudpickle
+
+            cloudpickle.register_pickle_by_value(module)
         exec(code, module.__dict__)
         study = getattr(module, "study", None)
         if not isinstance(study, (Study, Pipeline)):

@@ -9,7 +9,7 @@ import pathlib
 import numpy as np
 import zarr
 
-__all__ = ["STUDY", "PIPELINE", "write_study", "write_pipeline", "store_digest", "flags"]
+__all__ = ["STUDY", "PIPELINE", "write_study", "write_pipeline", "store_digest", "flags", "clear_flag"]
 
 # A realisation-bound study whose tasks take ~0.1-0.3 s (sleep-free compute loop). The random
 # stream of a point is keyed by its realisation only, and x = delta * (a function of that stream),
@@ -140,7 +140,7 @@ def write_pipeline(directory, name="pipeline.py", *, curve=8, around=8, work=2) 
     return path
 
 
-VOLATILE = {"started", "finished", "runs", "study_file"}
+VOLATILE = {"started", "finished", "runs", "study_file", "history"}
 
 
 def store_digest(path) -> dict:
@@ -165,9 +165,19 @@ def store_digest(path) -> dict:
 
 
 def flags(path, group=None) -> np.ndarray:
-    """The completion flags of a store (or of a pipeline stage); empty if not readable yet."""
+    """The completion flags of a store (or of a pipeline stage), 1 = done; empty if not readable yet."""
+    from tubeid.runner.store import BOOKKEEPING, FLAG
+
+    node = f"{group}/{BOOKKEEPING}" if group else BOOKKEEPING
     try:
-        g = zarr.open_group(str(path), mode="r", path=group) if group else zarr.open_group(str(path), mode="r")
-        return np.asarray(g["block_done"][...])
+        g = zarr.open_group(str(path), mode="r", path=node, use_consolidated=False)
+        return (np.asarray(g[FLAG][...]) != 0).astype(np.uint8)
     except Exception:
         return np.zeros(0)
+
+
+def clear_flag(path, index, group=None) -> None:
+    """Mark block ``index`` of a store (or of a pipeline stage) not done, as a run stopped before it finished."""
+    from tubeid.runner.store import set_flags
+
+    set_flags(path, [tuple(index)], 0, group)

@@ -1,0 +1,308 @@
+"""One runner per store: a lock file with who holds it, taken atomically, taken over when stale.
+
+The lock is the file ``<store>/.tubeid-lock``: a JSON record of the holder (``host``, ``pid``,
+``started``, a random ``token``, and the host's boot id, PID namespace and the process start time,
+which tell a live process from a dead one whose PID was reused). A second runner finds the file
+and is refused, naming the holder.
+
+**Taking it** is an atomic exclusive create: the record is written completely to a private file,
+then hard-linked to the lock name (``link(2)`` fails if the name exists; readers never see a
+half-written lock). Where hard links are not supported, ``open(O_CREAT | O_EXCL)`` is used instead.
+
+**Stale locks.** A holder on this host (same host name, boot id and PID namespace) is dead when
+its PID is gone or now belongs to a process started at another time. A holder elsewhere (another
+host, container or pod) cannot be asked: it proves it is alive by a heartbeat, touching the lock
+file every ``tubeid.runner.lock-heartbeat`` (default 10 s); its lock is stale when the file's
+modification time is older than ``tubeid.runner.lock-stale-after`` (default 60 s), measured on
+the file server's clock (against a probe file created beside it), so clock skew between hosts
+does not count.
+
+**Taking over a stale lock** must not let two racing runners both win. The lock instance with
+token T may be removed only by the one process that creates ``.tubeid-lock.break-T`` exclusively
+(the same atomic create); it then checks that the lock still holds token T, removes it, removes
+its break file and retries the normal exclusive create, which only one runner can win. A lock
+instance never comes back once removed, so the check-then-remove cannot remove a newer lock. A
+break file left by a breaker that died is itself broken the same way (its own token).
+
+**What it relies on (shared file systems).** Atomic exclusive creation: ``link(2)`` is atomic on
+every NFS version and on Lustre, GPFS, CephFS and local file systems; ``O_EXCL`` is atomic on NFSv3
+and later (not NFSv2). No ``flock``/``fcntl`` locks are used (they depend on mount options such as
+NFS ``nolock`` or Lustre ``flock``). Staleness of a lock from another host relies on the heartbeat:
+a holder suspended for longer than ``lock-stale-after`` (a paused VM, a stopped process) may be
+taken over; the holder notices at its next heartbeat (its token is gone) and the run stops with an
+error instead of writing on. On one host, PID liveness is exact.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime
+import json
+import os
+import pathlib
+import secrets
+import socket
+import threading
+import time
+
+from tubeid import config
+from tubeid.errors import SpecificationError
+
+__all__ = ["StoreLock", "LOCK_NAME", "read_lock", "describe_holder", "holder_state", "LockLost"]
+
+LOCK_NAME = ".tubeid-lock"
+_MAX_BREAK_DEPTH = 3
+
+
+class LockLost(RuntimeError):
+    """The store's lock was taken over by another runner while this one held it."""
+
+
+def _seconds(key: str, default: float) -> float:
+    from dask.utils import parse_timedelta
+
+    return float(parse_timedelta(config.get(key, default), default="s"))
+
+
+def _boot_id() -> str:
+    try:
+        return pathlib.Path("/proc/sys/kernel/random/boot_id").read_text().strip()
+    except OSError:
+        import psutil
+
+        return f"boot-{psutil.boot_time():.0f}"
+
+
+def _pid_namespace() -> int | None:
+    try:
+        return os.stat("/proc/self/ns/pid").st_ino
+    except OSError:
+        return None
+
+
+def _process_start(pid: int) -> float | None:
+    """Start time of process ``pid`` (seconds since the epoch, 0.01 s), None if there is no such process."""
+    try:
+        import psutil
+
+        return round(psutil.Process(pid).create_time(), 2)
+    except Exception:  # psutil.NoSuchProcess, AccessDenied, or psutil missing
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return None
+        except PermissionError:
+            pass
+        return -1.0  # alive, start time unknown
+
+
+def _me() -> dict:
+    pid = os.getpid()
+    return {"host": socket.gethostname(), "pid": pid, "started": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "token": secrets.token_hex(12), "boot": _boot_id(), "pid_ns": _pid_namespace(),
+            "pid_start": _process_start(pid)}
+
+
+def read_lock(path: pathlib.Path) -> dict | None:
+    """The record of the lock file at ``path``: a dict, ``None`` if there is none, ``{}`` if unreadable."""
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        return None
+    except OSError:
+        return {}
+    try:
+        rec = json.loads(text)
+    except ValueError:
+        return {}
+    return rec if isinstance(rec, dict) and "token" in rec else {}
+
+
+def _server_age(path: pathlib.Path, token: str) -> float | None:
+    """Seconds since ``path`` was last modified, on the file server's clock; None if it is gone."""
+    probe = path.with_name(f"{path.name}.probe-{token}-{secrets.token_hex(4)}")
+    try:
+        fd = os.open(probe, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        os.close(fd)
+        now = os.stat(probe).st_mtime
+    except OSError:
+        now = time.time()
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(probe)
+    try:
+        return now - os.stat(path).st_mtime
+    except FileNotFoundError:
+        return None
+
+
+def holder_state(rec: dict, path: pathlib.Path) -> tuple[str, str]:
+    """``("alive" | "dead", why)`` for the holder recorded in ``rec`` (lock file ``path``)."""
+    me = _me()
+    same_host = rec.get("host") == me["host"] and rec.get("pid_ns") == me["pid_ns"]
+    if same_host and rec.get("boot") != me["boot"]:
+        return "dead", "the host has rebooted since"
+    if same_host:
+        start, recorded = _process_start(int(rec.get("pid", -1))), rec.get("pid_start")
+        if start is None:
+            return "dead", f"process {rec.get('pid')} no longer exists"
+        if recorded not in (None, -1.0) and start != -1.0 and abs(start - recorded) > 0.05:
+            return "dead", f"process {rec.get('pid')} exited (its PID now belongs to another process)"
+        return "alive", f"process {rec.get('pid')} is running on this host"
+    age = _server_age(path, me["token"])
+    stale_after = _seconds("runner.lock-stale-after", 60)
+    if age is None:
+        return "dead", "the lock was just released"
+    if age > stale_after:
+        return "dead", f"no heartbeat for {age:.0f} s (> tubeid.runner.lock-stale-after = {stale_after:g} s)"
+    return "alive", f"its last heartbeat was {max(age, 0):.0f} s ago (stale after {stale_after:g} s)"
+
+
+def describe_holder(rec: dict) -> str:
+    return f"host {rec.get('host')}, pid {rec.get('pid')}, started {rec.get('started')}"
+
+
+def _create_exclusive(path: pathlib.Path, rec: dict) -> bool:
+    """Create ``path`` holding ``rec`` atomically; False if it exists."""
+    data = json.dumps(rec, sort_keys=True).encode()
+    tmp = path.with_name(f"{path.name}.tmp-{rec['token']}")
+    with open(tmp, "wb") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
+    try:
+        os.link(tmp, path)
+        return True
+    except FileExistsError:
+        return False
+    except OSError:
+        # NFS may report an error for a link that succeeded (a lost reply): the link count tells
+        with contextlib.suppress(OSError):
+            if os.stat(tmp).st_nlink == 2:
+                return True
+        try:  # no hard links on this file system: exclusive create
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            return False
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        return True
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+
+
+def _break(path: pathlib.Path, rec: dict, me: dict, depth: int = 0) -> None:
+    """Remove the dead lock instance ``rec`` at ``path`` unless another breaker holds its break file."""
+    brk = path.with_name(f"{path.name}.break-{rec['token']}")
+    if not _create_exclusive(brk, dict(me, token=f"{me['token']}-{depth}")):
+        other = read_lock(brk)
+        if other and depth < _MAX_BREAK_DEPTH and holder_state(other, brk)[0] == "dead":
+            _break(brk, other, me, depth + 1)  # its breaker died mid-way: break the break file
+        return
+    try:
+        cur = read_lock(path)
+        if cur and cur.get("token") == rec["token"]:  # still the dead instance: only we may remove it
+            os.unlink(path)
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(brk)
+
+
+class StoreLock:
+    """The lock of one store directory (see the module docstring). Use as a context manager.
+
+    Parameters
+    ----------
+    store : path-like
+        The store directory (created if missing; the lock file lives inside it).
+    log : callable, optional
+        ``log(message)`` for the take-over of a stale lock.
+    """
+
+    def __init__(self, store, log=None):
+        self.store = pathlib.Path(store)
+        self.path = self.store / LOCK_NAME
+        self.log = log or (lambda msg: None)
+        self.record: dict | None = None
+        self.created_store = False
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.lost: dict | None = None
+
+    def acquire(self) -> "StoreLock":
+        """Take the lock or raise ``SpecificationError`` naming its holder."""
+        if not self.store.exists():
+            try:
+                self.store.mkdir(parents=True)
+                self.created_store = True
+            except FileExistsError:
+                pass
+        me = _me()
+        unreadable = 0
+        for _ in range(50):
+            if _create_exclusive(self.path, me):
+                self.record = me
+                self._start_heartbeat()
+                return self
+            rec = read_lock(self.path)
+            if rec is None:
+                continue  # released meanwhile: try again
+            if not rec:  # being written by an O_EXCL creator, or damaged
+                unreadable += 1
+                if unreadable > 10:
+                    raise SpecificationError(
+                        "store", str(self.store),
+                        f"has an unreadable lock file {self.path}: if no tubeid run is using this store, remove it")
+                time.sleep(0.05)
+                continue
+            state, why = holder_state(rec, self.path)
+            if state == "alive":
+                raise SpecificationError(
+                    "store", str(self.store),
+                    f"is in use by another tubeid run ({describe_holder(rec)}; {why}): wait for it to finish "
+                    f"(`tubeid status {self.store}` shows its progress) or use another --store")
+            self.log(f"tubeid: taking over the stale lock of {describe_holder(rec)} ({why})")
+            _break(self.path, rec, me)
+            time.sleep(0.01)
+        raise SpecificationError("store", str(self.store), "could not take its lock (too many concurrent runners)")
+
+    def _start_heartbeat(self) -> None:
+        period = _seconds("runner.lock-heartbeat", 10)
+        self._thread = threading.Thread(target=self._beat, args=(period,), name="tubeid-lock-heartbeat", daemon=True)
+        self._thread.start()
+
+    def _beat(self, period: float) -> None:
+        while not self._stop.wait(period):
+            rec = read_lock(self.path)
+            if not rec or rec.get("token") != self.record["token"]:
+                self.lost = rec or {"host": "?", "pid": "?", "started": "?"}
+                return
+            with contextlib.suppress(OSError):
+                os.utime(self.path)
+
+    def check(self) -> None:
+        """Raise ``LockLost`` if another runner took the lock over (seen at the last heartbeat)."""
+        if self.lost is not None:
+            raise LockLost(f"{self.store}: the lock was taken over by another runner ({describe_holder(self.lost)}) "
+                           "while this run held it (no heartbeat for too long?): stopping")
+
+    def release(self) -> None:
+        """Stop the heartbeat and remove the lock file if it is still ours."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        if self.record is not None:
+            rec = read_lock(self.path)
+            if rec and rec.get("token") == self.record["token"]:
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(self.path)
+            self.record = None
+
+    def __enter__(self) -> "StoreLock":
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
