@@ -143,8 +143,8 @@ def _status(args) -> int:
         if v.ok:
             print(f"  verified: {where}: {v.checked} finished blocks match their checksums")
         else:
-            print(f"  DAMAGED: {where}: " + "\n    ".join(["", *v.lines()]).lstrip("\n")
-                  + f"\n    rerun `tubeid run` on its study to repair (only the damaged blocks are recomputed)")
+            print(f"  DAMAGED: {where}:\n    " + "\n    ".join(v.lines())
+                  + "\n    rerun `tubeid run` on its study to repair (only the damaged blocks are recomputed)")
     return 1 if damaged else 0
 
 

@@ -96,9 +96,24 @@ def _quiet():
         yield
 
 
+@contextlib.contextmanager
+def _zarr_writes(path):
+    """Turn a zarr failure while tubeid writes metadata into a clear refusal (never a library traceback)."""
+    try:
+        yield
+    except SpecificationError:
+        raise
+    except Exception as exc:
+        raise SpecificationError(
+            "store", str(path),
+            f"cannot be written by zarr ({type(exc).__name__}: {str(exc)[:200]}): something in it that tubeid did "
+            "not write (e.g. a directory holding a zarr.json that is not Zarr metadata) confuses zarr; tubeid "
+            "left it in place: move it out of the store and rerun") from exc
+
+
 def _consolidate(path, group=None):
     """Consolidate the metadata of ``group`` (if any), then of the root (which nests every group's)."""
-    with _quiet():
+    with _quiet(), _zarr_writes(path):
         if group:
             zarr.consolidate_metadata(str(path), path=group)
         zarr.consolidate_metadata(str(path))
@@ -343,7 +358,7 @@ def _write_empty(study, p, attrs, group=None) -> None:
     nodes = {group or "": "group", _node(group, BOOKKEEPING): "group", _node(group, f"{BOOKKEEPING}/{FLAG}"): "array"}
     nodes.update({_node(group, n): "array" for n in [*data_vars, *coords]})
     _record_nodes(root, nodes)
-    with _quiet():
+    with _quiet(), _zarr_writes(p):
         ds.to_zarr(str(p), group=group, mode="a", compute=False, consolidated=False)
         g = _group(p, group, mode="r+", consolidated=False)
         bk = g.create_group(BOOKKEEPING, attributes=bookkeeping_attrs(study))
@@ -482,9 +497,24 @@ def _check_blocks(path, study, chunks, group=None) -> None:
             "would write the wrong regions: use the store's configuration, or --new-store / --overwrite")
 
 
+def _stored_chunks(path, group, study) -> list[int] | None:
+    """The block layout a store (or stage) was written with: from its bookkeeping attributes, else their
+    copy in the consolidated metadata, else the chunking of an output array; None if all are gone."""
+    for consolidated in (False, True):
+        with contextlib.suppress(Exception):
+            return list(_group(path, group, consolidated=consolidated)[BOOKKEEPING].attrs["chunks"])
+    for consolidated in (False, True):
+        for name in study.outputs:
+            with contextlib.suppress(Exception):
+                return list(_group(path, group, consolidated=consolidated)[name].chunks[:len(study.axes)])
+    return None
+
+
 def check_blocks(path, study, group=None) -> None:
     """Refuse to resume ``path`` (or its stage ``group``) with a block layout other than the one it was written with."""
-    _check_blocks(path, study, _group(path, group, consolidated=False)[BOOKKEEPING].attrs.get("chunks", []), group)
+    stored = _stored_chunks(path, group, study)
+    if stored is not None:
+        _check_blocks(path, study, stored, group)
 
 
 def write_block(path, study, block, outputs, group=None) -> None:
