@@ -274,7 +274,7 @@ def test_resume_with_another_default_chunk_is_refused(tmp_path, monkeypatch):
 def test_example_studies_load_and_pi_runs(tmp_path):
     for f in sorted((REPO / "studies").glob("example_*.py")):
         assert isinstance(load_study(f)[0], Study)
-    run(REPO / "studies/example_pi.py", tmp_path / "pi.zarr", workers=0, quiet=True, overrides={"samples": 2000})
+    run(REPO / "studies/pi.py", tmp_path / "pi.zarr", workers=0, quiet=True, overrides={"samples": 2000})
     pi = open_results(tmp_path / "pi.zarr").pi
     assert pi.sizes == {"realisation": 256}
     # each estimate has sd sqrt(pi (4 - pi) / 2000) = 0.0367; the mean of 256 has sd 0.0023: 5 sd

@@ -80,9 +80,10 @@ def _run(args) -> int:
 def _stage_line(name, st) -> str:
     if not st["started"]:
         return f"  {name}: not started"
-    pct = 100.0 * st["done"] / st["total"]
+    pct = 100.0 * st["done"] / max(st["total"], 1)
     state = "complete" if st["complete"] else "incomplete"
-    return f"  {name}: {st['done']}/{st['total']} blocks done ({pct:.1f} %), {state}"
+    damaged = f"; DAMAGED: {st['damaged']}" if st.get("damaged") else ""
+    return f"  {name}: {st['done']}/{st['total']} blocks done ({pct:.1f} %), {state}{damaged}"
 
 
 def _lock_line(st) -> str | None:
@@ -130,9 +131,11 @@ def _status(args) -> int:
         for name, s in st["stages"].items():
             print(_stage_line(name, s))
     else:
-        pct = 100.0 * st["done"] / st["total"]
+        pct = 100.0 * st["done"] / max(st["total"], 1)
         state = "complete" if st["complete"] else "incomplete"
         print(f"{a.get('study_name')}: {st['done']}/{st['total']} blocks done ({pct:.1f} %), {state}")
+        if st["damaged"]:
+            print(f"  DAMAGED: {st['damaged']}")
     print(f"  started {a.get('started')}" + (f", finished {a['finished']}" if a.get("finished") else "")
           + f", runs: {len(a.get('runs', []))}")
     line = _lock_line(st)

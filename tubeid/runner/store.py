@@ -160,6 +160,9 @@ def check_store(path, study_hash: str) -> str:
     p = pathlib.Path(path)
     if not p.exists() or (p.is_dir() and not (p / "zarr.json").exists() and all(_own_file(c.name) for c in p.iterdir())):
         return "new"
+    if not (p / "zarr.json").exists():
+        raise SpecificationError("store", str(p), "exists and is not a tubeid study store (it holds files tubeid did not "
+                                 "write); choose another path")
     try:
         attrs = read_attrs(p)
     except Exception as exc:
@@ -567,14 +570,23 @@ def store_status(path, group=None) -> dict:
         raise SpecificationError("store", str(path), "is not a tubeid study store")
     try:
         attrs = read_attrs(p, group) if group else root
-        flags, bad = read_flags(p, group)
     except Exception as exc:
-        raise SpecificationError("store", str(path) + (f" (stage {group})" if group else ""),
-                                 f"has damaged bookkeeping ({type(exc).__name__}: {exc}): `tubeid run` repairs it") from exc
+        raise SpecificationError("store", f"{path} (stage {group})", f"has unreadable group metadata ({type(exc).__name__}): "
+                                 "`tubeid run` rebuilds the stage") from exc
+    damaged = ""
+    try:
+        flags, bad = read_flags(p, group)
+    except Exception as exc:  # the flag array is gone or unreadable: nothing is proven done
+        damaged = f"block flags unreadable ({type(exc).__name__}): `tubeid run` repairs them (unproven blocks are recomputed)"
+        bad = []
+        try:
+            flags = np.zeros(_group(p, group, consolidated=True)[f"{BOOKKEEPING}/{FLAG}"].shape, dtype=np.uint64)
+        except Exception:
+            flags = np.zeros(0, dtype=np.uint64)
     done, total = int(np.count_nonzero(flags)), int(flags.size)
-    complete = done == total and bool(attrs.get("finished"))
+    complete = done == total and bool(attrs.get("finished")) and not damaged
     return {"done": done, "total": total, "complete": complete, "attrs": attrs, "lock": read_lock(p / LOCK_NAME),
-            "unreadable_flags": bad}
+            "unreadable_flags": bad, "damaged": damaged}
 
 
 def pipeline_status(path) -> dict:
@@ -589,6 +601,8 @@ def pipeline_status(path) -> dict:
         if (p / name / "zarr.json").exists():
             st = store_status(p, name)
             stages[name] = {"started": True, "done": st["done"], "total": st["total"], "complete": st["complete"]}
+            if st["damaged"]:
+                stages[name]["damaged"] = st["damaged"]
         else:
             stages[name] = {"started": False, "done": 0, "total": None, "complete": False}
     return {"attrs": attrs, "stages": stages, "lock": read_lock(p / LOCK_NAME),

@@ -217,7 +217,8 @@ class Output:
             if bad.any():
                 refuse(bad, f"must be real to be stored as {dt} (declare dtype='complex128')")
             arr = arr.real
-        cast = arr.astype(dt, copy=False)
+        with np.errstate(over="ignore", invalid="ignore"):  # an overflow is refused just below
+            cast = arr.astype(dt, copy=False)
         if dt.kind in "fc" and self.finite and not np.isfinite(cast).all():
             refuse(~np.isfinite(cast), f"must be finite once stored as {dt} (a value overflows it)")
         return cast
