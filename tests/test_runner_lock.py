@@ -1,0 +1,180 @@
+"""One runner per store: the lock is exclusive, names its holder, is taken over when stale (by exactly one
+of several racing runners), follows a heartbeat for other hosts, notices when it is lost; two `tubeid run`
+started at once on the same new store leave one complete, readable store with its whole provenance.
+"""
+
+import json
+import multiprocessing
+import os
+import pathlib
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+
+from tubeid.errors import SpecificationError
+from tubeid.runner import lock as lockmod
+from tubeid.runner.lock import LOCK_NAME, LockLost, StoreLock, read_lock
+from tubeid.runner.store import open_results, store_status
+from tubeid.runner.testing import store_digest
+
+
+def _dead_pid() -> int:
+    """A PID that belonged to a process of this host that has exited (and been reaped)."""
+    p = subprocess.Popen([sys.executable, "-c", "pass"])
+    p.wait()
+    return p.pid
+
+
+def _write_record(store: pathlib.Path, name: str = LOCK_NAME, **fields) -> dict:
+    rec = lockmod._me()
+    rec.update(fields)
+    store.mkdir(parents=True, exist_ok=True)
+    (store / name).write_text(json.dumps(rec))
+    return rec
+
+
+def test_a_held_lock_refuses_a_second_runner_naming_the_holder(tmp_path):
+    store = tmp_path / "s.zarr"
+    with StoreLock(store) as held:
+        rec = read_lock(store / LOCK_NAME)
+        assert rec["pid"] == os.getpid() and rec["host"] == socket.gethostname() and rec["started"]
+        with pytest.raises(SpecificationError, match=rf"in use by another tubeid run \(host {socket.gethostname()}, "
+                                                     rf"pid {os.getpid()}, started .*is running on this host"):
+            StoreLock(store).acquire()
+        assert held.created_store
+    assert not (store / LOCK_NAME).exists()  # released
+    with StoreLock(store):  # and free again
+        pass
+
+
+def test_a_lock_of_a_dead_process_is_taken_over(tmp_path):
+    store = tmp_path / "s.zarr"
+    _write_record(store, pid=_dead_pid())
+    logged = []
+    with StoreLock(store, log=logged.append):
+        assert read_lock(store / LOCK_NAME)["pid"] == os.getpid()
+    assert "no longer exists" in logged[0]
+    # a PID now used by another process (here: this one) with another start time is dead too
+    _write_record(store, pid_start=12345.0)
+    assert lockmod.holder_state(read_lock(store / LOCK_NAME), store / LOCK_NAME)[0] == "dead"
+    _write_record(store, boot="another-boot")  # the host rebooted
+    assert lockmod.holder_state(read_lock(store / LOCK_NAME), store / LOCK_NAME) == ("dead", "the host has rebooted since")
+
+
+def _racer(store, barrier, results):
+    barrier.wait()
+    try:
+        lk = StoreLock(store).acquire()
+        time.sleep(0.3)  # hold it while the others try
+        results.put(("won", os.getpid()))
+        lk.release()
+    except SpecificationError as exc:
+        results.put(("refused", str(exc)))
+
+
+@pytest.mark.parametrize("breaker", ["none", "dead breaker"])
+def test_racers_for_a_stale_lock_have_exactly_one_winner(tmp_path, breaker):
+    ctx = multiprocessing.get_context("fork")
+    for trial in range(5):
+        store = tmp_path / f"s{trial}.zarr"
+        stale = _write_record(store, pid=_dead_pid())
+        if breaker == "dead breaker":  # a runner died while breaking it: its break file is left behind
+            _write_record(store, name=f"{LOCK_NAME}.break-{stale['token']}", pid=_dead_pid())
+        n = 6
+        barrier, results = ctx.Barrier(n), ctx.Queue()
+        procs = [ctx.Process(target=_racer, args=(store, barrier, results)) for _ in range(n)]
+        for p in procs:
+            p.start()
+        out = [results.get(timeout=60) for _ in range(n)]
+        for p in procs:
+            p.join(30)
+        winners = [o for o in out if o[0] == "won"]
+        assert len(winners) == 1, out
+        assert all("in use by another tubeid run" in o[1] for o in out if o[0] == "refused")
+        assert not (store / LOCK_NAME).exists()
+        assert not list(store.glob(f"{LOCK_NAME}.break-*")), "break files left behind"
+
+
+def test_a_lock_from_another_host_needs_a_stale_heartbeat(tmp_path):
+    import dask.config
+
+    store = tmp_path / "s.zarr"
+    _write_record(store, host="other-host", pid=1)
+    with pytest.raises(SpecificationError, match=r"host other-host.*last heartbeat was \d+ s ago"):
+        StoreLock(store).acquire()
+    old = time.time() - 90
+    os.utime(store / LOCK_NAME, (old, old))
+    with dask.config.set({"tubeid.runner.lock-stale-after": "120s"}):  # configurable: 90 s is not stale yet
+        with pytest.raises(SpecificationError, match="stale after 120 s"):
+            StoreLock(store).acquire()
+    logged = []
+    with StoreLock(store, log=logged.append):  # default 60 s: stale
+        pass
+    assert "no heartbeat for 9" in logged[0] and "other-host" in logged[0]
+
+
+def test_the_heartbeat_keeps_the_lock_fresh_and_notices_a_takeover(tmp_path):
+    import dask.config
+
+    store = tmp_path / "s.zarr"
+    with dask.config.set({"tubeid.runner.lock-heartbeat": "0.05s"}):
+        lk = StoreLock(store).acquire()
+    try:
+        old = time.time() - 1000
+        os.utime(store / LOCK_NAME, (old, old))
+        time.sleep(0.3)
+        assert time.time() - os.stat(store / LOCK_NAME).st_mtime < 5  # touched again
+        lk.check()
+        _write_record(store, host="other-host", token="someone-else")  # taken over meanwhile
+        time.sleep(0.3)
+        with pytest.raises(LockLost, match="taken over by another runner"):
+            lk.check()
+    finally:
+        lk.release()
+    assert read_lock(store / LOCK_NAME)["token"] == "someone-else"  # not ours: not removed
+
+
+RUNNER = [sys.executable, "-m", "tubeid.runner.cli", "run"]
+# 4 blocks that each sleep 0.5 s (no CPU): the first runner holds the store for >= 2 s whatever the load
+SLEEPY = """
+import time
+import numpy as np
+from tubeid.runner import Output, Study
+
+def task(block, rng):
+    time.sleep(0.5)
+    return {"u": np.array([rng(realisation=r).standard_normal() for r in block["realisation"]])}
+
+study = Study(name="sleepy", seed=3, axes={"realisation": range(8)}, chunks={"realisation": 2}, task=task,
+              outputs={"u": Output(units="m")})
+"""
+
+
+def test_two_runs_started_at_once_on_a_new_store(tmp_path):
+    """`tubeid run` twice at once on the same new store, several times: one runs, the other is refused
+    clearly; the store is complete, identical to a lone run's and its provenance records one run."""
+    study = tmp_path / "sleepy.py"
+    study.write_text(SLEEPY)
+    env = dict(os.environ)
+    env.pop("DASK_SCHEDULER_ADDRESS", None)
+    subprocess.run(RUNNER + [str(study), "--store", str(tmp_path / "alone.zarr"), "--workers", "0", "--no-progress"],
+                   check=True, capture_output=True, env=env)
+    reference = store_digest(tmp_path / "alone.zarr")
+    for trial in range(3):
+        store = tmp_path / f"race{trial}.zarr"
+        cmd = RUNNER + [str(study), "--store", str(store), "--workers", "0", "--no-progress"]
+        procs = [subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env) for _ in range(2)]
+        outs = [p.communicate(timeout=120) for p in procs]
+        codes = sorted(p.returncode for p in procs)
+        errs = [e for _, e in outs]
+        assert codes == [0, 2], errs
+        refused = next(e for p, (_, e) in zip(procs, outs) if p.returncode == 2)
+        assert "is in use by another tubeid run" in refused and "Traceback" not in refused
+        assert sum("new store" in e for e in errs) == 1
+        st = store_status(store)
+        assert st["complete"] and len(st["attrs"]["runs"]) == 1 and st["attrs"]["study_source"] == SLEEPY
+        assert st["lock"] is None and store_digest(store) == reference
+        assert open_results(store).u.notnull().all()
