@@ -32,6 +32,7 @@ import json
 
 import numpy as np
 
+from tubeid.dynamics import warmup
 from tubeid.dynamics.response import ResponseSettings, simulate_responses
 from tubeid.dynamics.spectra import j_s
 from tubeid.identification.delta import default_delta_grid, reference_j
@@ -41,7 +42,7 @@ from tubeid.mechanics.library import builtin_spec
 from tubeid.mechanics.reduction import J_UNITS, j_functional, reduce
 from tubeid.mechanics.spec import spec_to_dict
 from tubeid.runner.pipeline import Pipeline
-from tubeid.runner.study import Output, Parameter, Study
+from tubeid.runner.study import Output, Parameter, Study, Warmup
 from tubeid.uncertainty.loads import coherent_forces, force_and_moment
 from tubeid.uncertainty.random_matrices import Dispersion
 from tubeid.uncertainty.random_models import germs_from_rngs, random_subsystem
@@ -316,6 +317,7 @@ study = Pipeline(
     seed=2008,
     description=__doc__.splitlines()[0],
     stages=[delta, reference, response, load_r, load_r_fine, load_delta_f],
+    warmup=Warmup(warmup.MESSAGE, run=warmup.compile_solver, needed=warmup.cache_is_cold),
     parameters={
         "size": Parameter("paper", choices=("paper", "quick"), doc="sample sizes: the paper's, or a quick look"),
         "delta": Parameter(0.0, bounds=(0.0, 0.87), doc="delta for the later stages; 0 = delta_opt of stage 'delta'"),

@@ -257,3 +257,120 @@ def test_pipeline_on_an_external_scheduler_gives_the_in_process_result(scheduler
     assert f"running on {scheduler}" in proc.stderr and "stage around: 3 of 3 blocks to compute" in proc.stderr
     run(pipeline, tmp_path / "here.zarr", workers=0, quiet=True)
     assert store_digest(tmp_path / "remote.zarr") == store_digest(tmp_path / "here.zarr")
+
+
+def test_tcp_to_a_tls_scheduler_is_a_clear_error(tmp_path):
+    """`tcp://` to a scheduler that speaks TLS: a refusal naming the scheduler and the remedy, no traceback."""
+    repo = pathlib.Path(__file__).resolve().parents[1]
+    if shutil.which("openssl") is None:
+        pytest.skip("needs openssl")
+    certs = tmp_path / "tls"
+    subprocess.run(["bash", str(repo / "cluster/tls/make-certs.sh"), str(certs)], check=True, capture_output=True)
+    env = _env(DASK_CONFIG=str(certs))
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    proc = subprocess.Popen([sys.executable, "-m", "dask", "scheduler", "--host", "127.0.0.1", "--port", str(port),
+                             "--no-dashboard"], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
+    try:
+        time.sleep(1.0)
+        study = write_study(tmp_path, realisations=2, chunk=2, work=1)
+        out = _run([study, "--store", tmp_path / "s.zarr", "--scheduler", f"tcp://127.0.0.1:{port}"],
+                   env=_env(DASK_CONFIG=str(certs), TUBEID_RUNNER__CONNECT_TIMEOUT="4s"), check=False)
+    finally:
+        _stop(proc)
+    assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
+    assert f"scheduler = 'tcp://127.0.0.1:{port}': cannot connect within tubeid.runner.connect-timeout = 4s" in out.stderr
+    assert "give its tls:// address" in out.stderr
+    assert not (tmp_path / "s.zarr").exists()
+
+
+def test_connect_timeout_comes_from_the_environment(tmp_path):
+    """TUBEID_RUNNER__CONNECT_TIMEOUT (the Kubernetes job's variable) reaches the runner's Client."""
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    study = write_study(tmp_path, realisations=2, chunk=2, work=1)
+    out = _run([study, "--store", tmp_path / "s.zarr", "--scheduler", f"tcp://127.0.0.1:{port}"],
+               env=_env(TUBEID_RUNNER__CONNECT_TIMEOUT="3s"), check=False)
+    assert out.returncode == 2 and "connect-timeout = 3s" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_the_embedded_cluster_admits_only_its_own_client(study, tmp_path):
+    """Ephemeral TLS: the embedded scheduler speaks TLS only and refuses a client with other credentials."""
+    from distributed import Client
+    from distributed.security import Security
+
+    from tubeid.runner.execute import _client
+
+    with _client(1, None, None, True) as (client, where):
+        address = client.scheduler.address
+        assert address.startswith("tls://127.0.0.1:") and "TLS with ephemeral credentials" in where
+        assert client.submit(lambda: 21 * 2, pure=False).result() == 42
+        for addr, security in ((address.replace("tls://", "tcp://"), None), (address, Security.temporary())):
+            with pytest.raises(Exception):  # plain TCP, or TLS with a certificate the cluster did not issue
+                Client(addr, security=security, timeout="3s").close()
+        assert client.submit(lambda: 1, pure=False).result() == 1  # still serving its own client
+
+
+def test_a_users_client_is_used_and_never_closed(study, reference, tmp_path, capsys):
+    """run(client=...) and, without client/workers/scheduler, distributed.default_client(): the user's
+    LocalCluster runs the blocks (identical store) and stays open."""
+    from distributed import Client, LocalCluster
+
+    from tubeid.runner.execute import run
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                      host="127.0.0.1") as cluster, Client(cluster) as client:
+        rep = run(study, tmp_path / "given.zarr", client=client, progress=False)
+        err = capsys.readouterr().err
+        assert f"running on the given dask Client (scheduler {cluster.scheduler_address})" in err
+        assert rep.workers == 2 and store_digest(tmp_path / "given.zarr") == reference
+        assert client.status == "running" and client.submit(lambda: 3, pure=False).result() == 3
+        rep = run(study, tmp_path / "default.zarr", progress=False)  # the notebook case: nothing said
+        err = capsys.readouterr().err
+        assert "already open in this process" in err and "distributed.default_client()" in err
+        assert rep.workers == 2 and store_digest(tmp_path / "default.zarr") == reference
+        assert client.status == "running" and cluster.status.name == "running"
+        with pytest.raises(Exception, match="give a client, --workers or --scheduler"):
+            run(study, tmp_path / "x.zarr", client=client, workers=2)
+
+
+WARM = """
+import os, pathlib, time
+import numpy as np
+from tubeid.runner import Output, Study, Warmup
+
+MARK = pathlib.Path(r"MARKDIR")
+
+def needed():
+    return not (MARK / "compiled").exists()
+
+def compile_once():
+    with open(MARK / "log", "a") as fh:
+        fh.write(f"{os.getpid()}\\n")
+    time.sleep(0.2)
+    (MARK / "compiled").write_text("")
+
+def task(block, rng):
+    assert (MARK / "compiled").exists(), "a block ran before the warm-up"
+    return {"u": np.asarray(block["r"], float)}
+
+study = Study(name="warm", seed=0, axes={"r": range(8)}, chunks={"r": 2}, task=task, outputs={"u": Output()},
+              warmup=Warmup("compiling the test kernel, once per machine", run=compile_once, needed=needed))
+"""
+
+
+@pytest.mark.parametrize("workers", [0, 2])
+def test_warmup_runs_once_per_machine_before_the_blocks_and_says_so(tmp_path, workers):
+    mark = tmp_path / "mark"
+    mark.mkdir()
+    path = tmp_path / "warm.py"
+    path.write_text(WARM.replace("MARKDIR", str(mark)))
+    first = _run([path, "--store", tmp_path / "a.zarr", "--workers", workers])
+    assert "tubeid: compiling the test kernel, once per machine" in first.stderr
+    assert first.stderr.index("compiling the test kernel") < first.stderr.index("done:")
+    assert len((mark / "log").read_text().split()) == 1  # one machine: once, whatever the worker count
+    second = _run([path, "--store", tmp_path / "b.zarr", "--workers", workers])
+    assert "compiling" not in second.stderr and len((mark / "log").read_text().split()) == 1

@@ -30,12 +30,13 @@ import json
 
 import numpy as np
 
+from tubeid.dynamics import warmup
 from tubeid.dynamics.spectra import j_s, psd_matrix
 from tubeid.identification.loads import JS_UNITS
 from tubeid.measured.effects_fit import PARAMETER_COUNT, candidate_grid
 from tubeid.mechanics.effects import effect_from_dict, effect_to_dict
 from tubeid.runner.pipeline import Pipeline
-from tubeid.runner.study import Output, Parameter, Study
+from tubeid.runner.study import Output, Parameter, Study, Warmup
 
 __all__ = ["study", "SEED"]
 
@@ -431,6 +432,7 @@ study = Pipeline(
     seed=SEED,
     description="tubeid diagnose: load identification (r, delta_F), band, tracing, candidate fits, re-identification",
     stages=[load_r, load_r_fine, load_delta_f, band, probe, candidates, candidate_bands, load_r_after, band_after],
+    warmup=Warmup(warmup.MESSAGE, run=warmup.compile_solver, needed=warmup.cache_is_cold),
     parameters={
         "data": Parameter("", doc="path of the validated record (NetCDF written by tubeid diagnose)"),
         "data_sha256": Parameter("", doc="content hash of the record (tubeid.measured.diagnose.data_hash)"),

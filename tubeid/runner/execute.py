@@ -266,6 +266,13 @@ def _warm() -> None:
     import tubeid.runner.store  # noqa: F401  (xarray, zarr)
 
 
+def _call_pickled(blob: bytes):
+    """Worker side: call a function sent as cloudpickle bytes."""
+    import cloudpickle
+
+    return cloudpickle.loads(blob)()
+
+
 def _warm_up(client, warmup, quiet) -> float:
     """Do ``warmup`` once per machine where it is needed, saying so first; returns the seconds it took."""
     if warmup is None:
@@ -281,12 +288,14 @@ def _warm_up(client, warmup, quiet) -> float:
         for addr, w in sorted(info.items()):
             per_host.setdefault(w.get("host", addr), addr)
         chosen = list(per_host.values())
-        needed = client.run(warmup.needed, workers=chosen)
+        import cloudpickle  # a study file's functions go by value (workers cannot import the study's module)
+
+        needed = client.run(_call_pickled, cloudpickle.dumps(warmup.needed), workers=chosen)
         todo = [a for a in chosen if needed.get(a)]
         if not todo:
             return 0.0
         _log(f"tubeid: {warmup.message} ({len(todo)} of {len(chosen)} machines)", quiet)
-        futures = [client.submit(warmup.run, workers=[a], allow_other_workers=False, pure=False,
+        futures = [client.submit(_call_pickled, cloudpickle.dumps(warmup.run), workers=[a], allow_other_workers=False, pure=False,
                                  key=f"tubeid-warmup-{i}-{time.time_ns()}") for i, a in enumerate(todo)]
         client.gather(futures)
     dt = time.perf_counter() - t0
