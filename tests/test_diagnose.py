@@ -41,7 +41,7 @@ from tubeid.mechanics import builtin_spec, reduce
 from tubeid.mechanics.effects import AddedMass, Damping, ExtraStop, SensorNoise, Tone, apply_effects
 from tubeid.mechanics.spec import SensorSpec, spec_to_dict
 from tubeid.runner.store import store_status, update_attrs
-from tubeid.runner.testing import store_digest
+from tubeid.runner.testing import clear_flag, store_digest
 from tubeid.uncertainty import coherent_forces, force_and_moment
 
 XS = (2.0, 6.0, 10.0)
@@ -356,7 +356,7 @@ def test_a_partial_store_resumes_on_two_workers_to_the_uninterrupted_result(cont
         shutil.rmtree(store / stage)
     g = zarr.open_group(str(store), mode="r+", path="load_delta_f")
     g["J_s"][:, 4:] = np.nan  # realisations 4-7: the second task
-    g["block_done"][0, 1] = 0
+    clear_flag(store, (0, 1), "load_delta_f")
     update_attrs(store, "load_delta_f", finished="")
     assert store_status(store)["complete"] is False
 
