@@ -38,7 +38,8 @@ PINNED = {
     "tubeid.measured": ["read_measurements", "write_measurements", "validate_measurements", "diagnose", "DiagnoseSettings", "Diagnosis"],
     "tubeid.runner": [
         "Study", "Output", "Parameter", "pointwise", "load_study", "run", "open_results", "RunReport", "RngFactory",
-        "store_status", "Pipeline", "PipelineReport", "open_pipeline", "pipeline_status",
+        "store_status", "Pipeline", "PipelineReport", "open_pipeline", "pipeline_status", "Warmup", "verify",
+        "Verification",
     ],
 
 }

@@ -297,6 +297,14 @@ def test_cluster_configurations_are_consistent():
     runner = job["spec"]["job"]["spec"]["containers"][0]
     worker = job["spec"]["cluster"]["spec"]["worker"]["spec"]["containers"][0]
     assert runner["args"][:2] == ["tubeid", "run"]
+    # the runner's settings from the job's environment, read as tubeid reads TUBEID_... variables
+    from tubeid import config
+
+    env = {e["name"]: e["value"] for e in runner["env"]}
+    assert config.collect_env(env)["tubeid"]["runner"]["connect-timeout"] == "300s"
+    from dask.utils import parse_timedelta
+
+    assert parse_timedelta(env["TUBEID_RUNNER__CONNECT_TIMEOUT"]) > parse_timedelta(packaged["connect-timeout"])
     mount = {m["name"]: m["mountPath"] for m in runner["volumeMounts"]}["results"]
     assert {m["name"]: m["mountPath"] for m in worker["volumeMounts"]}["results"] == mount  # same store path
     slurm = yaml.safe_load((c / "slurm/jobqueue.yaml").read_text())["jobqueue"]["slurm"]

@@ -321,7 +321,7 @@ def test_a_users_client_is_used_and_never_closed(study, reference, tmp_path, cap
 
     from tubeid.runner.execute import run
 
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
                       host="127.0.0.1") as cluster, Client(cluster) as client:
         rep = run(study, tmp_path / "given.zarr", client=client, progress=False)
         err = capsys.readouterr().err

@@ -433,6 +433,7 @@ class _Run:
     progress: bool
     quiet: bool
     lock: StoreLock
+    verified: dict = dataclasses.field(default_factory=dict)  # pipeline stage -> damaged blocks found already
 
     def cluster(self):
         if self.workers == 0 and self.client is None:
@@ -488,11 +489,32 @@ def _run_study(ctx: _Run) -> RunReport:
     return report
 
 
+def _verify_complete_pipeline(ctx: _Run, report: PipelineReport) -> bool:
+    """A complete pipeline store: verify every stage here (no cluster needed); True if all are intact."""
+    for name in ctx.study.stage_names:
+        study, shash = stage_study(ctx.study, ctx.key, ctx.path, name)
+        check_stage(ctx.path, name, shash)
+        check_blocks(ctx.path, study, name)
+        ctx.verified[name] = _verify_and_repair(study, ctx.path, name, ctx.quiet, f"stage {name}")
+        if ctx.verified[name] or not block_flags(ctx.path, name).all():
+            return False  # the stages after it are verified when they are resumed
+        report.stages[name] = RunReport(store=ctx.path, total=study.n_blocks, computed=0, skipped=study.n_blocks, workers=0)
+    return True
+
+
 def _run_pipeline(ctx: _Run) -> PipelineReport:
     from tubeid.runner.store import pipeline_status
 
     pipeline, path, quiet = ctx.study, ctx.path, ctx.quiet
     report = PipelineReport(store=path)
+    if ctx.state == "resume" and pipeline_status(path)["complete"]:
+        t0 = time.perf_counter()
+        if not ctx.verify or _verify_complete_pipeline(ctx, report):
+            report.prepare = time.perf_counter() - t0
+            checked = "verified" if ctx.verify else "not verified"
+            _log(f"tubeid: {path} is complete ({len(pipeline.stages)} stages, {checked}): nothing to do", quiet)
+            return report
+        report.stages.clear()
     t0 = time.perf_counter()
     with ctx.cluster() as (client, where):
         report.startup = time.perf_counter() - t0
@@ -502,30 +524,21 @@ def _run_pipeline(ctx: _Run) -> PipelineReport:
                                 overrides=ctx.overrides)
             _log(f"tubeid: new pipeline store {path} (stages {', '.join(pipeline.stage_names)})", quiet)
         else:
-            complete = pipeline_status(path)["complete"]
-            if not (complete and not ctx.verify):
-                _record_resume(path, quiet)
-            _log(f"tubeid: {'verifying' if complete else 'resuming'} pipeline store {path}", quiet)
+            _record_resume(path, quiet)
+            _log(f"tubeid: resuming pipeline store {path}", quiet)
         if client is not None:
             _describe_cluster(client, where, report, quiet)
         report.prepare = time.perf_counter() - t0
-        report.warmup = _warm_up(client, pipeline.warmup, quiet) \
-            if ctx.state == "new" or not pipeline_status(path)["complete"] else 0.0
+        report.warmup = _warm_up(client, pipeline.warmup, quiet)
         for name in pipeline.stage_names:
             report.stages[name] = _run_stage(ctx, name, client)
             report.workers = max(report.workers, report.stages[name].workers)
     t0 = time.perf_counter()
-    if report.computed or not read_attrs(path).get("finished"):
-        update_attrs(path, finished=now())
-        append_history(path, None, f"complete: {report.computed} block(s) computed, {report.skipped} already done")
+    update_attrs(path, finished=now())
+    append_history(path, None, f"complete: {report.computed} block(s) computed, {report.skipped} already done")
     report.finalise = time.perf_counter() - t0
-    if report.computed == 0 and ctx.state == "resume":
-        checked = "verified" if ctx.verify else "not verified"
-        _log(f"tubeid: {path} is complete ({len(pipeline.stages)} stages, {report.skipped} blocks, {checked}): "
-             "nothing to do", quiet)
-    else:
-        _log(f"tubeid: done: {report.computed} blocks computed, {report.skipped} already done "
-             f"({len(pipeline.stages)} stages); store {path}", quiet)
+    _log(f"tubeid: done: {report.computed} blocks computed, {report.skipped} already done "
+         f"({len(pipeline.stages)} stages); store {path}", quiet)
     return report
 
 
@@ -546,7 +559,8 @@ def _run_stage(ctx: _Run, name: str, client) -> RunReport:
     if state == "resume":
         check_blocks(path, study, name)
         if ctx.verify:
-            report.repaired = _verify_and_repair(study, path, name, quiet, f"stage {name}")
+            report.repaired = ctx.verified[name] if name in ctx.verified else \
+                _verify_and_repair(study, path, name, quiet, f"stage {name}")
         attrs = read_attrs(path, name)
         if block_flags(path, name).all() and attrs.get("finished"):
             report.skipped = study.n_blocks
