@@ -22,7 +22,19 @@ pytestmark = [pytest.mark.distributed, pytest.mark.timeout(600)]
 
 
 def _blocks(lang: str) -> list[str]:
-    return re.findall(rf"```{lang}\n(.*?)```", SECTIONS, flags=re.S)
+    """The sections' fenced code blocks of language ``lang`` ("" for plain blocks)."""
+    blocks, current, kind = [], None, None
+    for line in SECTIONS.splitlines(keepends=True):
+        if line.startswith("```"):
+            if current is None:
+                current, kind = [], line[3:].strip()
+            else:
+                if kind == lang:
+                    blocks.append("".join(current))
+                current = None
+        elif current is not None:
+            current.append(line)
+    return blocks
 
 
 def _commands() -> list[str]:
@@ -79,6 +91,7 @@ def test_every_command_of_the_runner_sections_runs(tmp_path):
     assert "stage response" not in outputs["tubeid show results/two-stage.zarr --stage delta"]
 
 
+@pytest.mark.slow  # the same path (a user's LocalCluster client) is in test_runner_distributed.py's default tests
 def test_the_notebook_example_runs_on_its_client(tmp_path):
     (block,) = [b for b in _blocks("python") if "LocalCluster" in b]
     shutil.copytree(REPO / "studies", tmp_path / "studies")
