@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-__all__ = ["main", "BENCH_STUDY"]
+__all__ = ["main", "startup", "integrity", "BENCH_STUDY"]
 
 BENCH_STUDY = '''
 import numpy as np
@@ -49,6 +49,62 @@ def _calibrate(block_seconds: float) -> int:
         x = np.sin(x) * 1.5 + 0.25
     per_iter = (time.perf_counter() - t0) / n
     return max(1, int(block_seconds / PER_BLOCK / per_iter))
+
+
+def startup(reps: int = 6) -> dict:
+    """Seconds to start the embedded cluster (2 workers) and run a first task, plain TCP vs ephemeral TLS.
+
+    Alternates the two ``reps`` times in this process; returns the medians and the ratio.
+    """
+    import logging
+    import statistics
+
+    from distributed import Client, LocalCluster
+    from distributed.security import Security
+
+    times = {False: [], True: []}
+    for _ in range(reps):
+        for tls in (False, True):
+            t0 = time.perf_counter()
+            sec = Security.temporary() if tls else None
+            with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None,
+                              silence_logs=logging.CRITICAL, security=sec, protocol="tls://" if tls else None) as c, \
+                    Client(c, security=sec) as client:
+                client.submit(int, 1, pure=False).result()
+            times[tls].append(time.perf_counter() - t0)
+    plain, tls = statistics.median(times[False]), statistics.median(times[True])
+    print(f"embedded cluster start + first task (2 workers, median of {reps}): plain {plain:.2f} s, "
+          f"ephemeral TLS {tls:.2f} s, ratio {tls / plain:.2f}")
+    return {"plain": plain, "tls": tls, "ratio": tls / plain}
+
+
+def integrity(mb: float = 16.0, reps: int = 9) -> dict:
+    """Cost of the block checksum against the Zarr write of the same block (``mb`` MB of float64), and of
+    verifying it (read back + checksum), medians of ``reps`` in this process."""
+    import statistics
+
+    import zarr
+
+    from tubeid.runner.integrity import block_checksum
+
+    n = int(mb * 1e6 / 8)
+    a = np.random.default_rng(0).standard_normal(n)
+    with tempfile.TemporaryDirectory(prefix="tubeid-bench-") as tmp:
+        arr = zarr.create_array(f"{tmp}/a.zarr", shape=(n,), chunks=(n,), dtype="float64")
+        ts, tw, tv = [], [], []
+        for _ in range(reps):
+            t0 = time.perf_counter()
+            block_checksum({"u": a})
+            t1 = time.perf_counter()
+            arr[:] = a
+            t2 = time.perf_counter()
+            block_checksum({"u": arr[:]})
+            t3 = time.perf_counter()
+            ts.append(t1 - t0), tw.append(t2 - t1), tv.append(t3 - t2)
+    c, w, v = (statistics.median(x) for x in (ts, tw, tv))
+    print(f"block of {mb:g} MB: checksum {1e3 * c:.1f} ms ({mb / c:.0f} MB/s), Zarr write {1e3 * w:.1f} ms "
+          f"(checksum / write = {c / w:.2f}), verification (read + checksum) {1e3 * v:.1f} ms")
+    return {"checksum": c, "write": w, "verify": v}
 
 
 def main(blocks: int = 16, block_seconds: float = 1.0, worker_counts=(1, 2)) -> int:

@@ -60,6 +60,10 @@ def register(sub) -> None:
     p.add_argument("--blocks", type=int, default=16, help="blocks (tasks) in the benchmark study")
     p.add_argument("--block-seconds", type=float, default=1.0, help="target compute seconds per block")
     p.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="worker counts to compare")
+    p.add_argument("--startup", action="store_true",
+                   help="instead: embedded cluster start-up, plain TCP vs ephemeral TLS (6 alternating starts)")
+    p.add_argument("--integrity", action="store_true",
+                   help="instead: cost of the block checksum against the Zarr write, and of verification")
     p.set_defaults(func=_bench)
 
 
@@ -239,9 +243,15 @@ def _show_pipeline(args, st) -> int:
 
 
 def _bench(args) -> int:
-    from tubeid.runner.bench import main as bench_main
+    from tubeid.runner import bench
 
-    return bench_main(blocks=args.blocks, block_seconds=args.block_seconds, worker_counts=args.workers)
+    if args.startup or args.integrity:
+        if args.startup:
+            bench.startup()
+        if args.integrity:
+            bench.integrity()
+        return 0
+    return bench.main(blocks=args.blocks, block_seconds=args.block_seconds, worker_counts=args.workers)
 
 
 def main(argv: list[str] | None = None) -> int:

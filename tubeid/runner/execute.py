@@ -315,15 +315,16 @@ def _record_resume(path, quiet) -> None:
 
 
 def _verify_and_repair(study, path, group, quiet, where) -> int:
-    """Repair the structure of a resumed store (or stage), verify its blocks, clear the damaged ones' flags.
+    """Verify a resumed store (or stage): repair its structure if damaged, clear the damaged blocks' flags.
 
     Returns the number of blocks to recompute because they were damaged.
     """
-    repaired = repair_structure(study, path, group)
-    if repaired:
-        _log(f"tubeid: {where}: rewrote {len(repaired)} damaged metadata/coordinate file(s): "
-             + ", ".join(repaired[:5]) + (" ..." if len(repaired) > 5 else ""), quiet)
     ver = verify(path, group)
+    if ver.structure:  # metadata or coordinates damaged: rewrite them from the study, then check the blocks
+        repaired = repair_structure(study, path, group)
+        _log(f"tubeid: {where}: " + "; ".join(ver.structure[:3]) + f": rewrote {len(repaired)} metadata/coordinate "
+             "file(s) from the study: " + ", ".join(repaired[:5]) + (" ..." if len(repaired) > 5 else ""), quiet)
+        ver = verify(path, group)
     bad = ver.to_recompute
     if bad:
         _log(f"tubeid: {where}: {len(bad)} of {ver.checked + len(ver.unreadable_flags)} finished blocks are damaged; "
