@@ -131,6 +131,10 @@ def verify(path, group: str | None = None) -> Verification:
     if attrs is None:
         ver.structure.append("block layout unknown: no block can be verified")
         return ver
+    if attrs.get("checksum") != CHECKSUM_RULE:
+        ver.structure.append(f"block checksums made by another rule ({attrs.get('checksum')!r}, this tubeid: "
+                             f"{CHECKSUM_RULE!r}): its blocks cannot be verified")
+        return ver
     g = _open(path, group)
     for dim, expected in attrs.get("coordinates", {}).items():
         try:
