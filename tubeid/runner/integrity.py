@@ -40,7 +40,18 @@ def _bytes(a: np.ndarray):
 
 
 def block_checksum(outputs: Mapping[str, np.ndarray]) -> int:
-    """Checksum of one block's outputs ``{name: array}`` as stored (never 0: 0 means "not done")."""
+    """Checksum of one block's outputs as stored.
+
+    Parameters
+    ----------
+    outputs : mapping of str to ndarray
+        ``{output name: the block's values}`` in their stored dtype (any order).
+
+    Returns
+    -------
+    int
+        63 bits of SHA-256 (see ``CHECKSUM_RULE``), never 0 (a flag of 0 means "not done").
+    """
     h = hashlib.sha256()
     for name in sorted(outputs):
         a = np.asarray(outputs[name])
@@ -120,9 +131,23 @@ def _bookkeeping_attrs(path, group, ver: Verification) -> dict | None:
 
 
 def verify(path, group: str | None = None) -> Verification:
-    """Check every flagged block of a study store (or of stage ``group``) against its checksum.
+    """Check every finished block of a study store (or of a pipeline stage) against its checksum.
 
-    Reads the store only (nothing from it is executed). See :class:`Verification`.
+    Reads the store only (nothing stored in it is executed), chunk by chunk, so that a damaged
+    chunk is named rather than raised.
+
+    Parameters
+    ----------
+    path : path-like
+        The store directory.
+    group : str, optional
+        The stage of a pipeline store (``None``: a single-study store).
+
+    Returns
+    -------
+    Verification
+        Blocks checked, damaged blocks with the reason (chunk key), undecodable flags, damaged
+        metadata or coordinates.
     """
     from tubeid.runner.store import BOOKKEEPING, FLAG, _node, read_flags
 

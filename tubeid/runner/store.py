@@ -539,11 +539,22 @@ def write_block(path, study, block, outputs, group=None) -> None:
 
 
 def store_status(path, group=None) -> dict:
-    """``{"done", "total", "complete", "attrs", "lock", "unreadable_flags"}`` of a study store or of one
-    stage of a pipeline store (``lock``: the record of the runner writing it, or None).
+    """How complete a study store (or one stage of a pipeline store) is; readable while a run writes it.
 
-    Readable while a run writes it. For a pipeline store without ``group``, see ``pipeline_status``.
-    Flags are trusted here; :func:`tubeid.runner.integrity.verify` checks them against the data.
+    Parameters
+    ----------
+    path : path-like
+        The store directory.
+    group : str, optional
+        A stage of a pipeline store; without it a pipeline store gives :func:`pipeline_status`.
+
+    Returns
+    -------
+    dict
+        ``done``, ``total`` (blocks), ``complete`` (bool), ``attrs`` (provenance), ``lock`` (the record
+        of the runner holding the store, or None), ``unreadable_flags`` (block indices), ``damaged``
+        ('' or why the flags cannot be read). Flags are trusted here; :func:`tubeid.runner.verify`
+        checks them against the data.
     """
     from tubeid.runner.lock import LOCK_NAME, read_lock
 
@@ -613,12 +624,23 @@ def pipeline_status(path) -> dict:
 def open_results(path, group: str | None = None, *, flags: bool = False) -> xr.Dataset:
     """The study results as a labelled ``xarray.Dataset`` (lazy, dask-backed).
 
-    The same variables as ``xarray.open_zarr(path[, group=...])`` (the science: outputs and their
-    coordinates), plus the attributes ``blocks_done`` and ``blocks_total`` saying how complete the
-    store is; ``flags=True`` adds the ``block_done`` variable (1 = block written, dims ``block_<axis>``).
-    Blocks not yet written read as NaN (float outputs). For a pipeline store: ``group=STAGE`` gives
-    that stage's Dataset; without ``group``, a Dataset with no variables whose attributes are the
-    pipeline provenance plus ``stage_blocks`` ({stage: [done, total or None]}) and ``stages_complete``.
+    Parameters
+    ----------
+    path : path-like
+        The store directory.
+    group : str, optional
+        A stage of a pipeline store.
+    flags : bool
+        Add the ``block_done`` variable (1 = block written and checksummed, dims ``block_<axis>``).
+
+    Returns
+    -------
+    xarray.Dataset
+        The same variables as ``xarray.open_zarr(path[, group=...])`` (the science: outputs and
+        their coordinates), plus the attributes ``blocks_done`` and ``blocks_total``. Blocks not yet
+        written read as NaN (float outputs). For a pipeline store without ``group``: no variables;
+        the attributes are the pipeline provenance plus ``stage_blocks`` ({stage: [done, total or
+        None]}) and ``stages_complete``.
     """
     st = store_status(path, group)
     if "stages" in st and group is None:
@@ -637,7 +659,18 @@ def open_results(path, group: str | None = None, *, flags: bool = False) -> xr.D
 
 
 def open_pipeline(path) -> dict[str, xr.Dataset]:
-    """``{stage name: Dataset}`` of every stage of a pipeline store started so far, in order."""
+    """Every stage of a pipeline store started so far.
+
+    Parameters
+    ----------
+    path : path-like
+        The pipeline store directory.
+
+    Returns
+    -------
+    dict of str to xarray.Dataset
+        ``{stage name: open_results(path, stage)}``, in stage order.
+    """
     st = store_status(path)
     if "stages" not in st:
         raise SpecificationError("store", str(path), "is a single-study store, not a pipeline (use open_results)")
