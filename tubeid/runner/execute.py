@@ -189,16 +189,13 @@ def _connect(scheduler: str):
         return Client(scheduler, timeout=timeout)
     except Exception as exc:  # unreachable, refused, TLS expected or misconfigured, timed out
         text = f"{type(exc).__name__}: {exc}"
-        hint = ""
-        if scheduler.startswith("tcp://") and ("TLS" in text or "tls" in text or "ssl" in text.lower()
-                                               or isinstance(exc, (RuntimeError, OSError))):
-            hint = ("; if the scheduler uses TLS, give its tls:// address and the client certificates "
-                    "(DASK_CONFIG, see cluster/tls)")
+        hint = ("; if the scheduler uses TLS, give its tls:// address and the client certificates (DASK_CONFIG, "
+                "see cluster/tls)") if scheduler.startswith("tcp://") else ""
         raise SpecificationError("scheduler", scheduler,
                                  f"cannot connect within tubeid.runner.connect-timeout = {timeout} ({text[:300]}){hint}") from exc
 
 
-def _embedded_security(quiet: bool):
+def _embedded_security():
     """Ephemeral TLS credentials for the embedded cluster (only processes holding them may connect)."""
     if not config.get("runner.embedded-tls", True):
         return None
@@ -249,7 +246,7 @@ def _client(workers: int | None, scheduler: str | None, client, quiet: bool):
     from distributed import Client
 
     n = workers or config.get("runner.workers") or os.cpu_count() or 1
-    security = _embedded_security(quiet)
+    security = _embedded_security()
     with dask.config.set({"distributed.scheduler.allowed-failures": config.get("runner.allowed-failures", 3)}):
         cluster = LocalCluster(n_workers=int(n), threads_per_worker=int(config.get("runner.threads-per-worker", 1)),
                                processes=True, host=config.get("runner.host", "127.0.0.1"),
