@@ -19,11 +19,25 @@ __all__ = ["main", "build_parser", "COMMANDS", "Command"]
 
 
 class Command(NamedTuple):
-    """One ``tubeid`` sub-command: its name, the module whose ``register(subparsers)`` defines it, its help line."""
+    """One ``tubeid`` sub-command.
+
+    Parameters
+    ----------
+    name : str
+        The sub-command, e.g. ``"run"``.
+    module : str
+        The module whose ``register(subparsers)`` defines its parser (and those of its siblings).
+    help : str
+        Its one-line help in ``tubeid --help``; the module's ``add_parser(help=...)`` must agree.
+    needs : tuple of str
+        Optional dependencies (import names, keys of ``tubeid._optional.EXTRAS``) checked before the
+        command runs, so that it fails at once, naming the extra, rather than after its computation.
+    """
 
     name: str
     module: str
     help: str
+    needs: tuple[str, ...] = ()
 
 
 COMMANDS: tuple[Command, ...] = (
@@ -32,9 +46,10 @@ COMMANDS: tuple[Command, ...] = (
     Command("status", "tubeid.runner.cli",
             "blocks done / total of a study store, per stage for a pipeline (works while it runs)"),
     Command("show", "tubeid.runner.cli", "summary of a study store: provenance and labelled results"),
-    Command("report", "tubeid.report", "figures and summary (Markdown, JSON) of a paper study store"),
+    Command("report", "tubeid.report", "figures and summary (Markdown, JSON) of a paper study store",
+            needs=("matplotlib",)),
     Command("diagnose", "tubeid.measured.cli",
-            "trace the residual of measured data to a missing effect; error before/after"),
+            "trace the residual of measured data to a missing effect; error before/after", needs=("matplotlib",)),
     Command("model", "tubeid.mechanics.cli", "summarise a built-in model or a specification file"),
     Command("bench", "tubeid.bench", "benchmark the hot paths against in-process baselines"),
     Command("bench-runner", "tubeid.runner.cli",
@@ -112,9 +127,12 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     from threadpoolctl import threadpool_limits
 
+    from tubeid._optional import require
     from tubeid.errors import MissingDependencyError, SpecificationError
 
     try:
+        for module in next(c.needs for c in COMMANDS if c.name == args.command):
+            require(module, f"tubeid {args.command}")
         # the hot paths are many small matrices (N ≈ 20–50): BLAS threads only contend with the
         # worker processes and with each other; dask workers are pinned to 1 thread by their nanny
         with threadpool_limits(limits=1):

@@ -387,7 +387,7 @@ def _describe_cluster(client, scheduler, report, quiet):
     link = (getattr(client, "dashboard_link", "") or "") if "dashboard" in info.get("services", {}) else ""
     report.dashboard = link
     if link and importlib.util.find_spec("bokeh") is None:
-        link += " (its plots need bokeh>=3.1 installed)"
+        link += ' (its plots need bokeh: pip install "tubeid[dashboard]")'
     where = scheduler or f"embedded LocalCluster ({report.workers} single-threaded worker processes)"
     _log(f"tubeid: running on {where}" + (f"; dashboard {link}" if link else ""), quiet)
 
