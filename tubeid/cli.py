@@ -123,16 +123,25 @@ def main(argv: Sequence[str] | None = None) -> int:
         others (130 when ``run`` is interrupted).
     """
     argv = list(sys.argv[1:] if argv is None else argv)
-    args = build_parser(_chosen(argv)).parse_args(argv)
+    command = _chosen(argv)
+    needs = next((c.needs for c in COMMANDS if c.name == command), ())
+    if needs and not {"-h", "--help"} & set(argv):  # before importing the command: fail at once
+        from tubeid._optional import require
+        from tubeid.errors import MissingDependencyError
+
+        try:
+            for module in needs:
+                require(module, f"tubeid {command}")
+        except MissingDependencyError as exc:
+            print(f"tubeid: error: {exc}", file=sys.stderr)
+            return 2
+    args = build_parser(command).parse_args(argv)
 
     from threadpoolctl import threadpool_limits
 
-    from tubeid._optional import require
     from tubeid.errors import MissingDependencyError, SpecificationError
 
     try:
-        for module in next(c.needs for c in COMMANDS if c.name == args.command):
-            require(module, f"tubeid {args.command}")
         # the hot paths are many small matrices (N ≈ 20–50): BLAS threads only contend with the
         # worker processes and with each other; dask workers are pinned to 1 thread by their nanny
         with threadpool_limits(limits=1):
