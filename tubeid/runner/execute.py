@@ -403,6 +403,10 @@ def _run_dask(client, fn, prefix, todo, report, progress, desc=None):
         with _bar(report.total, report.skipped, progress, desc) as bar:
             for fut in as_completed(futures):
                 _account(report, fut.result(), bar)
+                # the block is in the store: let the cluster forget its result, or a worker that
+                # leaves (lifetime, pre-emption) would make the scheduler recompute every finished
+                # block it held, ahead of the blocks not yet run (a livelock with short lifetimes)
+                fut.release()
     except BaseException:
         client.cancel(futures)
         raise
