@@ -185,6 +185,11 @@ def test_a_name_shared_with_a_submodule_stays_the_exported_object():
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
+def test_an_export_imports_only_what_it_needs():
+    loaded = _modules_after("from tubeid import read_measurements")
+    assert "xarray" in loaded and not loaded & {"numba", "distributed", "matplotlib"}
+
+
 def test_lazy_table_reads_only_the_type_checking_block(tmp_path):
     init = tmp_path / "init.py"
     init.write_text("from typing import TYPE_CHECKING\nfrom os import sep\n"

@@ -7,8 +7,7 @@ block (which type checkers and IDEs read as ordinary imports), and ends with::
 
 ``attach`` reads that block from the source file and resolves ``package.NAME`` by importing the
 named module when ``NAME`` is first used; a sub-module (``package.runner``) is imported the same
-way. A name that is also the name of one of the package's sub-modules is imported at once (see
-``attach``). So ``import tubeid`` costs a few milliseconds and ``tubeid --help`` imports no numerical
+way. So ``import tubeid`` costs a few milliseconds and ``tubeid --help`` imports no numerical
 library, while ``from tubeid import Study`` and ``tubeid.Study`` still work.
 """
 
@@ -19,6 +18,7 @@ import importlib
 import importlib.util
 import os
 import pkgutil
+import sys
 import types
 from collections.abc import Callable
 from typing import Any
@@ -73,14 +73,19 @@ def attach(package: str, path: str) -> tuple[Callable[[str], Any], Callable[[], 
         imported so far (not the helpers the ``__init__`` itself uses).
     """
     table = lazy_table(path)
-    # A name that is also a sub-module's (``tubeid.measured.diagnose``, the function and its module)
-    # is bound now: importing the sub-module sets that package attribute to the module, after which
-    # ``__getattr__`` would never be asked for it.
-    submodules = {m.name for m in pkgutil.iter_modules([os.path.dirname(path)])}
-    namespace = importlib.import_module(package).__dict__
-    for name in table.keys() & submodules:
-        module, attr = table[name]
-        namespace[name] = getattr(importlib.import_module(module), attr)
+    # A name that is also a sub-module's (``tubeid.measured.diagnose``: the function and its module):
+    # importing the sub-module sets that package attribute to the module, after which __getattr__
+    # would never be asked for the function. The package keeps the exported object instead, as an
+    # eager ``from .diagnose import diagnose`` did (the sub-module stays in ``sys.modules``).
+    shadowed = table.keys() & {m.name for m in pkgutil.iter_modules([os.path.dirname(path)])}
+    if shadowed:
+        class _Package(types.ModuleType):
+            def __setattr__(self, name: str, value: Any) -> None:
+                if name in shadowed and getattr(value, "__name__", None) == f"{package}.{name}":
+                    return
+                super().__setattr__(name, value)
+
+        sys.modules[package].__class__ = _Package
 
     def __getattr__(name: str) -> Any:
         namespace = importlib.import_module(package).__dict__
