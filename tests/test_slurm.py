@@ -14,7 +14,7 @@ import sys
 import pytest
 import yaml
 
-from tests import fake_slurm
+import fake_slurm  # tests/fake_slurm.py (pytest puts tests/ on sys.path)
 from tubeid.errors import SpecificationError
 from tubeid.runner.execute import run
 from tubeid.runner.store import store_status
