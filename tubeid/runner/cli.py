@@ -44,14 +44,14 @@ def register(sub) -> None:
     p.set_defaults(func=_run)
 
     p = sub.add_parser("status", help="blocks done / total of a study store, per stage for a pipeline (works while it runs)")
-    p.add_argument("store", help="the Zarr store (a directory) written by `tubeid run`")
+    p.add_argument("store", help="the study or pipeline store (a .zarr directory written by tubeid run)")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.add_argument("--verify", action="store_true",
                    help="read every finished block back and check its checksum; exit code 1 if anything is damaged")
     p.set_defaults(func=_status)
 
     p = sub.add_parser("show", help="summary of a study store: provenance and labelled results")
-    p.add_argument("store", help="the Zarr store (a directory) written by `tubeid run`")
+    p.add_argument("store", help="the study or pipeline store (a .zarr directory written by tubeid run)")
     p.add_argument("--source", action="store_true", help="also print the study source text")
     p.add_argument("--stage", action="append", help="pipeline store: show only this stage (repeatable)")
     p.set_defaults(func=_show)
@@ -158,31 +158,37 @@ def _status(args) -> int:
 def _print_dataset(ds, store, group=None) -> None:
     """The dataset without its attributes, then summary statistics of each output written so far.
 
-    A chunk that cannot be decoded never ends in a traceback: the output's statistics are replaced
-    by the damaged chunks' names (from the store's verification).
+    Each variable is read once (no dask). A chunk that cannot be decoded never ends in a traceback:
+    the output's statistics are replaced by the damaged chunks' names (from the store's verification).
     """
     import numpy as np
 
     shown = ds.copy()
     shown.attrs = {}
+    unreadable = {}
+    for name, var in shown.data_vars.items():
+        if var.size <= 50_000_000:
+            try:
+                var.load()  # read once, printed with its values (an unloaded variable's repr imports dask)
+            except Exception as exc:
+                unreadable[name] = exc
     print(shown)
     damage = None
-    for name, var in ds.data_vars.items():
+    for name, var in shown.data_vars.items():
         if var.size > 50_000_000:
             continue
-        try:
-            v = np.asarray(var.values, dtype=float)
-        except Exception as exc:
+        if name in unreadable:
             if damage is None:
                 from tubeid.runner.integrity import verify
 
                 damage = verify(store, group)
             bad = [f"block {i}: {r}" for i, r in sorted(damage.damaged.items()) if f"{name}/c/" in r]
-            print(f"  {name} [{var.attrs.get('units', '')}]: DAMAGED, cannot be read ({type(exc).__name__}); "
+            print(f"  {name} [{var.attrs.get('units', '')}]: DAMAGED, cannot be read ({type(unreadable[name]).__name__}); "
                   + ("; ".join(bad[:5]) or "see `tubeid status --verify`")
                   + ("" if len(bad) <= 5 else f"; ... {len(bad) - 5} more")
                   + "; rerun `tubeid run` on its study to recompute")
             continue
+        v = np.asarray(var.values, dtype=float)
         ok = np.isfinite(v)
         stats = f"mean {v[ok].mean():.6g}, min {v[ok].min():.6g}, max {v[ok].max():.6g}" if ok.any() else "no data yet"
         print(f"  {name} [{var.attrs.get('units', '')}]: {stats} ({ok.mean():.0%} finite)")
@@ -197,7 +203,7 @@ def _show(args) -> int:
         return _show_pipeline(args, st)
     if args.stage:
         raise SpecificationError("--stage", args.stage[0], f"{args.store} is a single-study store (it has no stages)")
-    ds = open_results(args.store)
+    ds = open_results(args.store, chunks=None)  # no dask: the values are read once, here
     a = ds.attrs
     print(f"study {a.get('study_name')} (file {a.get('study_file')}, hash {str(a.get('study_hash'))[:12]})")
     print(f"  tubeid {a.get('tubeid_version')}, seed {a.get('seed')} over {a.get('seed_axes')}, "
@@ -230,7 +236,7 @@ def _show_pipeline(args, st) -> int:
     for name, s in st["stages"].items():
         if (args.stage and name not in args.stage) or not s["started"]:
             continue
-        ds = open_results(args.store, name)
+        ds = open_results(args.store, name, chunks=None)
         sa = ds.attrs
         print(f"\nstage {name} (hash {str(sa.get('stage_hash'))[:12]}): {sa.get('title')}")
         print(f"  streams keyed by {sa.get('stream_key')} + {sa.get('seed_axes')}, parameters {sa.get('parameters')}")

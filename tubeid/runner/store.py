@@ -37,13 +37,16 @@ import pathlib
 import re
 import tempfile
 import warnings
+from typing import TYPE_CHECKING
 
 import numpy as np
-import xarray as xr
 import zarr
 
 from tubeid.errors import SpecificationError
 from tubeid.runner.study import RESERVED
+
+if TYPE_CHECKING:  # imported where used: `tubeid status` needs no xarray
+    import xarray as xr
 
 __all__ = ["init_store", "init_pipeline_store", "init_stage", "check_store", "check_stage", "check_blocks", "block_flags",
            "read_flags", "write_block", "update_attrs", "read_attrs", "open_results", "open_pipeline", "store_status",
@@ -342,6 +345,7 @@ def _write_empty(study, p, attrs, group=None) -> None:
     deletes: files already in the directory that tubeid did not write stay).
     """
     import dask.array as da
+    import xarray as xr
 
     axes = list(study.axes)
     block_chunks = tuple(study.chunks[d] for d in axes)
@@ -621,8 +625,9 @@ def pipeline_status(path) -> dict:
             "complete": all(s["complete"] for s in stages.values())}
 
 
-def open_results(path, group: str | None = None, *, flags: bool = False) -> xr.Dataset:
-    """The study results as a labelled ``xarray.Dataset`` (lazy, dask-backed).
+def open_results(path, group: str | None = None, *, flags: bool = False, chunks="auto") -> xr.Dataset:
+    """The study results as a labelled ``xarray.Dataset`` (lazy, dask-backed; ``chunks=None``: lazy
+    without dask, as ``xarray.open_zarr``).
 
     Parameters
     ----------
@@ -632,6 +637,8 @@ def open_results(path, group: str | None = None, *, flags: bool = False) -> xr.D
         A stage of a pipeline store.
     flags : bool
         Add the ``block_done`` variable (1 = block written and checksummed, dims ``block_<axis>``).
+    chunks : "auto", dict or None
+        As ``xarray.open_zarr``: dask-backed, or ``None`` for lazy numpy-backed arrays (no dask).
 
     Returns
     -------
@@ -642,6 +649,8 @@ def open_results(path, group: str | None = None, *, flags: bool = False) -> xr.D
         the attributes are the pipeline provenance plus ``stage_blocks`` ({stage: [done, total or
         None]}) and ``stages_complete``.
     """
+    import xarray as xr
+
     st = store_status(path, group)
     if "stages" in st and group is None:
         ds = xr.Dataset(attrs=dict(st["attrs"]))
@@ -649,7 +658,7 @@ def open_results(path, group: str | None = None, *, flags: bool = False) -> xr.D
                         stages_complete=[n for n, s in st["stages"].items() if s["complete"]])
         return ds
     with _quiet():
-        ds = xr.open_zarr(str(path), group=group) if group else xr.open_zarr(str(path))
+        ds = xr.open_zarr(str(path), group=group, chunks=chunks) if group else xr.open_zarr(str(path), chunks=chunks)
     if flags:
         arr = _flag_array(path, group)
         ds[FLAG] = xr.DataArray((read_flags(path, group)[0] != 0).astype(np.uint8),
