@@ -215,7 +215,7 @@ def test_status_and_show_cli(tmp_path, capsys):
     assert json.loads(capsys.readouterr().out)["done"] == 4
     assert cli(["show", str(tmp_path / "s.zarr")]) == 0
     out = capsys.readouterr().out
-    assert "study runner-test" in out and "x [m]:" in out and "(100% finite)" in out
+    assert "study runner-test" in out and "x [m]:" in out and "(100% written)" in out
     assert cli(["status", str(tmp_path / "nothing.zarr")]) == 2
 
 

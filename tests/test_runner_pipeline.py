@@ -208,7 +208,7 @@ def test_status_and_show_list_the_stages(tmp_path, capsys, monkeypatch):
     assert js["stages"]["around"] == {"started": True, "done": 1, "total": 2, "complete": False} and not js["complete"]
     assert cli(["show", str(store)]) == 0
     out = capsys.readouterr().out
-    assert "stage curve" in out and "x_opt = " in out and "z [m]:" in out and "(50% finite)" in out
+    assert "stage curve" in out and "x_opt = " in out and "z [m]:" in out and "(50% written)" in out
     assert cli(["show", str(store), "--stage", "curve"]) == 0
     assert "z [m]" not in capsys.readouterr().out
     assert cli(["show", str(store), "--stage", "nope"]) == 2

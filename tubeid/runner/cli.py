@@ -191,7 +191,7 @@ def _print_dataset(ds, store, group=None) -> None:
         v = np.asarray(var.values, dtype=float)
         ok = np.isfinite(v)
         stats = f"mean {v[ok].mean():.6g}, min {v[ok].min():.6g}, max {v[ok].max():.6g}" if ok.any() else "no data yet"
-        print(f"  {name} [{var.attrs.get('units', '')}]: {stats} ({ok.mean():.0%} finite)")
+        print(f"  {name} [{var.attrs.get('units', '')}]: {stats} ({ok.mean():.0%} written)")
 
 
 def _show(args) -> int:

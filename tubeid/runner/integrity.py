@@ -78,9 +78,21 @@ def chunk_key(node: str, index, ndim: int) -> str:
 class Verification:
     """What :func:`verify` found in a store (or a pipeline stage).
 
-    checked: blocks whose checksum was recomputed; damaged: {block index: reason} of flagged blocks
-    whose data do not match (to recompute); unreadable_flags: blocks whose flag chunk is undecodable
-    (recomputed too); structure: damaged metadata or coordinates (repaired by ``tubeid run``).
+    Parameters
+    ----------
+    group : str or None
+        The pipeline stage verified (None: a single-study store).
+    checked : int
+        Finished blocks whose checksum was recomputed.
+    total : int
+        Blocks of the store (or stage).
+    damaged : dict
+        ``{block index: reason}`` of finished blocks whose data do not match (to recompute); the
+        reason names the chunk (``x/c/0/3/0 missing``, ``... undecodable``) or the array.
+    unreadable_flags : list
+        Block indices whose flag chunk cannot be decoded (recomputed too).
+    structure : list of str
+        Damaged metadata or coordinates (rewritten from the study by ``tubeid run``).
     """
 
     group: str | None = None
@@ -99,7 +111,17 @@ class Verification:
         return sorted(set(self.damaged) | set(self.unreadable_flags))
 
     def lines(self, limit: int = 10) -> list[str]:
-        """Human-readable findings (at most ``limit`` per kind, then a count)."""
+        """Human-readable findings.
+
+        Parameters
+        ----------
+        limit : int
+            At most this many lines per kind (structure, blocks), then a count of the rest.
+
+        Returns
+        -------
+        list of str
+        """
         out = list(self.structure[:limit])
         if len(self.structure) > limit:
             out.append(f"... and {len(self.structure) - limit} more")
@@ -130,7 +152,7 @@ def _bookkeeping_attrs(path, group, ver: Verification) -> dict | None:
         return None
 
 
-def verify(path, group: str | None = None) -> Verification:
+def verify(path: str | os.PathLike, group: str | None = None) -> Verification:
     """Check every finished block of a study store (or of a pipeline stage) against its checksum.
 
     Reads the store only (nothing stored in it is executed), chunk by chunk, so that a damaged

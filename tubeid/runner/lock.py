@@ -45,7 +45,6 @@ import socket
 import threading
 import time
 
-from tubeid import config
 from tubeid.errors import SpecificationError
 
 __all__ = ["StoreLock", "LOCK_NAME", "read_lock", "describe_holder", "holder_state", "LockLost"]
@@ -60,6 +59,8 @@ class LockLost(RuntimeError):
 
 def _seconds(key: str, default: float) -> float:
     from dask.utils import parse_timedelta
+
+    from tubeid import config  # dask's configuration: imported only where a lock is taken or judged
 
     return float(parse_timedelta(config.get(key, default), default="s"))
 

@@ -228,12 +228,19 @@ class Output:
 class Warmup:
     """Work a study's tasks need done once per machine before the first block (e.g. compiling numba code).
 
-    message: what the runner prints before doing it (e.g. "compiling the solver, once per machine,
-    ~30 s"); run: ``run()`` does the work in a worker process (idempotent; its result is ignored);
-    needed: ``needed() -> bool`` says, cheaply and in a worker process, whether the work is still to do
-    on that machine (e.g. a cold numba cache); the runner runs ``needed`` on one worker per host and
-    ``run`` (with the message) only where it says True. Both must be importable functions (they are
-    pickled to the workers).
+    The runner calls ``needed`` on one worker of each host and, where it says True, prints
+    ``message`` and calls ``run`` there, before submitting any block (in the calling process for
+    ``--workers 0``). Functions defined in a study file are sent to the workers by value.
+
+    Parameters
+    ----------
+    message : str
+        What the runner prints before doing it, e.g. "compiling the solver, once per machine, ~40 s".
+    run : callable
+        ``run()`` does the work in a worker process (idempotent; its result is ignored).
+    needed : callable
+        ``needed() -> bool``: cheaply, in a worker process, whether the work is still to do on that
+        machine (e.g. a cold numba cache).
     """
 
     message: str
