@@ -18,16 +18,74 @@ import time
 import numba
 import numpy as np
 
-from tubeid.dynamics.solver import (
-    Stop,
-    choose_step,
-    exact_step_flops,
-    highest_frequency,
-    simulate,
-    simulate_baseline,
-)
+from tubeid.dynamics.solver import Stop, choose_step, highest_frequency, simulate
+from tubeid.dynamics.solver._checks import prepare
+from tubeid.dynamics.solver._simulate import METHODS, simulate_with_diagnostics
 
-__all__ = ["bench_transient", "measure_flop_rate"]
+__all__ = ["bench_transient", "measure_flop_rate", "simulate_baseline", "exact_step_flops"]
+
+
+# ----------------------------------------------------------------------------------------------
+# Baseline and flop model of the solver
+# ----------------------------------------------------------------------------------------------
+
+
+def simulate_baseline(M, D, K, stops, B, C, loads, dt_load, *, output_dt=3e-3, dt=None):
+    """Straightforward reference implementation for benchmarks: symplectic Euler, one numpy
+    matrix-vector product per step in a Python loop (one realisation, shared matrices).
+
+    Returns ``(series, h)``: the observation series (n_out, n_obs) at output_dt from t = 0 and the
+    step h. dt=None uses the symplectic-Euler default rule of ``choose_step``.
+    """
+    P = prepare(M, D, K, stops, B, C, loads, dt_load, output_dt, 0.0, "symplectic-euler", tuple(METHODS), "series")
+    if len(P.M) != 1 or len(P.K) != 1 or len(P.D) != 1 or P.R != 1:
+        raise ValueError("simulate_baseline takes one realisation")
+    M, D, K = P.matrices(0)
+    N = M.shape[0]
+    h = choose_step(highest_frequency(M, K, P.gapped), P.dt_load, P.output_dt, "symplectic-euler", dt)
+    ns = int(round(P.dt_load / h))
+    out_every = int(round(P.output_dt / h))
+    Minv = np.linalg.inv(M)
+    Afull = np.hstack([-Minv @ K, -Minv @ D])  # first-order update on [q; v]: a = -MiK q - MiD v + MiB F - Mib f_stop
+    MiB = Minv @ P.B
+    bmat = np.array([s.vector for s in P.gapped]).reshape(len(P.gapped), N)
+    Mib = Minv @ bmat.T
+    gaps = np.array([s.gap for s in P.gapped])
+    kst = np.array([s.stiffness for s in P.gapped])
+    x = np.zeros(2 * N)
+    out = [P.C @ x[:N]]
+    step = 0
+    F = P.loads[0]
+    for k in range(F.shape[0] - 1):
+        for j in range(ns):
+            th = j / ns
+            f = (1 - th) * F[k] + th * F[k + 1]
+            u = bmat @ x[:N]
+            fs = kst * np.sign(u) * np.maximum(np.abs(u) - gaps, 0.0)
+            a = Afull @ x + MiB @ f - Mib @ fs
+            x[N:] += h * a
+            x[:N] += h * x[N:]
+            step += 1
+            if step % out_every == 0:
+                out.append(P.C @ x[:N])
+    return np.array(out), h
+
+
+def exact_step_flops(n_modes: int, n_stops: int, n_loads: int, steps_per_block: int, n_obs: int = 0,
+                     steps_per_output: int = 1, steps_per_interval: int | None = None) -> float:
+    """Floating-point operations per integration step of the exact method's fast path (useful
+    work, padding excluded).
+
+    Per step and stop, u and u' from the tabulated rows over [ζ; F_j; F'; 1]: 2 dot products of
+    length 2 n_modes + 2 m + 1 (2 flops per term). Per block of ``steps_per_block`` steps, the
+    diagonal advance (6 flops per mode). Per load interval (``steps_per_interval`` steps, default
+    the block), the slope update of the homogeneous state (4 flops per mode and load). Per output,
+    n_obs dot products of the same length. Event handling is excluded (timed separately).
+    """
+    spi = steps_per_block if steps_per_interval is None else steps_per_interval
+    row = 2 * n_modes + 2 * n_loads + 1
+    return (2 * n_stops * 2 * row + 6 * n_modes / steps_per_block + 4 * n_modes * n_loads / spi
+            + n_obs * 2 * row / steps_per_output)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -161,8 +219,7 @@ def bench_transient(duration: float = 220.0, delta: float = 0.45, delta_f: float
     t_base = (time.perf_counter() - t0) * duration / baseline_window
     f_max = highest_frequency(M, K, stops)
     h = choose_step(f_max, st.dt_load, st.output_dt)
-    diag = []
-    simulate(M, D, K, stops, B, C, F, st.dt_load, output_dt=st.output_dt, discard=st.discard, _diagnostics=diag)
+    diag = simulate_with_diagnostics(M, D, K, stops, B, C, F, st.dt_load, output_dt=st.output_dt, discard=st.discard)[1]
     opened = [Stop(b=s.b, gap=1e9, stiffness=s.stiffness) for s in stops]
     t_fast = math.inf
     for _ in range(3):

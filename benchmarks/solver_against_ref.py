@@ -1,0 +1,118 @@
+"""The transient solver of this checkout against the solver of another git revision, in one process.
+
+    python benchmarks/solver_against_ref.py [--ref REV] [--repeat 5] [--duration 220]
+
+The reference solver is read from ``git show REV:tubeid/dynamics/solver.py`` (the single-module
+solver before it became a package; default: the last commit of main that has it) into a
+temporary module: it is importable here only, never from the package. Both solvers integrate
+the same realisations of the paper's stochastic simplified model (random K_B at δ = 0.45, random
+load spectrum at δ_F = 0.04, Gaussian loads) interleaved, best of ``--repeat``, and the script
+prints the split of one realisation (load generation, tables, fast path, events, PSD) and the
+ratios new/reference. The fast path is the same integration with the gap opened (no contact);
+events are the difference. Timings are only meaningful as ratios (the machine is shared).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def load_reference(ref: str):
+    src = subprocess.run(["git", "-C", ROOT, "show", f"{ref}:tubeid/dynamics/solver.py"], check=True,
+                         capture_output=True, text=True).stdout
+    d = os.path.join(tempfile.gettempdir(), f"tubeid-ref-solver-{ref}")  # stable: numba caches it
+    os.makedirs(d, exist_ok=True)
+    path = os.path.join(d, "reference_solver.py")
+    if not os.path.exists(path) or open(path).read() != src:
+        with open(path, "w") as f:
+            f.write(src)
+    spec = importlib.util.spec_from_file_location("reference_solver", path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["reference_solver"] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def realisation(k: int, duration: float, delta: float = 0.45, delta_f: float = 0.04, seed: int = 1):
+    """(M, D, K, loads, stops args, seconds of load generation) of realisation k."""
+    from tubeid.dynamics.response import _load_points, realisation_streams
+    from tubeid.mechanics.library import builtin_spec
+    from tubeid.mechanics.reduction import reduce
+    from tubeid.uncertainty.loads import coherent_forces, randomised
+    from tubeid.uncertainty.processes import gaussian_loads
+    from tubeid.uncertainty.random_matrices import Dispersion, sg_plus
+    from tubeid.uncertainty.random_models import germs_from_rngs, random_subsystem
+
+    model = reduce(builtin_spec("paper-simplified"))
+    load = coherent_forces()
+    B = model.load_matrix(_load_points(load))
+    C = model.sensor_matrix()
+    stops = [(tuple(b), s.gap, s.stiffness) for b, s in zip(model.stop_vectors(), model.spec.stops)]
+    streams = realisation_streams(seed, k)
+    t0 = time.perf_counter()
+    MB, DB, KB = random_subsystem(model.subsystem, Dispersion(stiffness=delta), 0, [k],
+                                  germs=germs_from_rngs(model.subsystem.n, [streams[0]]))
+    M, D, K = (a[0] for a in model.matrices(MB, DB, KB))
+    spectrum = randomised(load, sg_plus(len(load.names), delta_f, rng=streams[1]))
+    F = gaussian_loads(spectrum, duration, 1e-3, [streams[2]])[0]
+    return (M, D, K, B, C, F, stops), time.perf_counter() - t0
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--ref", default="cd43bc9")
+    p.add_argument("--repeat", type=int, default=5)
+    p.add_argument("--duration", type=float, default=220.0)
+    p.add_argument("--realisations", type=int, default=1)
+    a = p.parse_args()
+    from tubeid.dynamics import solver as new
+    from tubeid.dynamics.spectra import psd_matrix
+
+    old = load_reference(a.ref)
+    cases = [realisation(k, a.duration) for k in range(a.realisations)]
+    t_load = min(c[1] for c in cases)
+
+    def run(mod, case, opened=False):
+        M, D, K, B, C, F, stops = case[0]
+        st = [mod.Stop(b=b, gap=1e9 if opened else g, stiffness=k) for b, g, k in stops]
+        t0 = time.perf_counter()
+        y = mod.simulate(M, D, K, st, B, C, F, 1e-3, output_dt=3e-3, discard=2.0).observations.values[0]
+        return time.perf_counter() - t0, y
+
+    for mod in (old, new):  # compile / load the caches
+        run(mod, (cases[0][0][:5] + (cases[0][0][5][:3001],) + cases[0][0][6:], 0))
+    best = {}
+    for _ in range(a.repeat):
+        for name, mod in (("ref", old), ("new", new)):
+            for opened in (False, True):
+                t = sum(run(mod, c, opened)[0] for c in cases) / len(cases)
+                key = (name, opened)
+                best[key] = min(best.get(key, np.inf), t)
+    y = run(new, cases[0])[1]
+    t0 = time.perf_counter()
+    psd_matrix(y, 3e-3, segment_seconds=8.0)
+    t_psd = time.perf_counter() - t0
+    print(f"load average {os.getloadavg()[0]:.2f}; {a.realisations} realisation(s) of {a.duration:g} s, best of {a.repeat}")
+    print(f"load generation {t_load:.4f} s, PSD {t_psd:.4f} s (common to both)")
+    for name in ("ref", "new"):
+        full, fast = best[(name, False)], best[(name, True)]
+        print(f"{name}: integration {full:.4f} s = fast path {fast:.4f} s + events {full - fast:.4f} s; "
+              f"per realisation {t_load + full + t_psd:.4f} s")
+    r = lambda k: best[("new", k)] / best[("ref", k)]  # noqa: E731
+    ev = (best[("new", False)] - best[("new", True)]) / (best[("ref", False)] - best[("ref", True)])
+    tot = (t_load + best[("new", False)] + t_psd) / (t_load + best[("ref", False)] + t_psd)
+    print(f"ratios new/ref: integration {r(False):.3f}, fast path {r(True):.3f}, events {ev:.3f}, per realisation {tot:.3f}")
+
+
+if __name__ == "__main__":
+    main()
