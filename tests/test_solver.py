@@ -293,10 +293,10 @@ def test_input_validation():
 
 def test_exact_evaluation_matches_block_rows_numpy_exp_and_its_derivatives():
     """The event path's exact evaluation of u, u', u'' (tabulated e^{lam tau} times a short series,
-    then one row product) against: the fast path's block rows at tau = h (different tables),
-    numpy's complex exp for the propagated modal state, and finite differences of itself, every
-    regime, random homogeneous state and piecewise-linear load."""
-    from tubeid.dynamics.solver import _events, _regimes, _work
+    then the segment's modal coefficients) against: the fast path's block rows at tau = h (other
+    tables, other formula), numpy's complex exp for the propagated modal state, and finite
+    differences of itself; every regime, random homogeneous state and piecewise-linear load."""
+    from tubeid.dynamics.solver import _events, _modal, _regimes, _work
 
     M, D, K, stop, B, C, F = contact_setup()
     f_max = highest_frequency(M, K, [stop])
@@ -306,31 +306,32 @@ def test_exact_evaluation_matches_block_rows_numpy_exp_and_its_derivatives():
     rng = rng_for(4, "exact-evaluation")
     n2, m = info["n_modes"], B.shape[1]
     n2p = tb.lam_re.shape[1]
-    nx, nxl = 2 * n2p, tb.block_rows.shape[2]
+    nx = 2 * n2p
     W = _work.make_work(tb, C.shape[0])
-
-    def evaluate(r, x0, f0, fdot, tau):
-        W.X[_work.X0] = x0
-        W.L[_work.FS, :m], W.L[_work.F1, :m] = f0, fdot
-        _events.evaluate(tb.lam_re, tb.lam_im, tb.fine_re, tb.fine_im, tb.stop_rows, tb.basis[r], r, h, m, W.X, W.L,
-                         0.0, tau, W.ev)
-        return W.ev[:3].copy(), W.X[_work.XS, :nx].copy()
-
     lam = tb.lam_re[:, :n2] + 1j * tb.lam_im[:, :n2]
+
+    def evaluate(r, tau):
+        _events.evaluate(tb.lam_re, tb.lam_im, tb.fine_re, tb.fine_im, tb.basis[r], h, tau, W.A, W.QS, W.E, W.ev)
+        return W.ev[:3].copy()
+
     for r in range(len(tb.codes)):
-        x0 = np.zeros(nxl)  # [zeta; f; f'; 1] at the segment start
+        x0 = np.zeros(tb.block_rows.shape[2])  # [zeta; f; f'; 1] at the segment start
         x0[:n2], x0[n2p:n2p + n2] = rng.normal(size=(2, n2)) * 1e-6
         f0, fdot = rng.normal(size=m), rng.normal(size=m) / DT_LOAD
         x0[nx:nx + m], x0[nx + m:nx + 2 * m], x0[nx + 2 * m] = f0, fdot, 1.0
-        # u, u' at tau = h from the block rows (table e^{lam h}, quasi-static rows at mm = 1):
+        W.X[_work.X0] = x0
+        W.L[_work.FS, :m], W.L[_work.F1, :m] = f0, fdot
+        _events.segment_coefficients(tb, W, r, m, 0.0)
+        # u, u' at tau = h against the block rows (table e^{lam h}, quasi-static rows at mm = 1):
         # same quantity from different tables, round-off only (1e-12 of the scale)
-        (u, ud, udd), zt = evaluate(r, x0, f0, fdot, h)
+        u, ud, udd = evaluate(r, h)
         col = tb.block_rows[r, :2] @ x0
         assert abs(col[0] - u) <= 1e-12 * abs(u) and abs(col[1] - ud) <= 1e-12 * abs(ud), (r, col[:2], u, ud)
         for tau in (0.0, 0.37 * h, h):
-            (u, ud, udd), zt = evaluate(r, x0, f0, fdot, tau)
             # the propagated homogeneous state: e^{lam tau} z to 1e-14 relative (table times a
             # degree-9 series: truncation < 1e-19, the rest is round-off)
+            _modal.expmul(tb.lam_re, tb.lam_im, tb.fine_re, tb.fine_im, tb.basis[r], h, tau, x0, W.X[_work.XS], W.E)
+            zt = W.X[_work.XS]
             zc = x0[:n2] + 1j * x0[n2p:n2p + n2]
             want = np.exp(lam[tb.basis[r]] * tau) * zc
             got = zt[:n2] + 1j * zt[n2p:n2p + n2]
@@ -339,9 +340,8 @@ def test_exact_evaluation_matches_block_rows_numpy_exp_and_its_derivatives():
             # of the scale at the highest frequency, round-off ~1e-10): tolerance 1e-5
             e = 1e-3 * h
             t1, t2 = (tau - e, tau + e) if 0 < tau < h else ((tau, tau + 2 * e) if tau == 0 else (tau - 2 * e, tau))
-            (ua, uda, _), _z = evaluate(r, x0, f0, fdot, t1)
-            (ub, udb, _), _z = evaluate(r, x0, f0, fdot, t2)
-            mid = 0.5 * (t1 + t2)
-            (um, udm, uddm), _z = evaluate(r, x0, f0, fdot, mid)
+            ua, uda, _ = evaluate(r, t1)
+            ub, udb, _ = evaluate(r, t2)
+            um, udm, uddm = evaluate(r, 0.5 * (t1 + t2))
             assert abs((ub - ua) / (t2 - t1) - udm) <= 1e-5 * max(abs(udm), abs(um) / h), (r, tau)
             assert abs((udb - uda) / (t2 - t1) - uddm) <= 1e-5 * max(abs(uddm), abs(udm) / h), (r, tau)

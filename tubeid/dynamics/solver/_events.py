@@ -24,11 +24,11 @@ import math
 
 import numba
 
-from tubeid.dynamics.solver._modal import _FM, expmul, rows, rows8, set_load
+from tubeid.dynamics.solver._modal import _FM, diag_mul, exp_modes, expmul, rows, rows8, set_load
 from tubeid.dynamics.solver._work import (EVALUATIONS, F1, FS, MAX_SWITCHES, RESCANS, SWITCHES, U_CROSS, U_END,
                                           U_START, UD_CROSS, UD_END, UD_START, X0, XE, XL, XS)
 
-__all__ = ["distance", "cubic_min", "hermite_flag", "cubic_first_root", "evaluate", "event_step"]
+__all__ = ["distance", "cubic_min", "hermite_flag", "cubic_first_root", "segment_coefficients", "evaluate", "event_step"]
 
 _PIECES = 8  # exact rescan of a segment on this many pieces
 
@@ -164,23 +164,75 @@ def cubic_first_root(d0, dd0, d1, dd1, sigma, smax):
     return -1.0
 
 
+@numba.njit(cache=True, _nrt=False, fastmath=_FM, inline="always")
+def segment_coefficients(T, W, r, m, t0):
+    """W.A, W.QS for the segment starting at t0 from ζ0 = W.X[X0] in regime r (load W.L[FS] +
+    W.L[F1] t): u_s(t0 + τ) = Re Σ_i a_i e^{λ_i τ} + Q0 + Q1 τ, a = cu ζ0; u' and u'' likewise with
+    λ a and λ² a (v = q' : cv = λ cu)."""
+    q = T.basis[r]
+    n2p = T.lam_re.shape[1]
+    x0 = W.X[X0]
+    fs = W.L[FS]
+    f1 = W.L[F1]
+    for s in range(T.gaps.shape[0]):
+        for i in range(n2p):
+            zr = x0[i]
+            zi = x0[n2p + i]
+            ar = T.cu_re[q, s, i] * zr - T.cu_im[q, s, i] * zi
+            ai = T.cu_re[q, s, i] * zi + T.cu_im[q, s, i] * zr
+            lr = T.lam_re[q, i]
+            li = T.lam_im[q, i]
+            br = lr * ar - li * ai
+            bi = lr * ai + li * ar
+            W.A[s, 0, i] = ar
+            W.A[s, 1, i] = ai
+            W.A[s, 2, i] = br
+            W.A[s, 3, i] = bi
+            W.A[s, 4, i] = lr * br - li * bi
+            W.A[s, 5, i] = lr * bi + li * br
+        q0 = T.ueq[r, s]
+        q1 = 0.0
+        p0 = 0.0
+        p1 = 0.0
+        for l in range(m):
+            f = fs[l] + f1[l] * t0
+            q0 += T.stop_qs[q, s, 0, l] * f + T.stop_qs[q, s, 1, l] * f1[l]
+            q1 += T.stop_qs[q, s, 0, l] * f1[l]
+            p0 += T.stop_qs[q, s, 2, l] * f + T.stop_qs[q, s, 3, l] * f1[l]
+            p1 += T.stop_qs[q, s, 2, l] * f1[l]
+        W.QS[s, 0] = q0
+        W.QS[s, 1] = q1
+        W.QS[s, 2] = p0
+        W.QS[s, 3] = p1
+
+
 @numba.njit(cache=True, _nrt=False, fastmath=_FM)
-def evaluate(lam_re, lam_im, fine_re, fine_im, stop_rows, q, r, h, m, X, L, t0, tau, ev):
-    """Exact u, u', u'' of every stop at t0 + tau (ev[3s], ev[3s + 1], ev[3s + 2]), propagated from
-    the segment start X[X0] (basis q, regime r) with the load L[FS] + L[F1] t; X[XS] holds the
-    state there. One compiled body for every call site (short argument list: a cheap call)."""
-    x0 = X[X0]
-    xs = X[XS]
-    expmul(lam_re, lam_im, fine_re, fine_im, q, h, tau, x0, xs)
-    set_load(xs, 2 * lam_re.shape[1], m, L[FS], L[F1], t0 + tau)
-    rows(stop_rows, r, 0, stop_rows.shape[1], xs, xs.shape[0], ev, 0)
+def evaluate(lam_re, lam_im, fine_re, fine_im, q, h, tau, A, QS, E, ev):
+    """Exact u, u', u'' of every stop at tau from the segment start (ev[3s], ev[3s + 1],
+    ev[3s + 2]), from the segment's coefficients A, QS (``segment_coefficients``) and E = e^{λ tau}
+    (left in E). One compiled body for every call site (short argument list: a cheap call)."""
+    exp_modes(lam_re, lam_im, fine_re, fine_im, q, h, tau, E)
+    n2p = E.shape[1]
+    for s in range(A.shape[0]):
+        u = 0.0
+        ud = 0.0
+        udd = 0.0
+        for i in range(n2p):
+            er = E[0, i]
+            ei = E[1, i]
+            u += A[s, 0, i] * er - A[s, 1, i] * ei
+            ud += A[s, 2, i] * er - A[s, 3, i] * ei
+            udd += A[s, 4, i] * er - A[s, 5, i] * ei
+        ev[3 * s] = u + QS[s, 0] + QS[s, 1] * tau
+        ev[3 * s + 1] = ud + QS[s, 2] + QS[s, 3] * tau
+        ev[3 * s + 2] = udd + QS[s, 3]
 
 
 @numba.njit(cache=True, _nrt=False, inline="always")
 def _eval(T, W, r, m, t0, tau, s, code, side, stats):
     """evaluate() at tau, recorded in W.eval_tau and the counters; returns the distance to the
     boundary (code, side) of stop s and its two derivatives there."""
-    evaluate(T.lam_re, T.lam_im, T.fine_re, T.fine_im, T.stop_rows, T.basis[r], r, T.h, m, W.X, W.L, t0, tau, W.ev)
+    evaluate(T.lam_re, T.lam_im, T.fine_re, T.fine_im, T.basis[r], T.h, tau, W.A, W.QS, W.E, W.ev)
     W.eval_tau[0] = tau
     stats[EVALUATIONS] += 1
     return distance(code, side, T.gaps[s], W.ev[3 * s], W.ev[3 * s + 1], W.ev[3 * s + 2])
@@ -309,7 +361,7 @@ def event_step(T, W, r, m, count, contact_time, n_events, refine_all, stats):
         sigma = h - t_loc
         set_load(x0, nx, m, fs, f1, t_loc)
         if just_switched:  # end state of the remaining segment, kept in case no event occurs
-            expmul(T.lam_re, T.lam_im, T.fine_re, T.fine_im, q, h, sigma, x0, xe)
+            expmul(T.lam_re, T.lam_im, T.fine_re, T.fine_im, q, h, sigma, x0, xe, W.E)
             set_load(xe, nx, m, fs, f1, h)
             rows(T.stop_rows, r, 0, n_rows, xe, nxl, ev, 0)
             for s in range(S):
@@ -318,6 +370,7 @@ def event_step(T, W, r, m, count, contact_time, n_events, refine_all, stats):
         tau_c = 1e308
         s_c = -1
         side_c = -1
+        coefficients = False  # W.A, W.QS of this segment computed
         for s in range(S):
             code = T.codes[r, s]
             g = T.gaps[s]
@@ -329,6 +382,9 @@ def event_step(T, W, r, m, count, contact_time, n_events, refine_all, stats):
                 margin = T.mcoef * (sigma / h) ** 4 * max(abs(dd0), abs(dd1))
                 if not (refine_all or hermite_flag(d0, dd0, d1, dd1, sigma, margin)):
                     continue
+                if not coefficients:
+                    segment_coefficients(T, W, r, m, t_loc)
+                    coefficients = True
                 tc = _first_crossing(T, W, r, m, t_loc, code, side, s, sigma, d0, dd0, d1, dd1,
                                      refine_all and d1 >= 0, stats)
                 if tc >= 0 and tc < tau_c:
@@ -343,15 +399,16 @@ def event_step(T, W, r, m, count, contact_time, n_events, refine_all, stats):
                 for i in range(nx):
                     xl[i] = xe[i]
             else:  # u, u' at h already in U (fast path)
-                expmul(T.lam_re, T.lam_im, T.fine_re, T.fine_im, q, h, sigma, x0, xl)
+                expmul(T.lam_re, T.lam_im, T.fine_re, T.fine_im, q, h, sigma, x0, xl, W.E)
             if count:
                 for s in range(S):
                     contact_time[s] += sigma * T.closed[r, s]
             return r
         # switch at tau_c: x continuous, ζ_new = T_{b→b'} xl(tau_c) + c; u, u' continuous
         stats[SWITCHES] += 1
-        if W.eval_tau[0] != tau_c:  # the state at the crossing, unless the last evaluation left it in xs
-            expmul(T.lam_re, T.lam_im, T.fine_re, T.fine_im, q, h, tau_c, x0, xs)
+        if W.eval_tau[0] != tau_c:  # e^{λ tau_c}, unless the last evaluation left it in W.E
+            exp_modes(T.lam_re, T.lam_im, T.fine_re, T.fine_im, q, h, tau_c, W.E)
+        diag_mul(W.E, x0, xs)
         set_load(xs, nx, m, fs, f1, t_loc + tau_c)
         for s in range(S):
             U[U_START, s] = U[U_CROSS, s]

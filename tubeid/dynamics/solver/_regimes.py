@@ -64,6 +64,12 @@ class ExactTables(NamedTuple):
     #                         f = load at the block start; ncp = nb 2S rounded up to 8
     output_rows: np.ndarray  # (nr, (nb + 1) n_obs, nxl): row mm n_obs + o is y_o at mm h (mm = 0: now)
     stop_rows: np.ndarray  # (nr, 3S rounded up to 4, nxl): rows 3s, 3s + 1, 3s + 2 are u_s, u'_s, u''_s now
+    # u_s of the event search: Re Σ_i cu_i ζ_i (u' and u'' with λ_i cu_i, λ_i² cu_i) plus the
+    # quasi-static part ueq + au·f + bu·f' (u' : av·f + bv·f'; u'': av·f')
+    cu_re: np.ndarray  # (nbas, S, n2p) Re cu
+    cu_im: np.ndarray  # (nbas, S, n2p)
+    stop_qs: np.ndarray  # (nbas, S, 4, m): au, bu, av, bv
+    ueq: np.ndarray  # (nr, S) u at the regime's equilibrium
     # switches: regime r leaves through stop s (side d of an open stop: 0 towards +g, 1 towards -g)
     trans_id: np.ndarray  # (nr, S, 2) int64: transition index (-1: none)
     trans_to: np.ndarray  # (nt,) int64: regime after the transition
@@ -280,6 +286,8 @@ def _build(M, D, K, stops, B, C, h, ns, omega_max):
         step_re=c(_padm(Em, n2p).real), step_im=c(_padm(Em, n2p).imag),
         fine_re=c(_padm(Ef, n2p).real), fine_im=c(_padm(Ef, n2p).imag), slope_rows=slope_rows,
         block_rows=block_rows, output_rows=output_rows, stop_rows=stop_rows,
+        cu_re=c(_padm(cu, n2p).real), cu_im=c(_padm(cu, n2p).imag), stop_qs=c(np.stack([au, bu, av, bv], axis=2)),
+        ueq=c(ueq),
         trans_id=trans_id, trans_to=np.array(trans_to, dtype=np.int64), trans_map=np.array(trans_map, dtype=np.int64),
         trans_const=c(np.array(trans_const)), transforms=c(np.array(transforms)),
         h=float(h), nb=int(nb), mcoef=MARGIN_SAFETY * (omega_max * h) ** 4 / (384.0 * omega_max),

@@ -55,10 +55,14 @@ class Work(NamedTuple):
     y: np.ndarray  # (n_obs,) outputs
     ev: np.ndarray  # (3S rounded up to 4,) stop rows · x: u, u', u'' of stop s at 3s, 3s + 1, 3s + 2
     eval_tau: np.ndarray  # (1,) time of the last exact evaluation (from the segment start)
+    E: np.ndarray  # (2, n2p) e^{λ τ} (real and imaginary parts) of the last exp_modes
+    A: np.ndarray  # (S, 6, n2p) event search, per stop: Re, Im of a = cu ζ0, λ a, λ² a (segment start ζ0)
+    QS: np.ndarray  # (S, 4) ... and its quasi-static part: u = Q0 + Q1 τ, u' = P0 + P1 τ, u'' = P1
 
 
 def make_work(T: ExactTables, n_obs: int) -> Work:
     """Zeroed scratch for tables T and n_obs outputs."""
     z = np.zeros
     return Work(X=z((4, T.block_rows.shape[2])), L=z((4, T.slope_rows.shape[1])), U=z((6, T.gaps.shape[0])),
-                col=z(T.block_rows.shape[1]), y=z(n_obs), ev=z(max(T.stop_rows.shape[1], 4)), eval_tau=z(1))
+                col=z(T.block_rows.shape[1]), y=z(n_obs), ev=z(max(T.stop_rows.shape[1], 4)), eval_tau=z(1),
+                E=z((2, T.lam_re.shape[1])), A=z((T.gaps.shape[0], 6, T.lam_re.shape[1])), QS=z((T.gaps.shape[0], 4)))
