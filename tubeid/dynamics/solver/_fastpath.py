@@ -79,7 +79,8 @@ def run_exact(loads, dt_load, ns, out_every, j0, r0, T, W, y_out, sumsq, contact
                 rows8(T.block_rows, r, g, xl, nxl, col, g)
             # sufficient test for the whole block: every sub-step's end values clear of the regime's
             # bounds by the Hermite margin plus the bound 0.15 σ (|d0'| + |d1'|) of the cubic's dip
-            clear = not refine_all
+            # (slack = smallest clearance minus margin; branch-free)
+            slack = -1.0 if refine_all else 1e308
             for s in range(S):
                 lo = T.lower[r, s]
                 hi = T.upper[r, s]
@@ -89,9 +90,10 @@ def run_exact(loads, dt_load, ns, out_every, j0, r0, T, W, y_out, sumsq, contact
                     a = col[mm * S2 + 2 * s]
                     b = col[mm * S2 + 2 * s + 1]
                     mg = mcoef * max(abs(va), abs(b)) + 0.15 * h * (abs(va) + abs(b))
-                    clear = clear and min(ua, a) - lo >= mg and hi - max(ua, a) >= mg
+                    slack = min(slack, min(min(ua, a) - lo, hi - max(ua, a)) - mg)
                     ua = a
                     va = b
+            clear = slack >= 0.0
             flag_m = -1
             if not clear:
                 for mm in range(1, mb + 1):

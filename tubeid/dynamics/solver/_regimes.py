@@ -116,7 +116,7 @@ class _Basis(NamedTuple):
     lam: np.ndarray  # (n2,) complex
     Vw: np.ndarray  # (2N, n2) complex: eigenvectors times their weight w
     Vinv: np.ndarray  # (n2, 2N) complex: the kept rows of V⁻¹
-    cond: float
+    V: np.ndarray  # (2N, 2N) complex: all eigenvectors (diagnostics)
 
 
 def _bases(M, D, K, stops, codes):
@@ -150,7 +150,7 @@ def _bases(M, D, K, stops, codes):
         else:
             keep = np.arange(2 * N)
             w = 1.0
-        out.append(_Basis(lam=lam[keep], Vw=V[:, keep] * w, Vinv=Vinv[keep], cond=float(np.linalg.cond(V))))
+        out.append(_Basis(lam=lam[keep], Vw=V[:, keep] * w, Vinv=Vinv[keep], V=V))
     return basis, out, Ks, Minv, all_complex
 
 
@@ -158,8 +158,8 @@ def build_tables(M, D, K, stops, B, C, h: float, ns: int, omega_max: float) -> t
     """Tables of the regimes of (M, D, K) with ``stops`` (all with a gap), loads B (N, m), outputs
     C (n_obs, N), sub-step h (s), ns sub-steps per load interval, omega_max = 2π f_max (rad/s).
 
-    Returns the tables and a dict of diagnostics (condition number of the eigenvectors, whether
-    conjugate pairs were halved, number of modes). Computed with one BLAS thread (bit-identical
+    Returns the tables and a dict of diagnostics (the eigenvector matrices V, whether conjugate
+    pairs were halved, number of modes). Computed with one BLAS thread (bit-identical
     whatever the caller's BLAS threads, see ``_determinism``)."""
     with one_blas_thread():
         return _build(M, D, K, stops, B, C, h, ns, omega_max)
@@ -218,25 +218,24 @@ def _build(M, D, K, stops, B, C, h, ns, omega_max):
         return out
 
     ncp = _pad(nb * 2 * S, 8)
-    block_rows = np.zeros((nr, ncp, nxl))
-    output_rows = np.zeros((nr, (nb + 1) * n_obs, nxl))
-    stop_rows = np.zeros((nr, _pad(3 * S, 4), nxl))
-    for r in range(nr):
-        q = basis[r]
-        for mm in range(1, nb + 1):  # f = load at the block start: f(t_mm) = f + f' t_mm
-            t = tmm[mm]
-            for s in range(S):
-                i = (mm - 1) * 2 * S + 2 * s
-                block_rows[r, i] = rows(cu[q, s] * Em[q, mm], au[q, s], au[q, s] * t + bu[q, s], ueq[r, s])
-                block_rows[r, i + 1] = rows(cv[q, s] * Em[q, mm], av[q, s], av[q, s] * t + bv[q, s], 0.0)
-        for mm in range(nb + 1):
-            t = tmm[mm]
-            for o in range(n_obs):
-                output_rows[r, mm * n_obs + o] = rows(cy[q, o] * Em[q, mm], ay[q, o], ay[q, o] * t + by[q, o], yeq[r, o])
-        for s in range(S):  # u'' = Re(cv λ ζ) + av·f'
-            stop_rows[r, 3 * s] = rows(cu[q, s], au[q, s], bu[q, s], ueq[r, s])
-            stop_rows[r, 3 * s + 1] = rows(cv[q, s], av[q, s], bv[q, s], 0.0)
-            stop_rows[r, 3 * s + 2] = rows(cv[q, s] * lam[q], np.zeros(m), av[q, s], 0.0)
+    qr = basis  # basis of each regime: per-regime views of the per-basis coefficients below
+    t1 = tmm[1:, None, None]  # (nb, 1, 1): f(t_mm) = f + f' t_mm, f the load at the block start
+    E1 = Em[qr][:, 1:, None, :]  # (nr, nb, 1, n2)
+    block = np.zeros((nr, nb, S, 2, nxl))
+    block[..., 0, :] = rows(cu[qr][:, None] * E1, au[qr][:, None], au[qr][:, None] * t1 + bu[qr][:, None],
+                            ueq[:, None, :])
+    block[..., 1, :] = rows(cv[qr][:, None] * E1, av[qr][:, None], av[qr][:, None] * t1 + bv[qr][:, None], 0.0)
+    block_rows = np.zeros((nr, ncp, nxl))  # row (mm - 1) 2S + 2s + d
+    block_rows[:, :nb * 2 * S] = block.reshape(nr, nb * 2 * S, nxl)
+    t0 = tmm[:, None, None]  # (nb + 1, 1, 1)
+    output_rows = rows(cy[qr][:, None] * Em[qr][:, :, None, :], ay[qr][:, None], ay[qr][:, None] * t0 + by[qr][:, None],
+                       yeq[:, None, :]).reshape(nr, (nb + 1) * n_obs, nxl)  # row mm n_obs + o
+    stop = np.zeros((nr, S, 3, nxl))  # u, u', u'' now; u'' = Re(cv λ ζ) + av·f'
+    stop[:, :, 0] = rows(cu[qr], au[qr], bu[qr], ueq)
+    stop[:, :, 1] = rows(cv[qr], av[qr], bv[qr], 0.0)
+    stop[:, :, 2] = rows(cv[qr] * lam[qr][:, None], 0.0, av[qr], 0.0)
+    stop_rows = np.zeros((nr, _pad(3 * S, 4), nxl))  # row 3s + k
+    stop_rows[:, :3 * S] = stop.reshape(nr, 3 * S, nxl)
     slope_rows = np.zeros((nbas, _pad(m, 8), nx))
     slope_rows[:, :m, :n2] = beta.real.transpose(0, 2, 1)
     slope_rows[:, :m, n2p:n2p + n2] = beta.imag.transpose(0, 2, 1)
@@ -292,7 +291,7 @@ def _build(M, D, K, stops, B, C, h, ns, omega_max):
         trans_const=c(np.array(trans_const)), transforms=c(np.array(transforms)),
         h=float(h), nb=int(nb), mcoef=MARGIN_SAFETY * (omega_max * h) ** 4 / (384.0 * omega_max),
     )
-    info = {"cond_V": max(bb.cond for bb in bases), "half_modes": all_complex, "n_modes": n2,
+    info = {"V": [bb.V for bb in bases], "half_modes": all_complex, "n_modes": n2,
             "alpha0": alpha[basis[0]], "beta0": beta[basis[0]], "n2p": n2p}
     return tables, info
 

@@ -20,7 +20,7 @@ __all__ = ["Method", "METHODS", "choose_step", "simulate", "simulate_with_diagno
 
 class Method(NamedTuple):
     """An integration method: its step rule and its integrator
-    ``integrate(problem, r, h, f_max, y_out, sumsq, contact_time, n_events, refine_all=..., cache=...) -> dict``
+    ``integrate(problem, r, h, f_max, y_out, sumsq, contact_time, n_events, refine_all=, cache=, diagnose=) -> dict``
     (writes realisation r's outputs, returns diagnostics)."""
 
     step_rule: StepRule
@@ -97,8 +97,8 @@ def simulate(M, D, K, stops, B, C, loads, dt_load, *, output_dt=3e-3, dt=None, m
     TransientResult
         Outputs at t = j output_dt, discard <= t <= T = (n_t - 1) dt_load.
     """
-    return simulate_with_diagnostics(M, D, K, stops, B, C, loads, dt_load, output_dt=output_dt, dt=dt,
-                                     method=method, keep=keep, discard=discard, sensor_names=sensor_names)[0]
+    return _run(M, D, K, stops, B, C, loads, dt_load, output_dt, dt, method, keep, discard, sensor_names, False,
+                False)[0]
 
 
 def simulate_with_diagnostics(M, D, K, stops, B, C, loads, dt_load, *, output_dt=3e-3, dt=None, method="exact",
@@ -108,6 +108,12 @@ def simulate_with_diagnostics(M, D, K, stops, B, C, loads, dt_load, *, output_dt
     flagged sub-steps, switches, rescans, exact evaluations and table properties). Tests and
     benchmarks only: ``refine_all=True`` sends every sub-step of the exact method through the exact
     event path (every boundary searched), the reference for the pre-check."""
+    return _run(M, D, K, stops, B, C, loads, dt_load, output_dt, dt, method, keep, discard, sensor_names, refine_all,
+                True)
+
+
+def _run(M, D, K, stops, B, C, loads, dt_load, output_dt, dt, method, keep, discard, sensor_names, refine_all,
+         diagnose):
     P = prepare(M, D, K, stops, B, C, loads, dt_load, output_dt, discard, method, tuple(METHODS), keep, sensor_names)
     integrator = METHODS[method]
     R, n_obs, S = P.R, P.C.shape[0], len(P.stops)
@@ -131,7 +137,7 @@ def simulate_with_diagnostics(M, D, K, stops, B, C, loads, dt_load, *, output_dt
         ct = np.zeros(len(P.gapped))
         nev = np.zeros(len(P.gapped), dtype=np.int64)
         diagnostics.append(integrator.integrate(P, r, h, f_max, y_buf, sumsq, ct, nev, refine_all=refine_all,
-                                                cache=cache))
+                                                cache=cache, diagnose=diagnose))
         dts[r] = h
         rms[r] = np.sqrt(sumsq / P.n_keep)
         cf[r, list(P.gapped_index)] = ct / t_count if t_count > 0 else 0.0
