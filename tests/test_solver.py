@@ -1,6 +1,10 @@
 """Tests of tubeid.dynamics.solver against independent references (scipy DOP853, closed forms)."""
 
+import json
 import math
+import os
+import subprocess
+import sys
 import warnings
 
 import numpy as np
@@ -345,3 +349,66 @@ def test_exact_evaluation_matches_block_rows_numpy_exp_and_its_derivatives():
             um, udm, uddm = evaluate(r, 0.5 * (t1 + t2))
             assert abs((ub - ua) / (t2 - t1) - udm) <= 1e-5 * max(abs(udm), abs(um) / h), (r, tau)
             assert abs((udb - uda) / (t2 - t1) - uddm) <= 1e-5 * max(abs(uddm), abs(udm) / h), (r, tau)
+
+
+# ------------------------------------------------------------------ bit-identity across processes
+
+_BIT_IDENTITY_SCRIPT = """
+import hashlib, json
+from tubeid.dynamics.solver import Stop, simulate
+from tubeid.dynamics.solver import _fastpath
+from tubeid.mechanics import builtin_spec, reduce
+from tubeid.seeds import rng_for
+model = reduce(builtin_spec("paper-reference"))  # 50 coordinates: its tables depend on BLAS threads
+M, D, K = model.mean_matrices
+stops = [Stop(b=tuple(b), gap=s.gap, stiffness=s.stiffness) for b, s in zip(model.stop_vectors(), model.spec.stops)]
+B, C = model.load_matrix(), model.sensor_matrix()
+F = 40.0 * rng_for(11, "bit-identity").standard_normal((3001, B.shape[1]))
+y = simulate(M, D, K, stops, B, C, F, 1e-3, output_dt=1e-3).observations.values
+st = _fastpath.run_exact.stats
+print(json.dumps({"sha256": hashlib.sha256(y.tobytes()).hexdigest(), "compiled": sum(st.cache_misses.values()),
+                  "loaded": sum(st.cache_hits.values()), "contacts": int((abs(y[0, :, 0]) > 0).sum())}))
+"""
+
+
+def _run_in_subprocess(blas_threads: int, cache_dir) -> dict:
+    """The paper-reference model with contact for 3 s in a new process: hash of the series and
+    whether the kernel was compiled or loaded from numba's cache."""
+    env = dict(os.environ, OPENBLAS_NUM_THREADS=str(blas_threads), OMP_NUM_THREADS=str(blas_threads),
+               MKL_NUM_THREADS=str(blas_threads))
+    env["NUMBA_CACHE_DIR"] = str(cache_dir)
+    res = subprocess.run([sys.executable, "-c", _BIT_IDENTITY_SCRIPT], capture_output=True, text=True, env=env,
+                         timeout=900)
+    assert res.returncode == 0, res.stderr[-3000:]
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def test_results_do_not_depend_on_the_blas_threads_of_the_process():
+    """Dask workers run with one BLAS thread, a Python session may use several: the tables are
+    computed with one thread whatever the caller's setting (without that, on this 50-coordinate
+    model 1 and 2 threads give series that differ after a fraction of a second)."""
+    from threadpoolctl import threadpool_limits
+
+    from tubeid.mechanics import builtin_spec, reduce
+
+    model = reduce(builtin_spec("paper-reference"))
+    M, D, K = model.mean_matrices
+    stops = [Stop(b=tuple(b), gap=s.gap, stiffness=s.stiffness) for b, s in zip(model.stop_vectors(), model.spec.stops)]
+    B, C = model.load_matrix(), model.sensor_matrix()
+    F = 40.0 * rng_for(11, "bit-identity").standard_normal((3001, B.shape[1]))
+    series = []
+    for threads in (1, 2):
+        with threadpool_limits(limits=threads):
+            series.append(simulate(M, D, K, stops, B, C, F, DT_LOAD, output_dt=DT_LOAD).observations.values)
+    assert np.array_equal(series[0], series[1])
+
+
+@pytest.mark.slow
+def test_compiled_and_cached_kernels_give_the_same_bits(tmp_path):
+    """A process compiling the kernels into an empty numba cache and a process loading them from
+    that cache (with another BLAS thread count) produce the same bytes."""
+    cold = _run_in_subprocess(2, tmp_path / "numba-cache")
+    warm = _run_in_subprocess(1, tmp_path / "numba-cache")
+    assert cold["compiled"] >= 1 and cold["loaded"] == 0, cold  # the first process really compiled ...
+    assert warm["loaded"] >= 1 and warm["compiled"] == 0, warm  # ... and the second really loaded
+    assert cold["sha256"] == warm["sha256"], (cold, warm)
