@@ -4,22 +4,34 @@ The method of Batou & Soize (2008): a simplified bundle model with nonparametric
 uncertainty (δ), a stochastic load model (r, δ_F), identified by maximum likelihood and trial
 grids, run as dask task graphs into labelled Zarr stores. Sub-packages: ``mechanics``,
 ``uncertainty``, ``dynamics``, ``identification``, ``measured``, ``runner``.
+
+Every name below is imported on first use (PEP 562), so ``import tubeid`` loads no numerical
+library; ``from tubeid import Study`` and ``tubeid.Study`` work as usual.
 """
 
-from importlib.metadata import PackageNotFoundError, version
+from __future__ import annotations
 
-from tubeid.errors import SpecificationError
-from tubeid.identification import identify_delta, likelihood_curve
-from tubeid.mechanics import BundleSpec, LinkSpec, LoadPoint, ReductionSpec, SensorSpec, StopSpec, TubeSpec, builtin_spec, load_spec, reduce
-from tubeid.measured import read_measurements
-from tubeid.runner import Output, Parameter, Study, open_results
-from tubeid.seeds import rng_for
-from tubeid.uncertainty import Dispersion, coherent_forces, force_and_moment, gaussian_loads, sg_plus
+from typing import TYPE_CHECKING
 
-try:
-    __version__ = version("tubeid")
-except PackageNotFoundError:  # pragma: no cover - running from a source tree without install
-    __version__ = "0.0.0"
+from tubeid._lazy import attach
+from tubeid._version import __version__
+
+if TYPE_CHECKING:  # the lazy exports: imported on first use (tubeid._lazy reads this block)
+    from tubeid.errors import SpecificationError
+    from tubeid.identification.delta import identify_delta
+    from tubeid.identification.likelihood import likelihood_curve
+    from tubeid.measured.readers import read_measurements
+    from tubeid.mechanics.library import builtin_spec
+    from tubeid.mechanics.reduction import reduce
+    from tubeid.mechanics.spec import (BundleSpec, LinkSpec, LoadPoint, ReductionSpec, SensorSpec, StopSpec, TubeSpec,
+                                       load_spec)
+    from tubeid.runner.store import open_results
+    from tubeid.runner.study import Output, Parameter, Study
+    from tubeid.seeds import rng_for
+    from tubeid.uncertainty.loads import coherent_forces, force_and_moment
+    from tubeid.uncertainty.processes import gaussian_loads
+    from tubeid.uncertainty.random_matrices import Dispersion, sg_plus
+
 
 __all__ = [
     "__version__",
@@ -37,3 +49,5 @@ __all__ = [
     # runner
     "Study", "Output", "Parameter", "open_results",
 ]
+
+__getattr__, __dir__ = attach(__name__, __file__)

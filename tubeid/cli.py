@@ -1,42 +1,151 @@
-"""The ``tubeid`` command line. Each feature module registers its own sub-commands."""
+"""The ``tubeid`` command line.
+
+The top-level parser is built from a static table of commands (``COMMANDS``: name, module, one-line
+help): only the chosen command's module is imported, and it registers its own sub-parser(s) with
+``register(subparsers)``. ``tubeid --help`` and ``tubeid --version`` import no numerical library.
+"""
 
 from __future__ import annotations
 
 import argparse
 import importlib
 import sys
+from collections.abc import Sequence
+from typing import NamedTuple
 
-__all__ = ["main"]
+from tubeid._version import __version__
 
-# Modules exposing ``register(subparsers)``; one line per feature.
-COMMAND_MODULES = [
-    "tubeid.mechanics.cli",
-    "tubeid.bench",
-    "tubeid.runner.cli",
-    "tubeid.measured.cli",
-    "tubeid.report",
-]
+__all__ = ["main", "build_parser", "COMMANDS", "Command"]
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="tubeid", description=__doc__)
-    sub = parser.add_subparsers(dest="command", required=True)
-    for name in COMMAND_MODULES:
-        importlib.import_module(name).register(sub)
+class Command(NamedTuple):
+    """One ``tubeid`` sub-command.
+
+    Parameters
+    ----------
+    name : str
+        The sub-command, e.g. ``"run"``.
+    module : str
+        The module whose ``register(subparsers)`` defines its parser (and those of its siblings).
+    help : str
+        Its one-line help in ``tubeid --help``; the module's ``add_parser(help=...)`` must agree.
+    needs : tuple of str
+        Optional dependencies (import names, keys of ``tubeid._optional.EXTRAS``) checked before the
+        command runs, so that it fails at once, naming the extra, rather than after its computation.
+    """
+
+    name: str
+    module: str
+    help: str
+    needs: tuple[str, ...] = ()
+
+
+COMMANDS: tuple[Command, ...] = (
+    Command("run", "tubeid.runner.cli",
+            "run or resume a study or pipeline (a studies/*.py file) into a Zarr store"),
+    Command("status", "tubeid.runner.cli",
+            "blocks done / total of a study store, per stage for a pipeline (works while it runs)"),
+    Command("show", "tubeid.runner.cli", "summary of a study store: provenance and labelled results"),
+    Command("report", "tubeid.report", "figures and summary (Markdown, JSON) of a paper study store",
+            needs=("matplotlib",)),
+    Command("diagnose", "tubeid.measured.cli",
+            "trace the residual of measured data to a missing effect; error before/after", needs=("matplotlib",)),
+    Command("model", "tubeid.mechanics.cli", "summarise a built-in model or a specification file"),
+    Command("bench", "tubeid.bench", "benchmark the hot paths against in-process baselines"),
+    Command("bench-runner", "tubeid.runner.cli",
+            "benchmark the runner: speedup 1 -> 2 workers, overhead vs compute"),
+)
+
+DESCRIPTION = """\
+Identify a probabilistic model of the turbulent-flow loads on a tube bundle (steam generators,
+heat exchangers) from measured tube vibrations, carrying the uncertainty of the simplified model
+and of the load model (Batou & Soize 2008). Studies run as dask task graphs on this machine or a
+cluster and write labelled Zarr stores that xarray opens.
+
+start here:
+  tubeid run studies/paper.py          the paper study -> results/paper.zarr (rerun to resume)
+  tubeid status results/paper.zarr     how far it is (works while it runs)
+  tubeid report results/paper.zarr     its figures and summary
+  tubeid diagnose DATA                 identify the load on measured data; trace what the model misses
+  tubeid model paper-simplified        summarise a bundle model"""
+
+EPILOG = """\
+'tubeid COMMAND --help' gives a command's options. Configuration: tubeid/tubeid.yaml, overridden by
+~/.config/dask/*.yaml or TUBEID_RUNNER__<KEY>=value variables. Documentation: README.md."""
+
+
+def _chosen(argv: Sequence[str]) -> str | None:
+    """The sub-command named on the command line (the first argument that is not an option)."""
+    return next((a for a in argv if not a.startswith("-")), None)
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The ``tubeid`` argument parser, with ``command``'s own sub-parser(s) fully defined.
+
+    Parameters
+    ----------
+    command : str, optional
+        The sub-command about to be parsed. Only its module is imported, and every command that
+        module registers gets its real parser; the others are placeholders that carry their help
+        line for ``tubeid --help``. ``None`` (or an unknown name) imports nothing.
+
+    Returns
+    -------
+    argparse.ArgumentParser
+        The parser.
+    """
+    parser = argparse.ArgumentParser(prog="tubeid", description=DESCRIPTION, epilog=EPILOG,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--version", action="version", version=f"tubeid {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", title="commands")
+    module = next((c.module for c in COMMANDS if c.name == command), None)
+    if module is not None:
+        importlib.import_module(module).register(sub)
+    for c in COMMANDS:
+        if c.module != module:
+            sub.add_parser(c.name, help=c.help, add_help=False)
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    from tubeid.errors import SpecificationError
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``tubeid`` command line.
+
+    Parameters
+    ----------
+    argv : sequence of str, optional
+        The arguments after ``tubeid`` (default: ``sys.argv[1:]``).
+
+    Returns
+    -------
+    int
+        The exit status: 0 on success, 2 for a refused input (a ``SpecificationError``) or a
+        missing optional dependency, both reported in one line on stderr; a command may return
+        others (130 when ``run`` is interrupted).
+    """
+    argv = list(sys.argv[1:] if argv is None else argv)
+    command = _chosen(argv)
+    needs = next((c.needs for c in COMMANDS if c.name == command), ())
+    if needs and not {"-h", "--help"} & set(argv):  # before importing the command: fail at once
+        from tubeid._optional import require
+        from tubeid.errors import MissingDependencyError
+
+        try:
+            for module in needs:
+                require(module, f"tubeid {command}")
+        except MissingDependencyError as exc:
+            print(f"tubeid: error: {exc}", file=sys.stderr)
+            return 2
+    args = build_parser(command).parse_args(argv)
 
     from threadpoolctl import threadpool_limits
 
-    args = build_parser().parse_args(argv)
+    from tubeid.errors import MissingDependencyError, SpecificationError
+
     try:
         # the hot paths are many small matrices (N ≈ 20–50): BLAS threads only contend with the
         # worker processes and with each other; dask workers are pinned to 1 thread by their nanny
         with threadpool_limits(limits=1):
             return int(args.func(args) or 0)
-    except SpecificationError as exc:
+    except (SpecificationError, MissingDependencyError) as exc:
         print(f"tubeid: error: {exc}", file=sys.stderr)
         return 2

@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import pathlib
 from collections.abc import Mapping
+from typing import Any
 
 import dask.config
 import yaml
@@ -23,7 +24,19 @@ _PREFIX = "TUBEID_"
 
 
 def collect_env(env: Mapping[str, str] | None = None) -> dict:
-    """Nested config dict (under ``"tubeid"``) from ``TUBEID_...`` environment variables."""
+    """The configuration set by ``TUBEID_...`` environment variables.
+
+    Parameters
+    ----------
+    env : mapping of str to str, optional
+        The environment (default: ``os.environ``).
+
+    Returns
+    -------
+    dict
+        Nested under ``"tubeid"``, e.g. ``{"tubeid": {"runner": {"workers": 4}}}``; values read
+        as Python literals, else kept as strings.
+    """
     env = os.environ if env is None else env
     flat = {}
     for name, value in env.items():
@@ -36,15 +49,34 @@ def collect_env(env: Mapping[str, str] | None = None) -> dict:
 
 
 def refresh(env: Mapping[str, str] | None = None) -> None:
-    """(Re)load the packaged defaults and apply ``TUBEID_...`` environment overrides."""
+    """(Re)load the packaged defaults into ``dask.config`` and apply ``TUBEID_...`` overrides.
+
+    Parameters
+    ----------
+    env : mapping of str to str, optional
+        The environment (default: ``os.environ``).
+    """
     with open(DEFAULTS_PATH) as fh:
         defaults = yaml.safe_load(fh)
     dask.config.update_defaults(defaults)
     dask.config.update(dask.config.config, collect_env(env), priority="new")
 
 
-def get(key: str, default=None):
-    """The value of ``tubeid.<key>`` (e.g. ``get("runner.workers")``)."""
+def get(key: str, default: Any = None) -> Any:
+    """The value of ``tubeid.<key>`` in ``dask.config``.
+
+    Parameters
+    ----------
+    key : str
+        Dotted key below ``tubeid``, e.g. ``"runner.workers"``.
+    default : object, optional
+        Returned when the key is not set.
+
+    Returns
+    -------
+    object
+        The configured value.
+    """
     return dask.config.get("tubeid." + key, default=default)
 
 

@@ -195,7 +195,9 @@ def _sensor_name(da: xr.DataArray, sensor) -> str:
 
 
 def _figure():
-    from matplotlib.figure import Figure
+    from tubeid._optional import require
+
+    Figure = require("matplotlib.figure", "tubeid report").Figure
 
     return Figure(figsize=(7.0, 4.4), layout="constrained")
 

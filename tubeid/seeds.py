@@ -11,11 +11,26 @@ import hashlib
 
 import numpy as np
 
+#: a part of a random-stream key: an int, a float or a string (anything with a stable ``repr``)
+KeyPart = int | float | str
+
 __all__ = ["rng_for", "key_to_ints"]
 
 
-def key_to_ints(*key) -> tuple[int, ...]:
-    """Map a key of ints, floats and strings to a tuple of non-negative 32-bit ints (stable across runs)."""
+def key_to_ints(*key: KeyPart) -> tuple[int, ...]:
+    """Map a key of ints, floats and strings to non-negative 32-bit ints, stable across runs and machines.
+
+    Parameters
+    ----------
+    *key : int, float or str
+        The parts of the key; an int in [0, 2³²) maps to itself, anything else to the two 32-bit
+        words of the BLAKE2b-64 digest of its ``repr``.
+
+    Returns
+    -------
+    tuple of int
+        The ``spawn_key`` of the stream.
+    """
     out: list[int] = []
     for part in key:
         if isinstance(part, (bool, np.bool_)):
@@ -28,8 +43,22 @@ def key_to_ints(*key) -> tuple[int, ...]:
     return tuple(out)
 
 
-def rng_for(seed: int, *key) -> np.random.Generator:
-    """A PCG64 generator for ``seed`` and the task identity ``key`` (ints, floats or strings)."""
+def rng_for(seed: int, *key: KeyPart) -> np.random.Generator:
+    """A PCG64 generator for ``seed`` and the task identity ``key``.
+
+    Parameters
+    ----------
+    seed : int
+        The study seed, ≥ 0.
+    *key : int, float or str
+        What is drawn, e.g. ``("stiffness", realisation)`` — never a block index or a worker.
+
+    Returns
+    -------
+    numpy.random.Generator
+        ``PCG64(SeedSequence(seed, spawn_key=key_to_ints(*key)))``: the same key gives the same
+        stream everywhere; different keys give independent streams.
+    """
     if not isinstance(seed, (int, np.integer)) or seed < 0:
         from tubeid.errors import SpecificationError
 

@@ -20,10 +20,12 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import xarray as xr
+from numpy.typing import ArrayLike
 
 from tubeid.dynamics.solver import Stop, simulate
 from tubeid.dynamics.spectra import psd_matrix
@@ -41,11 +43,24 @@ __all__ = ["ResponseSettings", "realisation_streams", "simulate_responses"]
 
 @dataclass(frozen=True)
 class ResponseSettings:
-    """Time and spectral settings of a response realisation (seconds; Welch segments in s).
+    """Time and spectral settings of a response realisation. Validated when made, immutable.
 
-    ``duration`` 220 s as the paper; ``dt_load`` load sampling (piecewise-linear load);
-    ``output_dt`` 3 ms response sampling; ``discard`` initial transient removed; ``segment_seconds``
-    Welch segment (Hann, 50 % overlap); ``method`` of the solver; ``keep`` "psd" or "series".
+    Parameters
+    ----------
+    duration : float
+        Simulated time [s] (220 s as the paper).
+    dt_load : float
+        Load sampling [s] (the solver reads the load as piecewise linear between samples).
+    output_dt : float
+        Response sampling [s] (3 ms as the paper).
+    discard : float
+        Initial transient removed [s], in [0, duration).
+    segment_seconds : float
+        Welch segment [s] (Hann window, 50 % overlap), at most duration − discard.
+    method : str
+        The solver's method (``tubeid.dynamics.simulate``).
+    keep : str
+        ``"psd"`` (the PSD and statistics only) or ``"series"`` (also the displacement series).
     """
 
     duration: float = 220.0
@@ -56,7 +71,7 @@ class ResponseSettings:
     method: str = "exact"
     keep: str = "psd"
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         for f in ("duration", "dt_load", "output_dt", "segment_seconds"):
             v = getattr(self, f)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
@@ -69,8 +84,25 @@ class ResponseSettings:
             raise SpecificationError("settings.keep", self.keep, "must be 'psd' or 'series'")
 
 
-def realisation_streams(seed: int | None, realisation: int, rng: np.random.Generator | None = None):
-    """The (model, load-spectrum, load-process, effects) generators of one realisation."""
+def realisation_streams(seed: int | None, realisation: int,
+                        rng: np.random.Generator | None = None) -> list[np.random.Generator]:
+    """The four independent generators of one realisation.
+
+    Parameters
+    ----------
+    seed : int or None
+        Study seed; the base generator is ``rng_for(seed, "response", realisation)``.
+    realisation : int
+        Realisation index.
+    rng : numpy.random.Generator, optional
+        Base generator to use instead (e.g. the runner's for this realisation).
+
+    Returns
+    -------
+    list of numpy.random.Generator
+        Children of the base generator for the model, the load spectrum, the load process and
+        the effects, in that order.
+    """
     base = rng if rng is not None else rng_for(seed, "response", int(realisation))
     return base.spawn(4)
 
@@ -82,20 +114,42 @@ def _load_points(load: LoadSpectrum) -> tuple[LoadPoint, ...]:
 def simulate_responses(
     model: ReducedModel,
     load: LoadSpectrum,
-    realisations,
+    realisations: ArrayLike,
     *,
     seed: int | None = None,
-    rngs=None,
+    rngs: Sequence[np.random.Generator] | None = None,
     dispersion: Dispersion = Dispersion(),
     load_dispersion: float = 0.0,
     settings: ResponseSettings = ResponseSettings(),
 ) -> xr.Dataset:
-    """Monte Carlo responses at the model's sensors: Dataset over ``realisation``.
+    """Monte Carlo responses of the stochastic non-linear model at its sensors (module docstring).
 
-    Variables: ``psd`` (realisation, frequency, sensor, sensor_) two-sided PSD matrix [m²/Hz]
-    (complex), ``rms`` (realisation, sensor) [m], ``contact_fraction`` and ``contact_events``
-    (realisation, stop); with ``keep="series"`` also ``displacement`` (realisation, time, sensor).
-    ``rngs``: one generator per realisation (e.g. the runner's), else streams from (seed, r).
+    Parameters
+    ----------
+    model : ReducedModel
+        The reduced (mean) model, with its stops, sensors and carried effects.
+    load : LoadSpectrum
+        The mean load spectrum, acting on the model's tube at its load positions.
+    realisations : array_like of int
+        Realisation indices (R of them).
+    seed : int, optional
+        Study seed: realisation r draws from ``rng_for(seed, "response", r)``.
+    rngs : sequence of numpy.random.Generator, optional
+        One generator per realisation instead (e.g. the runner's); ``seed`` or ``rngs`` is required.
+    dispersion : Dispersion
+        SE+ dispersions of B's reduced matrices (default: the mean model).
+    load_dispersion : float
+        δ_F of the random load spectrum (0: the mean spectrum).
+    settings : ResponseSettings
+        Time and spectral settings.
+
+    Returns
+    -------
+    xarray.Dataset
+        Over ``realisation``: ``psd`` (realisation, frequency, sensor, sensor_) two-sided PSD
+        matrix [m²/Hz] (complex), ``rms`` (realisation, sensor) [m], ``contact_fraction`` and
+        ``contact_events`` (realisation, stop); with ``keep="series"`` also ``displacement``
+        (realisation, time, sensor) [m].
     """
     realisations = np.atleast_1d(np.asarray(realisations, dtype=int))
     if rngs is None and seed is None:

@@ -22,9 +22,13 @@ over B: ω ∈ 2π [-band, band], both signs counted (||S(-f)||_F = ||S(f)||_F, 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import Any
+
 import numpy as np
 import scipy.signal
 import xarray as xr
+from numpy.typing import ArrayLike
 
 from tubeid.errors import SpecificationError
 
@@ -50,16 +54,31 @@ def _segment_length(segment_seconds, dt, n_t) -> int:
     return nper
 
 
-def psd_matrix(x, dt: float, segment_seconds: float = 2.0, window="hann", overlap: float = 0.5,
-               detrend=False) -> tuple[np.ndarray, np.ndarray]:
-    """Welch estimate of the two-sided matrix PSD per Hz of real records x (..., n_t, m).
+def psd_matrix(x: ArrayLike, dt: float, segment_seconds: float = 2.0, window: Any = "hann", overlap: float = 0.5,
+               detrend: bool | str = False) -> tuple[np.ndarray, np.ndarray]:
+    """Welch estimate of the two-sided matrix PSD per Hz of real records.
 
-    dt : sample interval (s). segment_seconds : Welch segment length (s; rounded to an even
-    number of samples). window : any ``scipy.signal.get_window`` spec. overlap : fraction of
-    a segment in [0, 1). detrend : False, "constant" or "linear" (per segment).
+    Parameters
+    ----------
+    x : array_like
+        Real records, shape (..., n_t, m), finite.
+    dt : float
+        Sample interval (s).
+    segment_seconds : float
+        Welch segment length (s; rounded to an even number of samples, at most the record).
+    window : str, tuple or array_like
+        Any ``scipy.signal.get_window`` specification.
+    overlap : float
+        Fraction of a segment shared with the next, in [0, 1).
+    detrend : bool or str
+        False, ``"constant"`` or ``"linear"`` (per segment).
 
-    Returns (f, S): f (F,) in Hz from 0 to the Nyquist frequency 1/(2 dt) inclusive;
-    S (..., F, m, m) complex, S[..., k, a, b] = S_ab(f_k) in [x]^2/Hz, Hermitian per bin.
+    Returns
+    -------
+    f : numpy.ndarray
+        (F,) in Hz from 0 to the Nyquist frequency 1/(2 dt) inclusive.
+    S : numpy.ndarray
+        (..., F, m, m) complex, S[..., k, a, b] = S_ab(f_k) in [x]^2/Hz, Hermitian per bin.
     """
     try:
         x = np.asarray(x, dtype=float)
@@ -107,15 +126,41 @@ def psd_matrix(x, dt: float, segment_seconds: float = 2.0, window="hann", overla
     return np.asarray(f, dtype=float), S
 
 
-def psd_dataset(x, dt: float | None = None, segment_seconds: float = 2.0, window="hann", overlap: float = 0.5,
-                detrend=False, sensors=None, dims=None, units: str = "m") -> xr.DataArray:
-    """Labelled Welch matrix PSD: DataArray "psd" with dims (*leading, "frequency", "sensor", "sensor_").
+def psd_dataset(x: ArrayLike | xr.DataArray, dt: float | None = None, segment_seconds: float = 2.0,
+                window: Any = "hann", overlap: float = 0.5, detrend: bool | str = False,
+                sensors: Sequence[str] | None = None, dims: Sequence[str] | None = None,
+                units: str = "m") -> xr.DataArray:
+    """Labelled Welch matrix PSD (see :func:`psd_matrix` for the estimator).
 
-    x : ndarray (..., n_t, m), or a DataArray with dims (..., "time", "sensor") whose uniform
-    "time" coordinate (s) gives dt and whose coordinates (sensor names, and non-index "x",
-    "tube" on "sensor") are carried over. sensors / dims : labels for ndarray input (default
-    "s0".., and ("realisation",) for one leading dim, else "batch0".. ). units : unit of x;
-    the result's ``units`` attribute is f"{units}^2/Hz" (two-sided).
+    Parameters
+    ----------
+    x : array_like or xarray.DataArray
+        Records (..., n_t, m), or a DataArray with dims (..., "time", "sensor") whose uniform
+        "time" coordinate (s) gives dt and whose coordinates (sensor names, and non-index "x",
+        "tube" on "sensor") are carried over.
+    dt : float, optional
+        Sample interval (s); required for array input.
+    segment_seconds : float
+        Welch segment length (s).
+    window : str, tuple or array_like
+        Any ``scipy.signal.get_window`` specification.
+    overlap : float
+        Segment overlap fraction in [0, 1).
+    detrend : bool or str
+        False, ``"constant"`` or ``"linear"``.
+    sensors : sequence of str, optional
+        Channel names for array input (default ``"s0"``, ``"s1"``, ...).
+    dims : sequence of str, optional
+        Names of the leading dims for array input (default ``("realisation",)`` for one,
+        else ``"batch0"``, ...).
+    units : str
+        Unit of x (a DataArray's ``units`` attribute wins).
+
+    Returns
+    -------
+    xarray.DataArray
+        ``psd`` with dims (*leading, "frequency", "sensor", "sensor_"), ``units`` attribute
+        f"{units}^2/Hz" (two-sided), frequency in Hz.
     """
     coords: dict = {}
     sensor_extra = {}
@@ -173,13 +218,26 @@ def psd_dataset(x, dt: float | None = None, segment_seconds: float = 2.0, window
                "dt": float(dt)})
 
 
-def variance_from_psd(f, S, nyquist_last: bool = True) -> np.ndarray:
+def variance_from_psd(f: ArrayLike, S: ArrayLike, nyquist_last: bool = True) -> np.ndarray:
     """Variances int_{-inf}^{inf} S_aa(f) df from the f >= 0 half of a two-sided PSD.
 
-    f : uniform grid 0, Δf, ..., (Hz). S : (..., F, m, m) or (..., F) (auto-spectra).
     Rectangle rule on the symmetric bins: Δf (S(0) + 2 sum_{0<f_k<f_N} S(f_k) + S(f_N)), the DC
-    bin and, if ``nyquist_last`` (as :func:`psd_matrix` returns), the Nyquist bin counted once
-    (exact discrete Parseval for a periodogram). Returns (..., m) (or (...)), in [x]^2.
+    bin and, if ``nyquist_last``, the Nyquist bin counted once (exact discrete Parseval for a
+    periodogram).
+
+    Parameters
+    ----------
+    f : array_like
+        Uniform grid 0, Δf, ... (Hz).
+    S : array_like
+        (..., F, m, m) matrix PSD or (..., F) auto-spectra, two-sided per Hz.
+    nyquist_last : bool
+        Whether the last bin is the Nyquist frequency (as :func:`psd_matrix` returns).
+
+    Returns
+    -------
+    numpy.ndarray
+        (..., m) for matrices, (...) for auto-spectra, in [x]^2.
     """
     f = np.asarray(f, dtype=float)
     S = np.asarray(S)
@@ -206,15 +264,28 @@ def variance_from_psd(f, S, nyquist_last: bool = True) -> np.ndarray:
     return np.sum(auto * w.reshape(shape), axis=axis)
 
 
-def confidence_band(psd_samples, level: float = 0.95, dim: str = "realisation"):
+def confidence_band(psd_samples: xr.DataArray | xr.Dataset, level: float = 0.95,
+                    dim: str = "realisation") -> xr.Dataset:
     """Per-frequency confidence band of PSD realisations by the quantile method.
 
     For each remaining coordinate (frequency, sensor, ...), the empirical quantiles
     (1 - level)/2 and (1 + level)/2 over ``dim`` (linear interpolation between order
-    statistics, numpy's default). ``psd_samples``: xarray DataArray (or Dataset) of real
-    PSD values (take ``.real`` of auto-spectra first). Returns an xarray Dataset with
-    "lower" and "upper" (for a Dataset input: variables "<name>_lower", "<name>_upper"),
-    attrs level and method; units are kept.
+    statistics, numpy's default).
+
+    Parameters
+    ----------
+    psd_samples : xarray.DataArray or xarray.Dataset
+        Real PSD values (take ``.real`` of auto-spectra first), at least 2 along ``dim``.
+    level : float
+        Probability of the band, in (0, 1).
+    dim : str
+        The dimension of the realisations.
+
+    Returns
+    -------
+    xarray.Dataset
+        ``lower`` and ``upper`` (for a Dataset input: ``<name>_lower``, ``<name>_upper``),
+        attributes ``level``, ``method`` and ``n_samples``; units are kept.
     """
     if not isinstance(psd_samples, (xr.DataArray, xr.Dataset)):
         raise SpecificationError("psd_samples", type(psd_samples).__name__, "must be an xarray DataArray or Dataset")
@@ -274,13 +345,25 @@ def _check_band_grid(f, band, npts):
     return f, band
 
 
-def j_s(f, S, band: float = 100.0) -> np.ndarray:
+def j_s(f: ArrayLike, S: ArrayLike, band: float = 100.0) -> np.ndarray:
     """J_s = int_B ||S(ω)||_F^2 dω over ω ∈ 2π[-band, band] (rad/s), both signs counted.
 
-    f : (F,) grid in Hz from 0 (f >= 0 half of a two-sided PSD); S : (..., F, m, m) two-sided
-    PSD per Hz (or (..., F) for a scalar PSD). Computed as 2 * 2π * int_0^band ||S(f)||_F^2 df
-    with the trapezoid rule on the grid, ||S||_F^2 linearly interpolated at f = band if band is
-    not a grid point. Units: [S]^2 * rad/s, e.g. (m^2/Hz)^2 rad/s. Returns shape (...).
+    Computed as 2 * 2π * int_0^band ||S(f)||_F^2 df with the trapezoid rule on the grid,
+    ||S||_F^2 linearly interpolated at f = band if band is not a grid point.
+
+    Parameters
+    ----------
+    f : array_like
+        (F,) increasing grid in Hz from 0 (the f >= 0 half of a two-sided PSD), reaching ``band``.
+    S : array_like
+        (..., F, m, m) two-sided PSD per Hz, or (..., F) for a scalar PSD.
+    band : float
+        Half-width of the band (Hz).
+
+    Returns
+    -------
+    numpy.ndarray
+        Shape (...), in [S]^2 * rad/s, e.g. (m^2/Hz)^2 rad/s.
     """
     S = np.asarray(S)
     if S.ndim >= 3 and S.shape[-1] == S.shape[-2] and S.shape[-3] == np.size(f):
@@ -301,11 +384,24 @@ def j_s(f, S, band: float = 100.0) -> np.ndarray:
     return 2.0 * 2.0 * np.pi * np.trapezoid(vals, fi, axis=-1)
 
 
-def distance(f, S_model, S_exp, band: float = 100.0) -> np.ndarray:
+def distance(f: ArrayLike, S_model: ArrayLike, S_exp: ArrayLike, band: float = 100.0) -> np.ndarray:
     """D = int_B ||S_model(ω) - S_exp(ω)||_F^2 dω over ω ∈ 2π[-band, band] (rad/s).
 
-    Both PSDs two-sided per Hz on the same grid f (Hz, from 0); shapes broadcast. Same rule
-    and units as :func:`j_s`: [S]^2 * rad/s.
+    Same rule as :func:`j_s`.
+
+    Parameters
+    ----------
+    f : array_like
+        (F,) grid in Hz from 0.
+    S_model, S_exp : array_like
+        Two-sided PSDs per Hz on the grid f, (..., F, m, m) or (..., F); shapes broadcast.
+    band : float
+        Half-width of the band (Hz).
+
+    Returns
+    -------
+    numpy.ndarray
+        The broadcast leading shape, in [S]^2 * rad/s.
     """
     try:
         diff = np.asarray(S_model) - np.asarray(S_exp)

@@ -1,11 +1,20 @@
 """Identification: likelihood curves (KDE, bootstrap), δ by maximum likelihood, the load (r, δ_F)."""
 
-from tubeid.identification.delta import identify_delta, reference_j
-from tubeid.identification.likelihood import kde_pdf, likelihood_curve, silverman_bandwidth
-from tubeid.identification.loads import (delta_f_likelihood, distance_map, log_band_distance_map, refine_grid,
-                                        relative_weight)
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from tubeid._lazy import attach
+
+if TYPE_CHECKING:  # the lazy exports: imported on first use (tubeid._lazy reads this block)
+    from tubeid.identification.delta import identify_delta, reference_j
+    from tubeid.identification.likelihood import kde_pdf, likelihood_curve, silverman_bandwidth
+    from tubeid.identification.loads import (delta_f_likelihood, distance_map, log_band_distance_map, refine_grid,
+                                            relative_weight)
 
 __all__ = [
     "identify_delta", "reference_j", "likelihood_curve", "kde_pdf", "silverman_bandwidth",
     "distance_map", "log_band_distance_map", "relative_weight", "refine_grid", "delta_f_likelihood",
 ]
+
+__getattr__, __dir__ = attach(__name__, __file__)

@@ -9,47 +9,97 @@ bootstrap over realisations (jointly across the grid).
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import xarray as xr
+from numpy.typing import ArrayLike
 
 from tubeid.identification.likelihood import likelihood_curve
 from tubeid.mechanics.library import resolve_spec
 from tubeid.mechanics.reduction import J_UNITS, j_functional, reduce
+from tubeid.mechanics.spec import BundleSpec
 from tubeid.uncertainty.random_matrices import delta_max
 from tubeid.uncertainty.random_models import j_monte_carlo
 
 __all__ = ["reference_j", "default_delta_grid", "identify_delta"]
 
 
-def reference_j(reference="paper-reference") -> float:
-    """J [m²·rad/(N²·s)] of a (deterministic) bundle model: built-in name, file or spec."""
+def reference_j(reference: BundleSpec | str | os.PathLike = "paper-reference") -> float:
+    """J of a deterministic bundle model (the paper's J_ref for the reference model).
+
+    Parameters
+    ----------
+    reference : BundleSpec, str or path-like
+        A specification, a built-in name or a ``.yaml``/``.toml`` file.
+
+    Returns
+    -------
+    float
+        J [m²·rad/(N²·s)] over the model's band.
+    """
     spec = resolve_spec(reference)
     sub = reduce(spec).subsystem
     return float(j_functional(sub.M, sub.D, sub.K, sub.n_c, spec.band_hz))
 
 
 def default_delta_grid(n: int, step: float = 0.025) -> np.ndarray:
-    """δ = step, 2·step, … strictly inside the admissible set (0, δ_max(n))."""
+    """δ = step, 2·step, … strictly inside the admissible set (0, δ_max(n)).
+
+    Parameters
+    ----------
+    n : int
+        Size of the randomised reduced matrices.
+    step : float
+        Grid step.
+
+    Returns
+    -------
+    numpy.ndarray
+        The grid, increasing.
+    """
     return np.arange(step, delta_max(n) - 1e-9, step)
 
 
 def identify_delta(
-    model="paper-simplified",
-    reference="paper-reference",
+    model: BundleSpec | str | os.PathLike = "paper-simplified",
+    reference: BundleSpec | str | os.PathLike = "paper-reference",
     *,
-    j_reference=None,
-    deltas=None,
+    j_reference: float | ArrayLike | None = None,
+    deltas: ArrayLike | None = None,
     n_realisations: int = 200,
     seed: int = 2008,
     which: str = "stiffness",
     n_bootstrap: int = 200,
 ) -> xr.Dataset:
-    """δ_opt and the likelihood curve δ ↦ p_J(J_ref; δ).
+    """δ_opt and the likelihood curve δ ↦ p_J(J_ref; δ) (module docstring).
 
-    ``j_reference``: observed J value(s); default: J of ``reference``. Several values are treated
-    as independent observations (joint likelihood). Returns a Dataset on ``delta`` with the
-    likelihood, its bootstrap band, and ``J`` (delta, realisation); attributes ``delta_opt``,
-    ``delta_opt_std``, ``delta_opt_low``, ``delta_opt_high``, ``J_ref``, ``J_units``.
+    Parameters
+    ----------
+    model : BundleSpec, str or path-like
+        The simplified model whose reduced B is randomised.
+    reference : BundleSpec, str or path-like
+        The reference model giving J_ref (unused when ``j_reference`` is given).
+    j_reference : float or array_like, optional
+        Observed J value(s) [m²·rad/(N²·s)]; several are independent observations (joint
+        likelihood). Default: J of ``reference``.
+    deltas : array_like, optional
+        δ grid (default: ``default_delta_grid(n)``).
+    n_realisations : int
+        Monte Carlo realisations per δ (common random numbers across the grid).
+    seed : int
+        Seed of the Monte Carlo and of the bootstrap.
+    which : str
+        The randomised matrix: ``"stiffness"`` (the paper), ``"mass"``, ``"damping"`` or ``"all"``.
+    n_bootstrap : int
+        Bootstrap replicates of the curve and of δ_opt.
+
+    Returns
+    -------
+    xarray.Dataset
+        On ``delta``: the likelihood and its bootstrap band (see ``likelihood_curve``) and ``J``
+        (delta, realisation); attributes ``delta_opt``, ``delta_opt_std``, ``delta_opt_low``,
+        ``delta_opt_high``, ``J_ref``, ``J_units`` and the settings.
     """
     spec = resolve_spec(model)
     sub = reduce(spec).subsystem

@@ -26,6 +26,7 @@ import numbers
 
 import numpy as np
 import xarray as xr
+from numpy.typing import ArrayLike
 from scipy.special import logsumexp
 
 from tubeid.errors import Described as _Desc, SpecificationError
@@ -56,8 +57,19 @@ def _silverman(s: np.ndarray) -> np.ndarray:
     return _SILVERMAN * s.std(axis=-1, ddof=1) * s.shape[-1] ** (-0.2)
 
 
-def silverman_bandwidth(samples) -> np.ndarray | float:
-    """Silverman's bandwidth h = 1.06 σ̂ N^(−1/5) (σ̂ with ddof = 1) along the last axis; units of the samples."""
+def silverman_bandwidth(samples: ArrayLike) -> np.ndarray | float:
+    """Silverman's bandwidth h = 1.06 σ̂ N^(−1/5) (σ̂ with ddof = 1) along the last axis.
+
+    Parameters
+    ----------
+    samples : array_like
+        (..., N) finite samples, N ≥ 2, not all equal.
+
+    Returns
+    -------
+    float or numpy.ndarray
+        h in the units of the samples, shape (...) (a float for 1-D samples).
+    """
     s = _as_samples(samples, "samples", 2)
     h = _silverman(s)
     if np.any(h <= 0):
@@ -74,13 +86,23 @@ def _log_kde(s: np.ndarray, x, h: np.ndarray) -> np.ndarray:
     return np.where(h > 0, out, -np.inf)
 
 
-def kde_pdf(samples, x, bandwidth=None) -> np.ndarray | float:
+def kde_pdf(samples: ArrayLike, x: ArrayLike, bandwidth: ArrayLike | None = None) -> np.ndarray | float:
     """Gaussian KDE p̂(x) = (1/N) Σ_k φ((x − X_k)/h)/h, vectorised.
 
-    ``samples`` has shape (..., N) (the last axis holds the N realisations); ``x`` broadcasts
-    against ``samples.shape[:-1]`` (e.g. samples (N,) and x (M,) → M values; samples (G, N) and a
-    scalar x → G values). ``bandwidth`` defaults to Silverman's rule per batch entry. The result
-    has the inverse unit of the samples.
+    Parameters
+    ----------
+    samples : array_like
+        (..., N): the last axis holds the N realisations.
+    x : array_like
+        Where to evaluate; broadcasts against ``samples.shape[:-1]`` (e.g. samples (N,) and x
+        (M,) → M values; samples (G, N) and a scalar x → G values).
+    bandwidth : array_like, optional
+        h > 0, broadcasting likewise; default: Silverman's rule per batch entry.
+
+    Returns
+    -------
+    float or numpy.ndarray
+        p̂(x), in the inverse unit of the samples (a float when the result is 0-d).
     """
     s = _as_samples(samples, "samples", 2)
     xa = np.asarray(x, dtype=float)
@@ -128,28 +150,49 @@ def _refine_argmax(grid: np.ndarray, ll: np.ndarray) -> tuple[np.ndarray, np.nda
     return discrete, refined
 
 
-def likelihood_curve(samples, x_ref, grid, grid_name: str = "delta", n_bootstrap: int = 200,
-                     rng=None, *, confidence: float = 0.95, refine: bool = True) -> xr.Dataset:
-    """Likelihood θ ↦ p̂(x_ref; θ) from Monte-Carlo samples of shape (len(grid), N), with a bootstrap.
+def likelihood_curve(samples: ArrayLike | xr.DataArray, x_ref: float | ArrayLike, grid: ArrayLike,
+                     grid_name: str = "delta", n_bootstrap: int = 200,
+                     rng: np.random.Generator | int | None = None, *, confidence: float = 0.95,
+                     refine: bool = True) -> xr.Dataset:
+    """Likelihood θ ↦ p̂(x_ref; θ) from Monte-Carlo samples, with a bootstrap.
 
-    ``x_ref``: one observation, or a 1-D array of independent observations (the log-likelihood
-    is then the sum of their log-densities, and ``likelihood`` their product divided by its
-    maximum over the grid, ``exp(likelihood_log_scale)``, to stay finite).
-
-    ``samples[g, k]``: realisation k of the observable at ``grid[g]`` (common random numbers
-    across the grid); an ``xarray.DataArray`` with a ``grid_name`` dimension is transposed first.
-    ``rng`` (Generator or non-negative seed) is required when ``n_bootstrap > 0``.
-
-    Returns a Dataset on dimension ``grid_name`` with ``likelihood`` (1/unit of the samples),
-    ``log_likelihood``, ``bandwidth``, and bootstrap ``likelihood_std``, ``likelihood_low``,
-    ``likelihood_high`` (percentile interval of probability ``confidence``); attributes
-    ``argmax`` (parabola-refined if ``refine``), ``argmax_discrete``, ``argmax_std``,
-    ``argmax_low``, ``argmax_high``, ``argmax_at_boundary`` (0/1) and the settings used.
     Bootstrap replicates resample realisation indices jointly across the grid; each replicate
     recomputes its Silverman bandwidth. With several observations each replicate also resamples
     them (with replacement), so ``argmax_std`` includes the sampling error of the observations, not
     only the Monte Carlo error of the model; each replicate's likelihood is then taken relative to its
     own maximum, like the curve. Without bootstrap, the bootstrap fields are NaN.
+
+    Parameters
+    ----------
+    samples : array_like or xarray.DataArray
+        (len(grid), N), N ≥ 5: ``samples[g, k]`` is realisation k of the observable at ``grid[g]``
+        (common random numbers across the grid); a DataArray with a ``grid_name`` dimension is
+        transposed first.
+    x_ref : float or array_like
+        One observation, or a 1-D array of independent observations (the log-likelihood is then
+        the sum of their log-densities, and ``likelihood`` their product divided by its maximum
+        over the grid, ``exp(likelihood_log_scale)``, to stay finite).
+    grid : array_like
+        Strictly increasing 1-D grid of θ.
+    grid_name : str
+        Name of the grid dimension.
+    n_bootstrap : int
+        Bootstrap replicates (0: none).
+    rng : numpy.random.Generator or int, optional
+        Stream or non-negative seed of the bootstrap; required when ``n_bootstrap > 0``.
+    confidence : float
+        Probability of the percentile intervals, in (0, 1).
+    refine : bool
+        Refine the maximiser by the parabola through the best grid point and its neighbours.
+
+    Returns
+    -------
+    xarray.Dataset
+        On dimension ``grid_name``: ``likelihood`` (1/unit of the samples), ``log_likelihood``,
+        ``bandwidth``, and bootstrap ``likelihood_std``, ``likelihood_low``, ``likelihood_high``;
+        attributes ``argmax`` (parabola-refined if ``refine``), ``argmax_discrete``,
+        ``argmax_std``, ``argmax_low``, ``argmax_high``, ``argmax_at_boundary`` (0/1) and the
+        settings used.
     """
     # ---- validation (all up front) ----
     if not isinstance(grid_name, str) or not grid_name:

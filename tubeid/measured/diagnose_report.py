@@ -94,7 +94,9 @@ def markdown(rep: dict) -> str:
 
 
 def _plt():
-    import matplotlib
+    from tubeid._optional import require
+
+    matplotlib = require("matplotlib", "tubeid diagnose")
 
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt

@@ -47,6 +47,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
+from tubeid._optional import require
 from tubeid.errors import SpecificationError
 from tubeid.measured.validation import check_options, layout, length_scale, validate_measurements
 
@@ -107,6 +108,7 @@ def _read_netcdf(path: Path, source: str) -> tuple[xr.Dataset, str]:
     with open(path, "rb") as fh:
         magic = fh.read(8)
     if magic.startswith(_HDF5_MAGIC):
+        require("h5netcdf", "reading NetCDF-4 files")
         return _open_xarray(path, source, "h5netcdf", "NetCDF-4"), "netcdf4"
     if magic[:4] in _CDF3_MAGIC:
         return _open_xarray(path, source, "scipy", "NetCDF-3"), "netcdf3"
@@ -217,7 +219,7 @@ def _uff_text(value) -> str:
 
 
 def _read_uff(path: Path, source: str) -> xr.Dataset:
-    import pyuff
+    pyuff = require("pyuff", "reading UFF 58 files")
 
     if not path.is_file():
         raise SpecificationError(source, "uff", "a UFF record must be a file")
@@ -367,7 +369,7 @@ def _x_metres(lay: dict, path: Path) -> np.ndarray:
 
 
 def _write_uff(lay: dict, path: Path) -> None:
-    import pyuff
+    pyuff = require("pyuff", "writing UFF 58 files")
 
     t, values, x_m = lay["time"], lay["values"], _x_metres(lay, path)
     if not np.all(np.isfinite(values)) or not np.all(np.isfinite(t)):
@@ -420,6 +422,8 @@ def write_measurements(ds: xr.Dataset, path, *, format: str | None = None, valid
         if path.is_dir():
             raise SpecificationError(str(path), fmt, "is a directory, cannot write NetCDF there")
         kw = {"engine": "scipy", "format": "NETCDF3_64BIT"} if fmt == "netcdf3" else {"engine": "h5netcdf"}
+        if fmt == "netcdf":
+            require("h5netcdf", "writing NetCDF-4 files")
         ds.to_netcdf(path, **kw)
     elif fmt == "zarr":
         if path.exists() and not (path.is_dir() and any((path / m).exists() for m in ("zarr.json", ".zgroup"))):

@@ -82,11 +82,22 @@ def tube_matrices(tube: TubeSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 @dataclass(frozen=True, eq=False)
 class FEModel:
-    """Assembled finite-element model of a bundle (stops open).
+    """Assembled finite-element model of a bundle (stops open). Made by :func:`assemble`.
 
-    ``dofs``: one ``(tube, node, "y"|"theta")`` per free DOF. ``M, D, K``: full matrices (kg, N·s/m,
-    N/m on y DOFs). ``parts``: ``{"A": (M, D, K), "B": (M, D, K)}`` contributions, summing to the
-    full matrices. ``interface``: indices of the A–B coupling DOFs (A's y at linked nodes, by x).
+    Parameters
+    ----------
+    spec : BundleSpec
+        The specification it was assembled from.
+    dofs : tuple of (str, int, str)
+        One ``(tube, node, "y" | "theta")`` per free DOF, in matrix order.
+    M, D, K : numpy.ndarray
+        Full (n_dof, n_dof) mass, damping and stiffness matrices (kg, N·s/m, N/m on ``y`` DOFs;
+        the matching moment units on ``theta`` DOFs).
+    parts : dict
+        ``{"A": (M, D, K), "B": (M, D, K)}``: the contributions of subsystem A (the non-linear
+        tube and its links to the ground) and B (the rest), summing to the full matrices.
+    interface : numpy.ndarray
+        Indices of the A–B coupling DOFs (A's ``y`` at linked nodes, by increasing x).
     """
 
     spec: BundleSpec
@@ -99,6 +110,7 @@ class FEModel:
 
     @property
     def n_dof(self) -> int:
+        """Number of free DOFs."""
         return len(self.dofs)
 
     @cached_property
@@ -109,7 +121,22 @@ class FEModel:
         return out
 
     def dof_index(self, tube: str, node: int, kind: str = "y") -> int | None:
-        """Global index of a DOF, or None when it is constrained."""
+        """Global index of a DOF.
+
+        Parameters
+        ----------
+        tube : str
+            Tube name.
+        node : int
+            Node index along the tube (0 at x = 0).
+        kind : str
+            ``"y"`` (transverse displacement) or ``"theta"`` (rotation).
+
+        Returns
+        -------
+        int or None
+            The row/column of the matrices, or None when the DOF is constrained.
+        """
         return self._offsets.get(tube, {}).get((node, kind))
 
     def point_vector(self, tube: str, x: float, derivative: int = 0) -> np.ndarray:
@@ -117,6 +144,20 @@ class FEModel:
 
         By virtue of virtual work, v is also the generalised force of a unit transverse force
         (derivative 0) or unit moment (derivative 1) applied at x.
+
+        Parameters
+        ----------
+        tube : str
+            Tube name.
+        x : float
+            Abscissa [m], anywhere on the tube (Hermite interpolation between nodes).
+        derivative : int
+            0 for the displacement, 1 for the rotation.
+
+        Returns
+        -------
+        numpy.ndarray
+            Shape (n_dof,).
         """
         t = self.spec.tube(tube)
         le = t.length / t.n_elements
@@ -131,31 +172,82 @@ class FEModel:
         return v
 
     def load_matrix(self, points: tuple[LoadPoint, ...] | None = None) -> np.ndarray:
-        """(n_dof, m) influence matrix of load points (force → y, moment → θ)."""
+        """Influence matrix of load points (force → y, moment → θ).
+
+        Parameters
+        ----------
+        points : tuple of LoadPoint, optional
+            The load points (default: the specification's ``loads``).
+
+        Returns
+        -------
+        numpy.ndarray
+            Shape (n_dof, m), one column per point: the generalised force of a unit load.
+        """
         pts = self.spec.loads if points is None else points
         cols = [self.point_vector(p.tube, p.x, 1 if p.kind == "moment" else 0) for p in pts]
         return np.stack(cols, axis=1) if cols else np.zeros((self.n_dof, 0))
 
     def sensor_matrix(self, sensors: tuple[SensorSpec, ...] | None = None) -> np.ndarray:
-        """(n_sensors, n_dof) observation matrix of transverse-displacement sensors."""
+        """Observation matrix of transverse-displacement sensors.
+
+        Parameters
+        ----------
+        sensors : tuple of SensorSpec, optional
+            The sensors (default: the specification's ``sensors``).
+
+        Returns
+        -------
+        numpy.ndarray
+            Shape (n_sensors, n_dof): sensor displacements [m] = matrix @ u.
+        """
         ss = self.spec.sensors if sensors is None else sensors
         rows = [self.point_vector(s.tube, s.x) for s in ss]
         return np.stack(rows) if rows else np.zeros((0, self.n_dof))
 
     def stop_vectors(self) -> np.ndarray:
-        """(n_stops, n_dof): b with u_stop = b·u."""
+        """The stops' observation rows.
+
+        Returns
+        -------
+        numpy.ndarray
+            Shape (n_stops, n_dof): rows b with u_stop = b·u [m].
+        """
         rows = [self.point_vector(s.tube, s.x) for s in self.spec.stops]
         return np.stack(rows) if rows else np.zeros((0, self.n_dof))
 
     def eigenfrequencies(self, n: int | None = 10) -> np.ndarray:
-        """Undamped eigenfrequencies [Hz] of the linear model (stops open), ascending."""
+        """Undamped eigenfrequencies of the linear model (stops open).
+
+        Parameters
+        ----------
+        n : int, optional
+            How many, lowest first; None for all.
+
+        Returns
+        -------
+        numpy.ndarray
+            Frequencies [Hz], ascending.
+        """
         w2 = scipy.linalg.eigh(self.K, self.M, eigvals_only=True)
         f = np.sqrt(np.clip(w2, 0, None)) / (2 * np.pi)
         return f if n is None else f[:n]
 
 
 def assemble(spec: BundleSpec) -> FEModel:
-    """Assemble a :class:`FEModel` from a validated specification."""
+    """Assemble a :class:`FEModel` from a validated specification.
+
+    Parameters
+    ----------
+    spec : BundleSpec
+        The bundle.
+
+    Returns
+    -------
+    FEModel
+        Its matrices split by subsystem and its A–B interface; a bundle with a rigid-body mode
+        raises ``SpecificationError``.
+    """
     dofs: list[tuple[str, int, str]] = []
     blocks = []
     for t in spec.tubes:

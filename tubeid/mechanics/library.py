@@ -21,6 +21,8 @@ both subsystems (the highest frequency of the model, stop closed, is then 947 Hz
 
 from __future__ import annotations
 
+import os
+
 from tubeid.errors import SpecificationError
 from tubeid.mechanics.spec import BundleSpec, LinkSpec, LoadPoint, SensorSpec, StopSpec, TubeSpec, load_spec
 
@@ -63,15 +65,37 @@ BUILTIN_MODELS = {"paper-reference": paper_reference, "paper-simplified": paper_
 
 
 def builtin_spec(name: str) -> BundleSpec:
-    """The built-in specification called ``name`` (see :data:`BUILTIN_MODELS`)."""
+    """The built-in specification called ``name``.
+
+    Parameters
+    ----------
+    name : str
+        A key of :data:`BUILTIN_MODELS`: ``"paper-reference"`` or ``"paper-simplified"``.
+
+    Returns
+    -------
+    BundleSpec
+        A new specification; an unknown name raises ``SpecificationError`` listing the known ones.
+    """
     try:
         return BUILTIN_MODELS[name]()
     except KeyError:
         raise SpecificationError("model", name, f"unknown built-in model; known: {sorted(BUILTIN_MODELS)} or a .yaml/.toml file") from None
 
 
-def resolve_spec(name_or_path) -> BundleSpec:
-    """A :class:`BundleSpec` from a spec object, a built-in name, or a YAML/TOML file path."""
+def resolve_spec(name_or_path: BundleSpec | str | os.PathLike) -> BundleSpec:
+    """A :class:`BundleSpec` from a spec object, a built-in name, or a YAML/TOML file path.
+
+    Parameters
+    ----------
+    name_or_path : BundleSpec, str or path-like
+        A specification (returned as is), a built-in name, or a ``.yaml``/``.yml``/``.toml`` file.
+
+    Returns
+    -------
+    BundleSpec
+        The specification.
+    """
     if isinstance(name_or_path, BundleSpec):
         return name_or_path
     s = str(name_or_path)

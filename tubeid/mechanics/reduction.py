@@ -70,7 +70,17 @@ def craig_bampton(M: np.ndarray, K: np.ndarray, internal: np.ndarray, interface:
 
 @dataclass(frozen=True, eq=False)
 class ReducedSubsystem:
-    """Reduced linear subsystem B: coordinates (y_B, u_c); the last ``n_c`` are the interface DOFs."""
+    """Reduced linear subsystem B: coordinates (y_B, u_c); the last ``n_c`` are the interface DOFs.
+
+    Parameters
+    ----------
+    M, D, K : numpy.ndarray
+        Reduced mass, damping and stiffness matrices, shape (n, n), symmetric.
+    n_c : int
+        Number of interface DOFs (the last ``n_c`` coordinates, in m).
+    mode_frequencies_hz : numpy.ndarray
+        Frequencies of the kept fixed-interface modes [Hz].
+    """
 
     M: np.ndarray
     D: np.ndarray
@@ -88,9 +98,21 @@ class ReducedSubsystem:
 class ReducedModel:
     """Craig–Bampton reduced model of a whole bundle (stops open), q = (y_A, y_B, u_c), u = T q.
 
-    ``A_part``: the (M, D, K) contributions of subsystem A in reduced coordinates (N × N);
-    ``subsystem``: the reduced subsystem B; ``b_index``: positions of B's coordinates (y_B, u_c)
-    in q. :meth:`matrices` embeds (possibly random, batched) B matrices into the global ones.
+    Made by :func:`reduce`. :meth:`matrices` embeds (possibly random, batched) B matrices into the
+    global ones.
+
+    Parameters
+    ----------
+    fe : FEModel
+        The full finite-element model.
+    T : numpy.ndarray
+        Shape (n_dof, N): physical DOFs u = T q.
+    A_part : tuple of numpy.ndarray
+        The (M, D, K) contributions of subsystem A in reduced coordinates, each (N, N).
+    subsystem : ReducedSubsystem
+        The reduced subsystem B.
+    b_index : numpy.ndarray
+        Positions of B's coordinates (y_B, u_c) in q.
     """
 
     fe: FEModel
@@ -101,16 +123,28 @@ class ReducedModel:
 
     @property
     def spec(self) -> BundleSpec:
+        """The bundle specification."""
         return self.fe.spec
 
     @property
     def N(self) -> int:
+        """Number of reduced coordinates."""
         return self.T.shape[1]
 
-    def matrices(self, M_B=None, D_B=None, K_B=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def matrices(self, M_B: np.ndarray | None = None, D_B: np.ndarray | None = None,
+                 K_B: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Global (M, D, K) with B's reduced matrices replaced by the given ones.
 
-        Each given matrix may carry leading batch axes (..., n, n); the result broadcasts them.
+        Parameters
+        ----------
+        M_B, D_B, K_B : numpy.ndarray, optional
+            Replacements for B's reduced matrices, shape (..., n, n) with optional leading batch
+            axes; None keeps the mean (deterministic) matrix.
+
+        Returns
+        -------
+        tuple of numpy.ndarray
+            (M, D, K), each (..., N, N), broadcast over the batch axes.
         """
         out = []
         for a_mat, b_new, b_mean in zip(self.A_part, (M_B, D_B, K_B), (self.subsystem.M, self.subsystem.D, self.subsystem.K)):
@@ -123,29 +157,81 @@ class ReducedModel:
 
     @cached_property
     def mean_matrices(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Global (M, D, K) of the mean model, each (N, N)."""
         return self.matrices()
 
     def load_matrix(self, points: tuple[LoadPoint, ...] | None = None) -> np.ndarray:
-        """(N, m) generalised load influence matrix."""
+        """Generalised load influence matrix.
+
+        Parameters
+        ----------
+        points : tuple of LoadPoint, optional
+            The load points (default: the specification's ``loads``).
+
+        Returns
+        -------
+        numpy.ndarray
+            Shape (N, m): Tᵀ times the physical influence matrix.
+        """
         return self.T.T @ self.fe.load_matrix(points)
 
     def sensor_matrix(self, sensors: tuple[SensorSpec, ...] | None = None) -> np.ndarray:
-        """(n_sensors, N) observation matrix."""
+        """Observation matrix in reduced coordinates.
+
+        Parameters
+        ----------
+        sensors : tuple of SensorSpec, optional
+            The sensors (default: the specification's ``sensors``).
+
+        Returns
+        -------
+        numpy.ndarray
+            Shape (n_sensors, N): sensor displacements [m] = matrix @ q.
+        """
         return self.fe.sensor_matrix(sensors) @ self.T
 
     def stop_vectors(self) -> np.ndarray:
-        """(n_stops, N): u_stop = b·q."""
+        """The stops' observation rows in reduced coordinates.
+
+        Returns
+        -------
+        numpy.ndarray
+            Shape (n_stops, N): u_stop = b·q [m].
+        """
         return self.fe.stop_vectors() @ self.T
 
     def eigenfrequencies(self, n: int | None = 10) -> np.ndarray:
-        """Undamped eigenfrequencies [Hz] of the reduced mean model (stops open)."""
+        """Undamped eigenfrequencies of the reduced mean model (stops open).
+
+        Parameters
+        ----------
+        n : int, optional
+            How many, lowest first; None for all.
+
+        Returns
+        -------
+        numpy.ndarray
+            Frequencies [Hz], ascending.
+        """
         M, _, K = self.mean_matrices
         f = np.sqrt(np.clip(scipy.linalg.eigh(K, M, eigvals_only=True), 0, None)) / (2 * np.pi)
         return f if n is None else f[:n]
 
 
 def reduce(model: BundleSpec | FEModel) -> ReducedModel:
-    """Craig–Bampton reduction of both subsystems of a bundle, as its ``reduction`` field says."""
+    """Craig–Bampton reduction of both subsystems of a bundle, as its ``reduction`` field says.
+
+    Parameters
+    ----------
+    model : BundleSpec or FEModel
+        The bundle (assembled first when a specification is given).
+
+    Returns
+    -------
+    ReducedModel
+        q = (y_A, y_B, u_c); its ``subsystem`` is the reduced B that the nonparametric model
+        randomises.
+    """
     fe = model if isinstance(model, FEModel) else assemble(model)
     spec = fe.spec
     red = spec.reduction
@@ -176,11 +262,23 @@ def reduce(model: BundleSpec | FEModel) -> ReducedModel:
 
 
 # -- frequency-domain functionals of subsystem B ---------------------------------------------------
-def condensed_stiffness(M, D, K, n_c: int, omega) -> np.ndarray:
-    """Z(ω) [N/m] for matrices (..., n, n) whose last ``n_c`` coordinates are the interface.
+def condensed_stiffness(M: np.ndarray, D: np.ndarray, K: np.ndarray, n_c: int, omega: np.ndarray) -> np.ndarray:
+    """Condensed dynamic stiffness Z(ω) = A_cc − A_cy A_yy⁻¹ A_yc on the interface [N/m].
 
-    Vectorised over the batch axes and the angular frequencies ``omega`` [rad/s]; result shape
-    (..., len(omega), n_c, n_c).
+    Parameters
+    ----------
+    M, D, K : numpy.ndarray
+        Reduced matrices of B, shape (..., n, n) with optional batch axes; the last ``n_c``
+        coordinates are the interface.
+    n_c : int
+        Number of interface coordinates.
+    omega : array_like
+        Angular frequencies [rad/s], 1-D.
+
+    Returns
+    -------
+    numpy.ndarray
+        Complex, shape (..., len(omega), n_c, n_c).
     """
     M, D, K = (np.asarray(x)[..., None, :, :] for x in (M, D, K))
     w = np.asarray(omega, dtype=float)[:, None, None]
@@ -207,8 +305,24 @@ def _log_integral(a: np.ndarray, Omega: float) -> np.ndarray:
     return -1j * (np.log(1j * Omega - a) - np.log(-1j * Omega - a))
 
 
-def j_functional(M, D, K, n_c: int, band_hz: float) -> np.ndarray:
-    """J = ∫_{−Ω}^{Ω} ‖Z(ω)⁻¹‖²_F dω [m²·rad/(N²·s)] in closed form; batched over leading axes."""
+def j_functional(M: np.ndarray, D: np.ndarray, K: np.ndarray, n_c: int, band_hz: float) -> np.ndarray:
+    """J = ∫_{−Ω}^{Ω} ‖Z(ω)⁻¹‖²_F dω with Ω = 2π·band_hz, in closed form from the poles of B.
+
+    Parameters
+    ----------
+    M, D, K : numpy.ndarray
+        Reduced matrices of B, shape (..., n, n) with optional batch axes; the last ``n_c``
+        coordinates are the interface. M must be positive definite and every pole damped.
+    n_c : int
+        Number of interface coordinates.
+    band_hz : float
+        Half-width of the band [Hz].
+
+    Returns
+    -------
+    numpy.ndarray
+        J [m²·rad/(N²·s)] (``J_UNITS``), shape (...) — a 0-d array without batch axes.
+    """
     M, D, K = (np.asarray(x, dtype=float) for x in (M, D, K))
     n = M.shape[-1]
     _check_mass(M)

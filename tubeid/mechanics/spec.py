@@ -46,10 +46,27 @@ _NODE_TOL = 1e-9  # m: a position closer than this to a node is that node
 class TubeSpec:
     """One tube: a hollow circular Euler beam meshed with equal Hermite elements.
 
-    ``length`` [m], ``outer_radius`` [m], ``wall`` thickness [m], ``density`` [kg/m³],
-    ``youngs_modulus`` [Pa], ``n_elements``, ``ends`` (each ``clamped``, ``pinned`` or ``free``),
-    ``damping_ratio``: modal damping ratio applied on the tube's own modes (with its end
-    conditions, without links) — D = M Φ diag(2 ξ ω) Φᵀ M.
+    Parameters
+    ----------
+    name : str
+        Unique name, used by links, stops, loads and sensors.
+    length : float
+        Length [m].
+    outer_radius : float
+        Outer radius of the section [m].
+    wall : float
+        Wall thickness [m], at most ``outer_radius``.
+    density : float
+        Density [kg/m³].
+    youngs_modulus : float
+        Young's modulus [Pa].
+    n_elements : int
+        Number of equal Hermite (cubic) elements.
+    ends : tuple of (str, str)
+        End conditions at x = 0 and x = length, each ``clamped``, ``pinned`` or ``free``.
+    damping_ratio : float
+        Modal damping ratio in [0, 1) applied on the tube's own modes (with its end conditions,
+        without links): D = M Φ diag(2 ξ ω) Φᵀ M.
     """
 
     name: str
@@ -63,6 +80,18 @@ class TubeSpec:
     damping_ratio: float = 0.02
 
     def validate(self, where: str) -> None:
+        """Check every field; refuse the first broken rule.
+
+        Parameters
+        ----------
+        where : str
+            How the tube is named in messages, e.g. ``"tubes[1]"``.
+
+        Raises
+        ------
+        SpecificationError
+            Naming ``where.field``, the value and the rule.
+        """
         if not isinstance(self.name, str) or not self.name:
             raise SpecificationError(f"{where}.name", self.name, "must be a non-empty string")
         for f in ("length", "outer_radius", "wall", "density", "youngs_modulus"):
@@ -94,15 +123,40 @@ class TubeSpec:
         return tuple(self.length * k / self.n_elements for k in range(self.n_elements + 1))
 
     def node_index(self, x: float) -> int | None:
-        """Index of the node at ``x`` (within 1e-9 m), or None."""
+        """The index of the node at ``x``.
+
+        Parameters
+        ----------
+        x : float
+            Abscissa along the tube [m].
+
+        Returns
+        -------
+        int or None
+            The node index (0 at x = 0) when ``x`` is a node within 1e-9 m (relative to the
+            length when it exceeds 1 m), else None.
+        """
         k = round(x / self.length * self.n_elements)
         return k if abs(k * self.length / self.n_elements - x) <= _NODE_TOL * max(1.0, self.length) else None
 
 
 @dataclass(frozen=True)
 class LinkSpec:
-    """A linear spring [N/m] between the transverse displacement of ``tube`` at ``x`` and that of
-    ``to_tube`` at ``to_x`` (default: the same ``x``), or the ground when ``to_tube`` is None."""
+    """A linear spring between two tubes' transverse displacements, or from one to the ground.
+
+    Parameters
+    ----------
+    tube : str
+        The tube at one end.
+    x : float
+        Its abscissa on ``tube`` [m]; must be a node.
+    stiffness : float
+        Spring stiffness [N/m], > 0.
+    to_tube : str, optional
+        The tube at the other end; None ties ``tube`` to the ground.
+    to_x : float, optional
+        The abscissa on ``to_tube`` [m] (a node); default: the same ``x``.
+    """
 
     tube: str
     x: float
@@ -112,14 +166,24 @@ class LinkSpec:
 
     @property
     def other_x(self) -> float:
+        """The abscissa of the other end [m]: ``to_x``, or ``x`` when it is not given."""
         return self.x if self.to_x is None else self.to_x
 
 
 @dataclass(frozen=True)
 class StopSpec:
-    """A symmetric elastic stop on ``tube`` at ``x`` [m]: f = −k (|u| − g) sign(u) for |u| > g.
+    """A symmetric elastic stop: f = −k (|u| − g) sign(u) for |u| > g, else 0 (undamped).
 
-    ``gap`` g [m] ≥ 0, ``stiffness`` k [N/m] > 0 (undamped).
+    Parameters
+    ----------
+    tube : str
+        The tube it acts on (all stops sit on the non-linear tube, subsystem A).
+    x : float
+        Its abscissa [m].
+    gap : float
+        Gap g [m], ≥ 0.
+    stiffness : float
+        Contact stiffness k [N/m], > 0.
     """
 
     tube: str
@@ -130,7 +194,19 @@ class StopSpec:
 
 @dataclass(frozen=True)
 class LoadPoint:
-    """A point where a load is applied: a transverse ``force`` [N] or a ``moment`` [N·m]."""
+    """A point where a load is applied.
+
+    Parameters
+    ----------
+    name : str
+        Unique name among the loads (the channel name of load spectra).
+    tube : str
+        The tube it acts on.
+    x : float
+        Its abscissa [m].
+    kind : str
+        ``"force"`` (transverse, N, on ``y``) or ``"moment"`` (N·m, on ``theta``).
+    """
 
     name: str
     tube: str
@@ -140,7 +216,17 @@ class LoadPoint:
 
 @dataclass(frozen=True)
 class SensorSpec:
-    """A transverse-displacement sensor [m] on ``tube`` at ``x``."""
+    """A transverse-displacement sensor (m).
+
+    Parameters
+    ----------
+    name : str
+        Unique name among the sensors.
+    tube : str
+        The tube it measures.
+    x : float
+        Its abscissa [m] (between nodes the Hermite shape functions interpolate).
+    """
 
     name: str
     tube: str
@@ -149,12 +235,23 @@ class SensorSpec:
 
 @dataclass(frozen=True)
 class ReductionSpec:
-    """Craig–Bampton fixed-interface modes kept per subsystem: by count (``*_modes``) and/or by
-    cut-off frequency (``*_cutoff_hz``). None keeps every mode. Both given: the stricter wins.
+    """Craig–Bampton fixed-interface modes kept per subsystem, by count and/or by cut-off frequency.
 
-    Default: B keeps its modes below 300 Hz (3× the paper's band; J then converges to 1e-7
-    relative), A keeps all. B cannot keep *every* mode: its interface DOFs carry no mass of their
-    own, so the reduced mass M_B would be singular.
+    None keeps every mode; with both a count and a cut-off, the stricter wins. Default: B keeps
+    its modes below 300 Hz (3× the paper's band; J then converges to 1e-7 relative), A keeps all.
+    B cannot keep *every* mode: its interface DOFs carry no mass of their own, so the reduced mass
+    M_B would be singular.
+
+    Parameters
+    ----------
+    b_modes : int, optional
+        Fixed-interface modes of B kept (≥ 0), lowest first.
+    b_cutoff_hz : float, optional
+        Keep B's modes below this frequency [Hz].
+    a_modes : int, optional
+        Modes of A kept.
+    a_cutoff_hz : float, optional
+        Keep A's modes below this frequency [Hz].
     """
 
     b_modes: int | None = None
@@ -163,6 +260,18 @@ class ReductionSpec:
     a_cutoff_hz: float | None = None
 
     def validate(self, where: str = "reduction") -> None:
+        """Check every field; refuse the first broken rule.
+
+        Parameters
+        ----------
+        where : str
+            How the reduction is named in messages.
+
+        Raises
+        ------
+        SpecificationError
+            Naming ``where.field``, the value and the rule.
+        """
         for f in ("b_modes", "a_modes"):
             v = getattr(self, f)
             if v is not None and (not isinstance(v, int) or isinstance(v, bool) or v < 0):
@@ -177,9 +286,32 @@ class ReductionSpec:
 class BundleSpec:
     """A tube bundle: tubes, links, stops, load points, sensors, analysis band and reduction.
 
-    ``band_hz``: the frequency band of analysis B = [−band, band] Hz. ``nonlinear_tube``: the tube
-    of subsystem A (default: the tube carrying the stops). ``assumptions``: free text shown in the
-    documentation of built-in models.
+    Immutable and validated when made (sequences are stored as tuples).
+
+    Parameters
+    ----------
+    name : str
+        Name of the bundle.
+    tubes : sequence of TubeSpec
+        At least one tube, names unique.
+    links : sequence of LinkSpec
+        Springs between tubes or to the ground.
+    stops : sequence of StopSpec
+        Elastic stops, all on the non-linear tube.
+    loads : sequence of LoadPoint
+        Load points, names unique.
+    sensors : sequence of SensorSpec
+        Displacement sensors, names unique.
+    band_hz : float
+        The frequency band of analysis [−band_hz, band_hz] Hz.
+    nonlinear_tube : str, optional
+        The tube of subsystem A (default: the tube carrying the stops).
+    reduction : ReductionSpec
+        Modes kept by the Craig–Bampton reduction.
+    assumptions : str
+        Free text shown in the documentation of built-in models.
+    effects : sequence
+        Load-side effects of ``tubeid.mechanics.effects`` (``Tone``, ``SensorNoise``).
     """
 
     name: str
@@ -201,6 +333,13 @@ class BundleSpec:
 
     # -- validation -------------------------------------------------------------------------
     def validate(self) -> None:
+        """Check every rule across the fields (called when the object is made).
+
+        Raises
+        ------
+        SpecificationError
+            Naming the field (``tubes[1].length``, ``stops[0].x``), the value and the rule.
+        """
         if not self.tubes:
             raise SpecificationError("tubes", [], "a bundle needs at least one tube")
         names = [t.name for t in self.tubes]
@@ -283,13 +422,36 @@ class BundleSpec:
         return self.stops[0].tube if self.stops else None
 
     def tube(self, name: str) -> TubeSpec:
+        """The tube called ``name``.
+
+        Parameters
+        ----------
+        name : str
+            A tube name.
+
+        Returns
+        -------
+        TubeSpec
+            The tube; ``SpecificationError`` when there is none of that name.
+        """
         for t in self.tubes:
             if t.name == name:
                 return t
         raise SpecificationError("tube", name, f"no such tube; tubes are {[t.name for t in self.tubes]}")
 
-    def replace(self, **changes) -> "BundleSpec":
-        """A new, validated specification with some fields changed."""
+    def replace(self, **changes: Any) -> "BundleSpec":
+        """A new, validated specification with some fields changed.
+
+        Parameters
+        ----------
+        **changes
+            Field names and their new values.
+
+        Returns
+        -------
+        BundleSpec
+            The new specification (this one is unchanged).
+        """
         return dataclasses.replace(self, **changes)
 
 
@@ -314,7 +476,19 @@ def _build(cls, data: Any, where: str):
 
 
 def spec_from_dict(data: Mapping[str, Any]) -> BundleSpec:
-    """Build and validate a :class:`BundleSpec` from plain data (as read from YAML or TOML)."""
+    """Build and validate a :class:`BundleSpec` from plain data (as read from YAML or TOML).
+
+    Parameters
+    ----------
+    data : mapping
+        The fields of ``BundleSpec``, with lists of mappings for tubes, links, stops, loads,
+        sensors and effects; unknown fields are refused.
+
+    Returns
+    -------
+    BundleSpec
+        The validated specification.
+    """
     if not isinstance(data, Mapping):
         raise SpecificationError("specification", type(data).__name__, "must be a mapping at top level")
     data = dict(data)
@@ -339,7 +513,18 @@ def spec_from_dict(data: Mapping[str, Any]) -> BundleSpec:
 
 
 def spec_to_dict(spec: BundleSpec) -> dict[str, Any]:
-    """Plain-data form of a specification (round-trips through :func:`spec_from_dict`)."""
+    """Plain-data form of a specification (round-trips through :func:`spec_from_dict`).
+
+    Parameters
+    ----------
+    spec : BundleSpec
+        The specification.
+
+    Returns
+    -------
+    dict
+        Lists and plain values only (JSON-, YAML- and TOML-ready).
+    """
     from tubeid.mechanics.effects import effect_to_dict
 
     out = dataclasses.asdict(spec)
@@ -352,7 +537,19 @@ def spec_to_dict(spec: BundleSpec) -> dict[str, Any]:
 
 
 def load_spec(path: str | pathlib.Path) -> BundleSpec:
-    """Read a bundle specification from a ``.yaml``/``.yml`` or ``.toml`` file."""
+    """Read a bundle specification from a ``.yaml``/``.yml`` or ``.toml`` file.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The file; its fields are those of ``BundleSpec`` (tables of tubes, links, ...).
+
+    Returns
+    -------
+    BundleSpec
+        The validated specification; a missing file, bad syntax or a broken rule raises
+        ``SpecificationError``.
+    """
     p = pathlib.Path(path)
     if not p.is_file():
         raise SpecificationError("specification file", str(p), "does not exist")

@@ -41,12 +41,12 @@ def register(sub) -> None:
     p.set_defaults(func=_run)
 
     p = sub.add_parser("status", help="blocks done / total of a study store, per stage for a pipeline (works while it runs)")
-    p.add_argument("store")
+    p.add_argument("store", help="the study or pipeline store (a .zarr directory written by tubeid run)")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.set_defaults(func=_status)
 
     p = sub.add_parser("show", help="summary of a study store: provenance and labelled results")
-    p.add_argument("store")
+    p.add_argument("store", help="the study or pipeline store (a .zarr directory written by tubeid run)")
     p.add_argument("--source", action="store_true", help="also print the study source text")
     p.add_argument("--stage", action="append", help="pipeline store: show only this stage (repeatable)")
     p.set_defaults(func=_show)
@@ -111,8 +111,11 @@ def _print_dataset(ds) -> None:
 
     shown = ds.copy()
     shown.attrs = {}
+    for name, var in shown.data_vars.items():
+        if var.size <= 50_000_000:
+            var.load()  # read once, printed with its values (an unloaded variable's repr imports dask)
     print(shown)
-    for name, var in ds.data_vars.items():
+    for name, var in shown.data_vars.items():
         if var.size <= 50_000_000:
             v = np.asarray(var.values, dtype=float)
             ok = np.isfinite(v)
@@ -129,7 +132,7 @@ def _show(args) -> int:
         return _show_pipeline(args, st)
     if args.stage:
         raise SpecificationError("--stage", args.stage[0], f"{args.store} is a single-study store (it has no stages)")
-    ds = open_results(args.store)
+    ds = open_results(args.store, chunks=None)  # no dask: the values are read once, here
     a = ds.attrs
     print(f"study {a.get('study_name')} (file {a.get('study_file')}, hash {str(a.get('study_hash'))[:12]})")
     print(f"  tubeid {a.get('tubeid_version')}, seed {a.get('seed')} over {a.get('seed_axes')}, "
@@ -162,7 +165,7 @@ def _show_pipeline(args, st) -> int:
     for name, s in st["stages"].items():
         if (args.stage and name not in args.stage) or not s["started"]:
             continue
-        ds = open_results(args.store, name)
+        ds = open_results(args.store, name, chunks=None)
         sa = ds.attrs
         print(f"\nstage {name} (hash {str(sa.get('stage_hash'))[:12]}): {sa.get('title')}")
         print(f"  streams keyed by {sa.get('stream_key')} + {sa.get('seed_axes')}, parameters {sa.get('parameters')}")

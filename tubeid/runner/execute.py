@@ -387,7 +387,7 @@ def _describe_cluster(client, scheduler, report, quiet):
     link = (getattr(client, "dashboard_link", "") or "") if "dashboard" in info.get("services", {}) else ""
     report.dashboard = link
     if link and importlib.util.find_spec("bokeh") is None:
-        link += " (its plots need bokeh>=3.1 installed)"
+        link += ' (its plots need bokeh: pip install "tubeid[dashboard]")'
     where = scheduler or f"embedded LocalCluster ({report.workers} single-threaded worker processes)"
     _log(f"tubeid: running on {where}" + (f"; dashboard {link}" if link else ""), quiet)
 
@@ -403,6 +403,10 @@ def _run_dask(client, fn, prefix, todo, report, progress, desc=None):
         with _bar(report.total, report.skipped, progress, desc) as bar:
             for fut in as_completed(futures):
                 _account(report, fut.result(), bar)
+                # the block is in the store: let the cluster forget its result, or a worker that
+                # leaves (lifetime, pre-emption) would make the scheduler recompute every finished
+                # block it held, ahead of the blocks not yet run (a livelock with short lifetimes)
+                fut.release()
     except BaseException:
         client.cancel(futures)
         raise

@@ -26,12 +26,15 @@ import pathlib
 import shutil
 import tempfile
 import warnings
+from typing import TYPE_CHECKING
 
 import numpy as np
-import xarray as xr
 import zarr
 
 from tubeid.errors import SpecificationError
+
+if TYPE_CHECKING:  # imported where used: `tubeid status` needs no xarray
+    import xarray as xr
 
 __all__ = ["init_store", "init_pipeline_store", "init_stage", "check_store", "check_stage", "check_blocks", "block_flags",
            "write_block", "update_attrs", "read_attrs", "open_results", "open_pipeline", "store_status",
@@ -161,6 +164,7 @@ def init_store(study, path, *, source: str, study_hash: str, study_file: str = "
 def _write_empty(study, p, attrs, group=None) -> None:
     """Write coordinates, lazy empty outputs and zero flags of ``study`` (at the root or in ``group``)."""
     import dask.array as da
+    import xarray as xr
 
     axes = list(study.axes)
     block_chunks = tuple(study.chunks[d] for d in axes)
@@ -336,8 +340,9 @@ def pipeline_status(path) -> dict:
             "complete": all(s["complete"] for s in stages.values())}
 
 
-def open_results(path, group: str | None = None, *, flags: bool = False) -> xr.Dataset:
-    """The study results as a labelled ``xarray.Dataset`` (lazy, dask-backed).
+def open_results(path, group: str | None = None, *, flags: bool = False, chunks="auto") -> xr.Dataset:
+    """The study results as a labelled ``xarray.Dataset`` (lazy, dask-backed; ``chunks=None``: lazy
+    without dask, as ``xarray.open_zarr``).
 
     Blocks not yet written read as NaN (float outputs). The attributes ``blocks_done`` and
     ``blocks_total`` say how complete the store is; ``flags=True`` keeps the ``block_done`` variable.
@@ -345,13 +350,15 @@ def open_results(path, group: str | None = None, *, flags: bool = False) -> xr.D
     with no variables whose attributes are the pipeline provenance plus ``stage_blocks``
     ({stage: [done, total or None]}) and ``stages_complete`` (list of complete stages).
     """
+    import xarray as xr
+
     st = store_status(path, group)
     if "stages" in st and group is None:
         ds = xr.Dataset(attrs=dict(st["attrs"]))
         ds.attrs.update(stage_blocks={n: [s["done"], s["total"]] for n, s in st["stages"].items()},
                         stages_complete=[n for n, s in st["stages"].items() if s["complete"]])
         return ds
-    ds = xr.open_zarr(str(path), group=group) if group else xr.open_zarr(str(path))
+    ds = xr.open_zarr(str(path), group=group, chunks=chunks) if group else xr.open_zarr(str(path), chunks=chunks)
     if not flags:
         ds = ds.drop_vars(FLAG)
     ds.attrs.update(blocks_done=st["done"], blocks_total=st["total"])

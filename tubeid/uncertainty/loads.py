@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from tubeid._validation import positive
 from tubeid.errors import SpecificationError
@@ -145,20 +146,28 @@ def _tuple_str(field_name, values, m=None):
 
 @dataclass(frozen=True, eq=False)
 class LoadSpectrum:
-    """Two-sided matrix PSD (per Hz) of m loads acting on one tube.
+    """Two-sided matrix PSD (per Hz) of m loads acting on one tube. Validated when made, immutable.
 
-    Fields
-    ------
-    names : load names (unique).
-    kinds : "force" (N, PSD in N^2/Hz) or "moment" (N m, PSD in (N m)^2/Hz), one per load.
-    tube : name of the tube the loads act on.
-    x : position of each load along the tube (m).
-    band : Hz; S(f) = 0 for |f| > band.
-    values : (m, m) matrix constant for |f| <= band when ``frequencies`` is None, else
-        (K, m, m) matrices at ``frequencies`` (linear interpolation in f).
-    frequencies : None, or the table grid in Hz: 0 = f_0 < f_1 < ... with f_last >= band.
-    germ : None (deterministic spectrum), or G (m x m real SPD): the spectrum is then
-        L^* G L with S̄ = L^* L the spectrum described by ``values`` (see module docstring).
+    Parameters
+    ----------
+    names : tuple of str
+        Load names (unique).
+    kinds : tuple of str
+        ``"force"`` (N, PSD in N^2/Hz) or ``"moment"`` (N m, PSD in (N m)^2/Hz), one per load.
+    tube : str
+        Name of the tube the loads act on.
+    x : tuple of float
+        Position of each load along the tube (m).
+    band : float
+        Hz; S(f) = 0 for |f| > band.
+    values : numpy.ndarray
+        (m, m) matrix constant for |f| <= band when ``frequencies`` is None, else (K, m, m)
+        matrices at ``frequencies`` (linear interpolation in f); Hermitian positive semi-definite.
+    frequencies : numpy.ndarray, optional
+        None, or the table grid in Hz: 0 = f_0 < f_1 < ... with f_last >= band.
+    germ : numpy.ndarray, optional
+        None (deterministic spectrum), or G (m x m real SPD): the spectrum is then L^* G L with
+        S̄ = L^* L the spectrum described by ``values`` (see the module docstring).
     """
 
     names: tuple
@@ -170,7 +179,7 @@ class LoadSpectrum:
     frequencies: np.ndarray | None = None
     germ: np.ndarray | None = field(default=None)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
         names = _tuple_str("names", self.names)
         m = len(names)
@@ -273,10 +282,19 @@ class LoadSpectrum:
         out[inband] = (1.0 - w) * V[idx] + w * V[idx + 1]
         return out
 
-    def matrix(self, f) -> np.ndarray:
-        """S(f): complex array (len(f), m, m), Hermitian PSD, two-sided per Hz; f in Hz, any sign.
+    def matrix(self, f: ArrayLike) -> np.ndarray:
+        """The PSD matrices S(f), two-sided per Hz, with S(-f) = conj S(f).
 
-        S(-f) = conj S(f). Units: entry (a, b) in [load_a][load_b]/Hz (N^2/Hz, N^2 m/Hz, (N m)^2/Hz).
+        Parameters
+        ----------
+        f : float or array_like
+            Frequencies [Hz], any sign, scalar or 1-D.
+
+        Returns
+        -------
+        numpy.ndarray
+            Complex, shape (len(f), m, m), Hermitian positive semi-definite; entry (a, b) in
+            [load_a][load_b]/Hz (N^2/Hz, N^2 m/Hz, (N m)^2/Hz).
         """
         f = np.asarray(f, dtype=float)
         if f.ndim > 1:
@@ -303,11 +321,16 @@ class LoadSpectrum:
         return S
 
     def covariance(self) -> np.ndarray:
-        """Cov(F) = int S(f) df over all f (real m x m; N^2, N^2 m, (N m)^2).
+        """Cov(F) = int S(f) df over all f.
 
         Exact for constant spectra and for tabulated mean spectra (trapezoid of a piecewise
         linear function); for a tabulated spectrum with a germ, trapezoid on the grid refined
         64 times (L^* G L is not linear between grid points).
+
+        Returns
+        -------
+        numpy.ndarray
+            Real (m, m) covariance (N^2, N^2 m, (N m)^2).
         """
         if self.frequencies is None:
             return 2.0 * self.band * self.matrix([0.0])[0].real
@@ -348,7 +371,25 @@ def coherent_forces(x: Sequence[float] = (2.0, 4.0, 6.0, 8.0, 10.0, 12.0, 14.0),
 
     S_ii = level (N^2/Hz) and S_ij = level * exp(-|x_i - x_j| / (2 lambda)) for |f| <= band
     (Hz), zero outside: the coherence exp(-|x_i - x_j| / lambda) is defined on the squared
-    modulus, |S_ij|^2 = gamma_ij S_ii S_jj. Names "F1".."Fm". Default: 7 forces, 260 N^2 each.
+    modulus, |S_ij|^2 = gamma_ij S_ii S_jj. Default: 7 forces, 260 N^2 each.
+
+    Parameters
+    ----------
+    x : sequence of float
+        Positions of the forces along the tube (m).
+    level : float
+        Auto-spectrum S_ii (N^2/Hz, two-sided), > 0.
+    band : float
+        The PSD is zero for |f| > band (Hz).
+    correlation_length : float
+        lambda (m), > 0.
+    tube : str
+        The tube the forces act on.
+
+    Returns
+    -------
+    LoadSpectrum
+        Constant in the band, loads named ``"F1"``..``"Fm"``.
     """
     x = np.atleast_1d(np.asarray(x, dtype=float))
     if x.ndim != 1 or x.size == 0 or not np.all(np.isfinite(x)):
@@ -362,21 +403,61 @@ def coherent_forces(x: Sequence[float] = (2.0, 4.0, 6.0, 8.0, 10.0, 12.0, 14.0),
 
 def force_and_moment(r1: float, r2: float, x: float = 8.0, band: float = 100.0,
                      tube: str = "centre") -> LoadSpectrum:
-    """The identification load model: force T (r1, N^2/Hz) and moment M (r2, (N m)^2/Hz) at x (m).
+    """The identification load model: a force T and a moment M at one point (paper Eq. 7).
 
-    Independent, constant on |f| <= band (Hz): S = diag(r1, r2) (paper Eq. 7).
+    Independent, constant on |f| <= band: S = diag(r1, r2).
+
+    Parameters
+    ----------
+    r1 : float
+        PSD of the force T (N^2/Hz, two-sided), > 0.
+    r2 : float
+        PSD of the moment M ((N m)^2/Hz, two-sided), > 0.
+    x : float
+        Their position along the tube (m).
+    band : float
+        The PSD is zero for |f| > band (Hz).
+    tube : str
+        The tube they act on.
+
+    Returns
+    -------
+    LoadSpectrum
+        Loads ``("T", "M")`` of kinds ``("force", "moment")``.
     """
     r1 = positive("r1", r1, "N^2/Hz")
     r2 = positive("r2", r2, "(N m)^2/Hz")
     return LoadSpectrum(("T", "M"), ("force", "moment"), tube, (x, x), band, np.diag([r1, r2]))
 
 
-def tabulated(f, S, names, kinds, x, tube: str = "centre", band: float | None = None) -> LoadSpectrum:
-    """User-defined PSD matrices S (K, m, m) on a grid f (Hz, 0 = f_0 < ... < f_{K-1}).
+def tabulated(f: ArrayLike, S: ArrayLike, names: Sequence[str], kinds: Sequence[str], x: float | Sequence[float],
+              tube: str = "centre", band: float | None = None) -> LoadSpectrum:
+    """User-defined PSD matrices on a frequency grid.
 
-    Linear interpolation in f between grid points, S(-f) = conj S(f), zero for |f| > band
-    (default: the last grid frequency). Every matrix must be Hermitian PSD (the first
-    offending frequency is named) and S(0) real.
+    Linear interpolation in f between grid points, S(-f) = conj S(f), zero for |f| > band.
+    Every matrix must be Hermitian PSD (the first offending frequency is named) and S(0) real.
+
+    Parameters
+    ----------
+    f : array_like
+        Grid [Hz], 0 = f_0 < ... < f_{K-1}.
+    S : array_like
+        Two-sided PSD matrices per Hz, shape (K, m, m).
+    names : sequence of str
+        Load names (m, unique).
+    kinds : sequence of str
+        ``"force"`` or ``"moment"`` per load.
+    x : float or sequence of float
+        Position of each load (m); one number for all.
+    tube : str
+        The tube they act on.
+    band : float, optional
+        Zero above this frequency [Hz] (default: the last grid frequency).
+
+    Returns
+    -------
+    LoadSpectrum
+        The tabulated spectrum.
     """
     f = np.asarray(f, dtype=float)
     if band is None:
@@ -391,14 +472,25 @@ def tabulated(f, S, names, kinds, x, tube: str = "centre", band: float | None = 
     return LoadSpectrum(names, kinds, tube, tuple(x), band, np.asarray(S), f)
 
 
-def randomised(spectrum: LoadSpectrum, G) -> LoadSpectrum:
+def randomised(spectrum: LoadSpectrum, G: ArrayLike) -> LoadSpectrum:
     """The randomised spectrum S_F(f) = L(f)^* G L(f), S̄(f) = L(f)^* L(f) (paper Section 3.1).
 
-    ``G`` is one m x m real SPD draw of SG+ (the caller draws it, e.g. with the repo's SG+
-    generator and a ``rng_for`` stream); the same G serves all frequencies, so the load stays
-    stationary. ``result.mean`` is ``spectrum.mean`` (E[S_F] = S̄ when E[G] = I). Applying
-    ``randomised`` to an already randomised spectrum replaces its germ (it randomises the mean).
-    L is the Cholesky factor, or an eigen square root where S̄ is singular (module docstring).
+    The same G serves all frequencies, so the load stays stationary. Applying ``randomised`` to
+    an already randomised spectrum replaces its germ (it randomises the mean). L is the Cholesky
+    factor, or an eigen square root where S̄ is singular (module docstring).
+
+    Parameters
+    ----------
+    spectrum : LoadSpectrum
+        The mean spectrum S̄ (its germ, if any, is ignored).
+    G : array_like
+        One m x m real SPD draw of SG+ (the caller draws it, e.g. with ``sg_plus`` and a
+        ``rng_for`` stream).
+
+    Returns
+    -------
+    LoadSpectrum
+        With ``germ`` = G; ``result.mean`` is ``spectrum.mean`` (E[S_F] = S̄ when E[G] = I).
     """
     if not isinstance(spectrum, LoadSpectrum):
         raise SpecificationError("spectrum", type(spectrum).__name__, "must be a LoadSpectrum")

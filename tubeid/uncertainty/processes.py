@@ -45,7 +45,7 @@ Memory: about R * N * m * 24 bytes (complex coefficients plus real output).
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 import scipy.fft
@@ -54,13 +54,31 @@ from tubeid.errors import SpecificationError
 from tubeid._validation import positive
 from tubeid.uncertainty.loads import check_psd_matrices, psd_factor
 
+if TYPE_CHECKING:
+    from tubeid.uncertainty.loads import LoadSpectrum
+
 __all__ = ["gaussian_loads", "synthesis_grid", "INTERPOLATIONS"]
 
 INTERPOLATIONS = ("linear", "none")
 
 
 def synthesis_grid(duration: float, dt: float) -> tuple[int, int]:
-    """(n_t, N): number of output samples round(duration/dt) + 1 and the FFT length N >= n_t."""
+    """The sample count and FFT length of a synthesis.
+
+    Parameters
+    ----------
+    duration : float
+        Record length [s], at least one step.
+    dt : float
+        Sampling step [s].
+
+    Returns
+    -------
+    n_t : int
+        Number of output samples, round(duration/dt) + 1.
+    N : int
+        FFT length (``scipy.fft.next_fast_len(n_t, real=True)``), N >= n_t.
+    """
     duration = positive("duration", duration, "s")
     dt = positive("dt", dt, "s")
     n_steps = int(round(duration / dt))
@@ -70,16 +88,31 @@ def synthesis_grid(duration: float, dt: float) -> tuple[int, int]:
     return n_t, int(scipy.fft.next_fast_len(n_t, real=True))
 
 
-def gaussian_loads(spectrum, duration: float, dt: float, rngs: Sequence[np.random.Generator],
+def gaussian_loads(spectrum: LoadSpectrum, duration: float, dt: float, rngs: Sequence[np.random.Generator],
                    interpolation: str = "linear") -> np.ndarray:
     """Realisations of the centred stationary Gaussian load with two-sided PSD ``spectrum.matrix(f)``.
 
-    spectrum : a LoadSpectrum (or any object with ``matrix(f)``, ``band`` [Hz] and ``names``).
-    duration, dt : s; output samples at t_j = j dt, j = 0 .. round(duration/dt).
-    rngs : one numpy Generator per realisation.
-    interpolation : "linear" (pre-compensated for piecewise-linear reading) or "none".
+    See the module docstring for the synthesis, its law and its cost.
 
-    Returns float64 array (R, n_t, m), units of each load (N or N m). See module docstring.
+    Parameters
+    ----------
+    spectrum : LoadSpectrum
+        The load PSD (or any object with ``matrix(f)``, ``band`` [Hz] and ``names``).
+    duration : float
+        Record length [s].
+    dt : float
+        Sampling step [s]; output samples at t_j = j dt, j = 0 .. round(duration/dt). Its
+        Nyquist frequency 1/(2 dt) must exceed the band.
+    rngs : sequence of numpy.random.Generator
+        One generator per realisation; realisation r depends on ``rngs[r]`` only.
+    interpolation : str
+        ``"linear"`` (pre-compensated so that the piecewise-linear interpolant has the target
+        PSD in band) or ``"none"`` (the samples have it).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, shape (R, n_t, m), in the units of each load (N or N m).
     """
     if interpolation not in INTERPOLATIONS:
         raise SpecificationError("interpolation", interpolation, f"must be one of {INTERPOLATIONS}")

@@ -26,11 +26,27 @@ import numpy as np
 from tubeid.errors import Described as _Desc, SpecificationError
 from tubeid.seeds import rng_for
 
+#: ``size`` arguments: a count of realisations or a shape of them
+Size = int | tuple[int, ...]
+#: ``rng`` arguments: a generator, or a non-negative seed mapped through ``rng_for(seed, <function name>)``
+RngLike = np.random.Generator | int
+
 __all__ = ["delta_max", "sg_plus", "sg_plus_germs", "sg_plus_from_germs", "se_plus", "sg_plus_dispersion", "Dispersion"]
 
 
 def delta_max(n: int) -> float:
-    """Upper bound (excluded) of the SG+ dispersion for matrices of size n: √((n+1)/(n+5))."""
+    """Upper bound (excluded) of the SG+ dispersion for matrices of size n: √((n+1)/(n+5)).
+
+    Parameters
+    ----------
+    n : int
+        Matrix size, ≥ 1.
+
+    Returns
+    -------
+    float
+        δ_max(n) (dimensionless).
+    """
     n = _check_size_n(n, "n")
     return math.sqrt((n + 1) / (n + 5))
 
@@ -73,11 +89,24 @@ def _as_rng(rng, name: str) -> np.random.Generator:
     raise SpecificationError("rng", rng, "must be a numpy.random.Generator or a non-negative integer seed")
 
 
-def sg_plus(n: int, delta: float, size=(), *, rng) -> np.ndarray:
-    """Draw realisations of G ∈ SG+ (dimensionless), shape ``(*size, n, n)``.
+def sg_plus(n: int, delta: float, size: Size = (), *, rng: RngLike) -> np.ndarray:
+    """Draw realisations of G ∈ SG+: exactly the generator of MODEL.md §3.3 (j counted from 1).
 
-    ``rng``: a ``numpy.random.Generator`` or a non-negative integer seed.
-    Exactly the generator of MODEL.md §3.3 (j counted from 1), vectorised over ``size``.
+    Parameters
+    ----------
+    n : int
+        Matrix size, ≥ 1.
+    delta : float
+        Dispersion, 0 < δ < ``delta_max(n)``.
+    size : int or tuple of int
+        Realisations (leading shape); ``()`` for one matrix.
+    rng : numpy.random.Generator or int
+        The random stream, or a non-negative seed.
+
+    Returns
+    -------
+    numpy.ndarray
+        Symmetric positive-definite matrices (dimensionless), shape ``(*size, n, n)``; E[G] = I.
     """
     n = _check_size_n(n, "n")
     d = _check_delta(delta, n)
@@ -87,12 +116,28 @@ def sg_plus(n: int, delta: float, size=(), *, rng) -> np.ndarray:
     return sg_plus_from_germs(n, d, *sg_plus_germs(n, shape, rng=gen))
 
 
-def sg_plus_germs(n: int, size=(), *, rng) -> tuple[np.ndarray, np.ndarray]:
-    """The δ-free random germs of SG+: standard normals (*size, n(n−1)/2) and uniforms (*size, n).
+def sg_plus_germs(n: int, size: Size = (), *, rng: RngLike) -> tuple[np.ndarray, np.ndarray]:
+    """The δ-free random germs of SG+.
 
     With :func:`sg_plus_from_germs` they give common random numbers across a δ grid: the same
     germs map smoothly to G(δ) for every δ (the gamma variates by inverse CDF), so a likelihood
     curve over δ is smooth.
+
+    Parameters
+    ----------
+    n : int
+        Matrix size, ≥ 1.
+    size : int or tuple of int
+        Realisations (leading shape).
+    rng : numpy.random.Generator or int
+        The random stream, or a non-negative seed.
+
+    Returns
+    -------
+    normals : numpy.ndarray
+        Standard normals, shape ``(*size, n(n−1)/2)`` (the strict upper triangle of L, row-major).
+    uniforms : numpy.ndarray
+        Uniforms on [0, 1), shape ``(*size, n)`` (the diagonal's gamma variates by inverse CDF).
     """
     n = _check_size_n(n, "n")
     shape = _check_shape(size)
@@ -100,10 +145,26 @@ def sg_plus_germs(n: int, size=(), *, rng) -> tuple[np.ndarray, np.ndarray]:
     return gen.standard_normal(shape + (n * (n - 1) // 2,)), gen.random(shape + (n,))
 
 
-def sg_plus_from_germs(n: int, delta: float, normals, uniforms) -> np.ndarray:
+def sg_plus_from_germs(n: int, delta: float, normals: np.ndarray, uniforms: np.ndarray) -> np.ndarray:
     """G ∈ SG+(n, δ) from germs (see :func:`sg_plus_germs`); same law as :func:`sg_plus`.
 
     V_j = F⁻¹_Gamma(a_j)(u_j) with a_j = (n+1)/(2δ²) + (1 − j)/2, j counted from 1.
+
+    Parameters
+    ----------
+    n : int
+        Matrix size, ≥ 1.
+    delta : float
+        Dispersion, 0 < δ < ``delta_max(n)``.
+    normals : array_like
+        Standard normals, shape ``(*size, n(n−1)/2)``.
+    uniforms : array_like
+        Uniforms in (0, 1), shape ``(*size, n)``.
+
+    Returns
+    -------
+    numpy.ndarray
+        Shape ``(*size, n, n)``.
     """
     import scipy.special
 
@@ -149,11 +210,26 @@ def _check_mean(mean, name: str) -> np.ndarray:
     return low.T  # upper L_A with mean = L_Aᵀ L_A
 
 
-def se_plus(mean, delta: float, size=(), *, rng, name: str = "mean") -> np.ndarray:
-    """Draw realisations of A ∈ SE+ with E[A] = ``mean``, shape ``(*size, n, n)``, units of ``mean``.
+def se_plus(mean: np.ndarray, delta: float, size: Size = (), *, rng: RngLike, name: str = "mean") -> np.ndarray:
+    """Draw realisations of A ∈ SE+ with E[A] = ``mean``: A = L_Aᵀ G L_A, G ∈ SG+(n, δ), mean = L_Aᵀ L_A.
 
-    A = L_Aᵀ G L_A, G ∈ SG+(n, δ), mean = L_Aᵀ L_A. ``name`` labels ``mean`` in error messages
-    (e.g. "K_B"); δ errors are labelled ``delta[<name>]`` when a name is given.
+    Parameters
+    ----------
+    mean : array_like
+        The mean matrix A̲, (n, n), symmetric positive definite.
+    delta : float
+        Dispersion, 0 < δ < ``delta_max(n)``.
+    size : int or tuple of int
+        Realisations (leading shape).
+    rng : numpy.random.Generator or int
+        The random stream, or a non-negative seed.
+    name : str
+        Labels ``mean`` in error messages (e.g. ``"K_B"``); δ errors then read ``delta[K_B]``.
+
+    Returns
+    -------
+    numpy.ndarray
+        Shape ``(*size, n, n)``, in the units of ``mean``.
     """
     LA = _check_mean(mean, name)
     n = LA.shape[0]
@@ -164,8 +240,19 @@ def se_plus(mean, delta: float, size=(), *, rng, name: str = "mean") -> np.ndarr
     return 0.5 * (A + np.swapaxes(A, -1, -2))
 
 
-def sg_plus_dispersion(G) -> float:
-    """Sample estimate of δ = √(E‖G − I‖²_F / n) from realisations ``G`` of shape (..., n, n)."""
+def sg_plus_dispersion(G: np.ndarray) -> float:
+    """Sample estimate of δ = √(E‖G − I‖²_F / n).
+
+    Parameters
+    ----------
+    G : array_like
+        Realisations, shape (..., n, n), at least one.
+
+    Returns
+    -------
+    float
+        The estimated dispersion.
+    """
     g = np.asarray(G, dtype=float)
     if g.ndim < 2 or g.shape[-1] != g.shape[-2] or g.shape[-1] < 1:
         raise SpecificationError("G", _Desc(f"array of shape {g.shape}"), "must have shape (..., n, n) with n >= 1")
@@ -180,17 +267,22 @@ def sg_plus_dispersion(G) -> float:
 
 @dataclass(frozen=True)
 class Dispersion:
-    """SG+ dispersions of a random reduced model (mass, damping, stiffness); 0 = deterministic.
+    """SG+ dispersions of a random reduced model; 0 = deterministic.
 
-    Each field is a finite float >= 0; ``check(n)`` additionally requires each non-zero field
-    to be < delta_max(n) for reduced matrices of size n.
+    ``check(n)`` additionally requires each non-zero field to be < delta_max(n) for reduced
+    matrices of size n.
+
+    Parameters
+    ----------
+    mass, damping, stiffness : float
+        Dispersion δ of each reduced matrix of B, a finite number ≥ 0.
     """
 
     mass: float = 0.0
     damping: float = 0.0
     stiffness: float = 0.0
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         for f in fields(self):
             v = getattr(self, f.name)
             if isinstance(v, (bool, np.bool_)) or not isinstance(v, (numbers.Real, np.floating, np.integer)) \
@@ -204,7 +296,18 @@ class Dispersion:
         return self.mass == 0.0 and self.damping == 0.0 and self.stiffness == 0.0
 
     def check(self, n: int) -> "Dispersion":
-        """Validate the non-zero dispersions against delta_max(n); returns self."""
+        """Validate the non-zero dispersions against ``delta_max(n)``.
+
+        Parameters
+        ----------
+        n : int
+            Size of the reduced matrices.
+
+        Returns
+        -------
+        Dispersion
+            ``self``; a dispersion at or above the bound raises ``SpecificationError``.
+        """
         n = _check_size_n(n, "n")
         for f in fields(self):
             v = getattr(self, f.name)

@@ -11,8 +11,11 @@ Everything here is vectorised over realisations (and frequencies for Z).
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import numpy as np
 import xarray as xr
+from numpy.typing import ArrayLike
 
 from tubeid.errors import SpecificationError
 from tubeid.mechanics.reduction import J_UNITS, ReducedSubsystem, condensed_stiffness, j_functional
@@ -24,11 +27,23 @@ __all__ = ["germs_from_rngs", "random_subsystem", "random_j", "j_monte_carlo", "
 _MATRICES = ("mass", "damping", "stiffness")
 
 
-def germs_from_rngs(n: int, rngs) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def germs_from_rngs(n: int, rngs: Iterable[np.random.Generator]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """SG+ germs of the mass, damping and stiffness matrices, one generator per realisation.
 
     Each realisation's generator yields, in this fixed order, the mass, damping and stiffness
     germs, so a realisation's matrices never depend on the other realisations of its batch.
+
+    Parameters
+    ----------
+    n : int
+        Size of the reduced matrices.
+    rngs : iterable of numpy.random.Generator
+        One generator per realisation (R of them).
+
+    Returns
+    -------
+    dict
+        ``{"mass" | "damping" | "stiffness": (normals (R, n(n−1)/2), uniforms (R, n))}``.
     """
     out = {k: ([], []) for k in _MATRICES}
     for rng in rngs:
@@ -43,11 +58,28 @@ def _germs(n: int, seed: int, realisations) -> dict[str, tuple[np.ndarray, np.nd
     return germs_from_rngs(n, (rng_for(seed, "subsystem-B", int(r)) for r in realisations))
 
 
-def random_subsystem(sub: ReducedSubsystem, dispersion: Dispersion, seed: int, realisations, *, germs=None):
-    """Random (M_B, D_B, K_B), each of shape (R, n, n), for the given realisation indices.
+def random_subsystem(sub: ReducedSubsystem, dispersion: Dispersion, seed: int, realisations: ArrayLike, *,
+                     germs: dict[str, tuple[np.ndarray, np.ndarray]] | None = None
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Random reduced matrices of B for the given realisation indices.
 
-    ``germs`` (from :func:`germs_from_rngs`) replaces the draws from ``(seed, realisation)``.
-    Deterministic matrices (dispersion 0) are broadcast views of the mean.
+    Parameters
+    ----------
+    sub : ReducedSubsystem
+        The mean reduced subsystem B.
+    dispersion : Dispersion
+        δ of each matrix (0 keeps it deterministic); checked against ``delta_max(n)``.
+    seed : int
+        Study seed: realisation r draws from ``rng_for(seed, "subsystem-B", r)``.
+    realisations : array_like of int
+        Realisation indices (R of them).
+    germs : dict, optional
+        Germs from :func:`germs_from_rngs`, used instead of the draws from (seed, realisation).
+
+    Returns
+    -------
+    tuple of numpy.ndarray
+        (M_B, D_B, K_B), each (R, n, n); a deterministic matrix is a broadcast view of the mean.
     """
     realisations = np.atleast_1d(np.asarray(realisations, dtype=int))
     n = sub.n
@@ -66,16 +98,55 @@ def random_subsystem(sub: ReducedSubsystem, dispersion: Dispersion, seed: int, r
     return tuple(out)
 
 
-def random_j(sub: ReducedSubsystem, dispersion: Dispersion, seed: int, realisations, band_hz: float) -> np.ndarray:
-    """J [m²·rad/(N²·s)] of each random realisation, shape (R,)."""
+def random_j(sub: ReducedSubsystem, dispersion: Dispersion, seed: int, realisations: ArrayLike,
+             band_hz: float) -> np.ndarray:
+    """J of each random realisation of B.
+
+    Parameters
+    ----------
+    sub : ReducedSubsystem
+        The mean reduced subsystem B.
+    dispersion : Dispersion
+        δ of each matrix.
+    seed : int
+        Study seed (see :func:`random_subsystem`).
+    realisations : array_like of int
+        Realisation indices (R of them).
+    band_hz : float
+        Half-width of the band of J [Hz].
+
+    Returns
+    -------
+    numpy.ndarray
+        J [m²·rad/(N²·s)], shape (R,).
+    """
     M, D, K = random_subsystem(sub, dispersion, seed, realisations)
     return j_functional(M, D, K, sub.n_c, band_hz)
 
 
-def j_monte_carlo(sub: ReducedSubsystem, deltas, seed: int, realisations, band_hz: float, which: str = "stiffness") -> xr.DataArray:
-    """Monte Carlo of J(δ) over a δ grid with common random numbers: DataArray (delta, realisation).
+def j_monte_carlo(sub: ReducedSubsystem, deltas: ArrayLike, seed: int, realisations: ArrayLike, band_hz: float,
+                  which: str = "stiffness") -> xr.DataArray:
+    """Monte Carlo of J(δ) over a δ grid with common random numbers (the same germs at every δ).
 
-    ``which``: the randomised matrix ("stiffness" as in the paper, "mass", "damping" or "all").
+    Parameters
+    ----------
+    sub : ReducedSubsystem
+        The mean reduced subsystem B.
+    deltas : array_like of float
+        Non-empty 1-D grid of dispersions, each below ``delta_max(sub.n)``.
+    seed : int
+        Study seed (see :func:`random_subsystem`).
+    realisations : array_like of int
+        Realisation indices.
+    band_hz : float
+        Half-width of the band of J [Hz].
+    which : str
+        The randomised matrix: ``"stiffness"`` (the paper), ``"mass"``, ``"damping"`` or ``"all"``.
+
+    Returns
+    -------
+    xarray.DataArray
+        ``J`` over (delta, realisation), in m²·rad/(N²·s).
     """
     if which not in (*_MATRICES, "all"):
         raise SpecificationError("which", which, f"must be one of {(*_MATRICES, 'all')}")
@@ -97,8 +168,28 @@ def j_monte_carlo(sub: ReducedSubsystem, deltas, seed: int, realisations, band_h
     )
 
 
-def random_condensed_stiffness(sub: ReducedSubsystem, dispersion: Dispersion, seed: int, realisations, frequency_hz) -> xr.DataArray:
-    """Random Z(ω) [N/m]: DataArray (realisation, frequency, interface, interface_)."""
+def random_condensed_stiffness(sub: ReducedSubsystem, dispersion: Dispersion, seed: int, realisations: ArrayLike,
+                               frequency_hz: ArrayLike) -> xr.DataArray:
+    """Random condensed dynamic stiffness Z(ω) of B on the interface.
+
+    Parameters
+    ----------
+    sub : ReducedSubsystem
+        The mean reduced subsystem B.
+    dispersion : Dispersion
+        δ of each matrix.
+    seed : int
+        Study seed (see :func:`random_subsystem`).
+    realisations : array_like of int
+        Realisation indices.
+    frequency_hz : array_like of float
+        Frequencies [Hz], 1-D.
+
+    Returns
+    -------
+    xarray.DataArray
+        ``Z`` [N/m], complex, over (realisation, frequency, interface, interface_).
+    """
     realisations = np.atleast_1d(np.asarray(realisations, dtype=int))
     f = np.asarray(frequency_hz, dtype=float)
     M, D, K = random_subsystem(sub, dispersion, seed, realisations)

@@ -1,0 +1,198 @@
+"""The ``tubeid`` command line and the lazy package namespace.
+
+Speed is checked structurally, never by timing: which libraries a command imports, seen in
+``sys.modules`` of a fresh interpreter (the README gives the measured times).
+"""
+
+import argparse
+import importlib
+import json
+import subprocess
+import sys
+from importlib.metadata import version
+
+import pytest
+
+import tubeid
+from tubeid import _lazy
+from tubeid.cli import COMMANDS, build_parser, main
+
+HEAVY = ("numba", "distributed", "matplotlib", "xarray", "dask", "numpy", "zarr", "scipy", "pandas")
+
+
+def _modules_after(code: str) -> set[str]:
+    """Top-level packages imported by ``code`` in a fresh interpreter (its stdout is discarded)."""
+    probe = ("import sys, io, json, contextlib\n"
+             "with contextlib.redirect_stdout(io.StringIO()):\n"
+             + "".join(f"    {line}\n" for line in code.splitlines())
+             + "print(json.dumps(sorted({m.split('.')[0] for m in sys.modules})))\n")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout
+    return set(json.loads(out.splitlines()[-1]))
+
+
+def _main_quietly(argv) -> str:
+    return (f"from tubeid.cli import main\n"
+            f"try:\n    main({argv!r})\nexcept SystemExit:\n    pass")
+
+
+@pytest.mark.parametrize("code", [
+    "import tubeid",
+    "import tubeid; tubeid.__version__; dir(tubeid)",
+    _main_quietly(["--help"]),
+    _main_quietly(["--version"]),
+    _main_quietly(["run", "--help"]),      # a command's help imports its module, not the library
+])
+def test_import_and_help_load_no_numerical_library(code):
+    loaded = _modules_after(code)
+    assert not loaded & set(HEAVY), f"{code!r} imported {sorted(loaded & set(HEAVY))}"
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    from tubeid.runner.execute import run
+
+    d = tmp_path_factory.mktemp("cli")
+    study = d / "tiny.py"
+    study.write_text(
+        "import numpy as np\n"
+        "from tubeid.runner.study import Output, Study, pointwise\n"
+        "@pointwise\n"
+        "def f(point, rng):\n"
+        "    return {'y': float(point['r']) + rng.standard_normal()}\n"
+        "study = Study(name='tiny', seed=3, axes={'r': range(6)}, chunks={'r': 2}, task=f,\n"
+        "              outputs={'y': Output(units='m')}, units={'r': '1'})\n")
+    run(study, d / "tiny.zarr", workers=0, progress=False, quiet=True)
+    return d / "tiny.zarr"
+
+
+def test_status_reads_the_store_without_xarray_dask_or_numba(store):
+    loaded = _modules_after(_main_quietly(["status", str(store)]))
+    assert "zarr" in loaded  # it did read the store
+    assert not loaded & {"numba", "distributed", "dask", "xarray", "matplotlib", "scipy"}
+
+
+def test_show_needs_xarray_but_not_dask_arrays_distributed_or_numba(store):
+    code = _main_quietly(["show", str(store)]) + "\nimport sys\nassert 'dask.array' not in sys.modules"
+    loaded = _modules_after(code)
+    assert "xarray" in loaded
+    assert not loaded & {"numba", "distributed", "matplotlib", "scipy"}
+
+
+def test_status_and_show_report_the_store(store, capsys):
+    assert main(["status", str(store)]) == 0
+    assert "tiny: 3/3 blocks done (100.0 %), complete" in capsys.readouterr().out
+    assert main(["show", str(store)]) == 0
+    out = capsys.readouterr().out
+    assert "study tiny" in out and "y [m]:" in out and "(100% written)" in out
+
+
+def test_version_is_the_installed_distribution_version(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["--version"])
+    assert exit_.value.code == 0
+    assert capsys.readouterr().out.strip() == f"tubeid {version('tubeid')}" == f"tubeid {tubeid.__version__}"
+
+
+def test_help_lists_every_command_with_its_help_line(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    out = " ".join(capsys.readouterr().out.split())  # argparse wraps lines at the terminal width
+    for c in COMMANDS:
+        assert f"{c.name} {' '.join(c.help.split()[:4])}" in out
+    assert "tubeid run studies/paper.py" in out  # the description starts a user off
+
+
+def test_unknown_command_is_refused_with_the_choices(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["bogus"])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert "invalid choice: 'bogus'" in err and "'run'" in err
+
+
+def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return dict(action.choices)
+
+
+@pytest.mark.parametrize("module", sorted({c.module for c in COMMANDS}))
+def test_command_table_matches_what_each_module_registers(module):
+    """The static table must name exactly the commands a module registers, with the same help line."""
+    parser = argparse.ArgumentParser()
+    sub = parser.add_subparsers()
+    importlib.import_module(module).register(sub)
+    action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    registered = {a.dest: a.help for a in action._choices_actions}
+    assert registered == {c.name: c.help for c in COMMANDS if c.module == module}
+
+
+@pytest.mark.parametrize("name", [c.name for c in COMMANDS])
+def test_every_positional_argument_has_a_help_line(name):
+    command = _subparsers(build_parser(name))[name]
+    positionals = [a for a in command._actions if not a.option_strings]
+    for a in positionals:
+        assert a.help and a.help.strip(), f"tubeid {name}: positional {a.dest!r} has no help"
+
+
+def test_only_the_chosen_commands_module_is_imported():
+    assert not _modules_after("from tubeid.cli import build_parser\nbuild_parser('model')") & set(HEAVY)
+    code = ("import json, sys\nfrom tubeid.cli import build_parser\nbuild_parser('model')\n"
+            "mods = sorted(m for m in sys.modules if m.startswith('tubeid.'))\n"
+            "sys.stderr.write(json.dumps(mods))")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    mods = set(json.loads(res.stderr))
+    assert "tubeid.mechanics.cli" in mods
+    assert not mods & {"tubeid.runner.cli", "tubeid.report", "tubeid.measured.cli", "tubeid.bench"}
+
+
+# -- the lazy namespace ---------------------------------------------------------------------------
+def test_lazy_exports_are_the_objects_of_their_modules():
+    from tubeid.runner.study import Study
+    from tubeid.uncertainty.random_matrices import sg_plus
+
+    assert tubeid.Study is Study and tubeid.sg_plus is sg_plus
+    import tubeid.mechanics as mech
+    from tubeid.mechanics.reduction import reduce
+
+    assert mech.reduce is reduce and tubeid.reduce is reduce
+
+
+@pytest.mark.parametrize("package", ["tubeid", "tubeid.mechanics", "tubeid.uncertainty", "tubeid.dynamics",
+                                     "tubeid.identification", "tubeid.measured", "tubeid.runner"])
+def test_every_public_name_is_a_lazy_export_and_listed_by_dir(package):
+    mod = importlib.import_module(package)
+    table = _lazy.lazy_table(mod.__file__)
+    assert set(mod.__all__) - {"__version__"} <= set(table), "in __all__ but not in the TYPE_CHECKING block"
+    assert set(mod.__all__) <= set(dir(mod))
+    for name, (module, attr) in table.items():
+        assert getattr(mod, name) is getattr(importlib.import_module(module), attr)
+
+
+def test_unknown_attribute_and_submodule_access():
+    with pytest.raises(AttributeError, match="no attribute 'nonexistent'"):
+        tubeid.nonexistent  # noqa: B018
+    assert tubeid.seeds is importlib.import_module("tubeid.seeds")
+    namespace: dict = {}
+    exec("from tubeid import *", namespace)  # every name of __all__ resolves
+    assert set(tubeid.__all__) <= set(namespace)
+
+
+def test_a_name_shared_with_a_submodule_stays_the_exported_object():
+    """``tubeid.measured.diagnose`` is a function and a module: importing the module first must not
+    rebind the package attribute to the module (it would, with a purely lazy binding)."""
+    code = ("import sys\nimport tubeid.measured.diagnose\nimport tubeid.measured as pkg\n"
+            "assert pkg.diagnose is sys.modules['tubeid.measured.diagnose'].diagnose, pkg.diagnose")
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_an_export_imports_only_what_it_needs():
+    loaded = _modules_after("from tubeid import read_measurements")
+    assert "xarray" in loaded and not loaded & {"numba", "distributed", "matplotlib"}
+
+
+def test_lazy_table_reads_only_the_type_checking_block(tmp_path):
+    init = tmp_path / "init.py"
+    init.write_text("from typing import TYPE_CHECKING\nfrom os import sep\n"
+                    "if TYPE_CHECKING:\n    from a.b import C, D as E\n    import ignored\n"
+                    "if other:\n    from x import y\n")
+    assert _lazy.lazy_table(str(init)) == {"C": ("a.b", "C"), "E": ("a.b", "D")}
