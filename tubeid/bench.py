@@ -82,7 +82,7 @@ def _run(args) -> int:
 def register(sub) -> None:
     p = sub.add_parser("bench", help="benchmark the hot paths against in-process baselines")
     p.add_argument("section", nargs="?", default="all", choices=("all", "j", "transient"),
-                   help="what to benchmark: j (Monte Carlo of J), transient (one realisation), all (default)")
+                   help="what to benchmark: j (Monte Carlo of J), transient (realisations of the solver chain), all (default)")
     p.add_argument("--json", action="store_true", help="print a JSON object")
     p.add_argument("--compile-time", action="store_true",
                    help="transient: also time the solver's compilation in a new process (empty numba cache)")

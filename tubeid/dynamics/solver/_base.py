@@ -60,9 +60,9 @@ class Stop:
 
 @dataclass(frozen=True)
 class TransientResult:
-    """Output of :func:`tubeid.dynamics.solver.simulate`.
+    """Output of :func:`tubeid.dynamics.solver.simulate` (immutable).
 
-    Attributes
+    Parameters
     ----------
     observations : xarray.DataArray (realisation, time, sensor) or None
         y = C q at t = j output_dt >= discard, in the units of C q (None with ``keep="stats"``).
@@ -75,9 +75,13 @@ class TransientResult:
         Number of open -> contact transitions in [discard, T].
     dt : xarray.DataArray (realisation,)
         Integration step used (s).
-    method, output_dt, discard
-        As given to ``simulate`` (discard in s, as given; the kept series starts at the first
-        output sample at or after it).
+    method : str
+        The method used.
+    output_dt : float
+        Output sampling (s).
+    discard : float
+        Discarded transient (s) as given; the kept series starts at the first output sample at
+        or after it.
     """
 
     observations: xr.DataArray | None
@@ -90,7 +94,14 @@ class TransientResult:
     discard: float
 
     def to_dataset(self) -> xr.Dataset:
-        """All arrays in one Dataset; method, output_dt and discard as attributes."""
+        """All arrays in one Dataset.
+
+        Returns
+        -------
+        xarray.Dataset
+            rms, contact_fraction, contact_events, dt (and observations unless None); method,
+            output_dt and discard as attributes.
+        """
         data = {
             "rms": self.rms,
             "contact_fraction": self.contact_fraction,

@@ -3,12 +3,14 @@ chosen method, registered as data in :data:`METHODS`."""
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from collections.abc import Callable, Sequence
+from typing import NamedTuple
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from tubeid._validation import one_of
-from tubeid.dynamics.solver._base import TransientResult, assemble_result
+from tubeid.dynamics.solver._base import Stop, TransientResult, assemble_result
 from tubeid.dynamics.solver._checks import prepare
 from tubeid.dynamics.solver._determinism import one_blas_thread
 from tubeid.dynamics.solver._exact import integrate_exact
@@ -35,7 +37,8 @@ METHODS = {
 }
 
 
-def choose_step(f_max, dt_load, output_dt=3e-3, method="exact", dt=None) -> float:
+def choose_step(f_max: float, dt_load: float, output_dt: float = 3e-3, method: str = "exact",
+                dt: float | None = None) -> float:
     """Integration step (s) for highest frequency ``f_max`` (Hz).
 
     Parameters
@@ -60,8 +63,10 @@ def choose_step(f_max, dt_load, output_dt=3e-3, method="exact", dt=None) -> floa
     return step_for(METHODS[method].step_rule, f_max, dt_load, output_dt, dt)
 
 
-def simulate(M, D, K, stops, B, C, loads, dt_load, *, output_dt=3e-3, dt=None, method="exact", keep="series",
-             discard=0.0, sensor_names=None) -> TransientResult:
+def simulate(M: ArrayLike, D: ArrayLike, K: ArrayLike, stops: Sequence[Stop], B: ArrayLike, C: ArrayLike,
+             loads: ArrayLike, dt_load: float, *, output_dt: float = 3e-3, dt: float | None = None,
+             method: str = "exact", keep: str = "series", discard: float = 0.0,
+             sensor_names: Sequence[str] | None = None) -> TransientResult:
     """Transient response of M q'' + D q' + K q + Σ_s b_s f_s(b_sᵀ q) = B F(t), y = C q, from rest.
 
     Parameters
@@ -101,9 +106,11 @@ def simulate(M, D, K, stops, B, C, loads, dt_load, *, output_dt=3e-3, dt=None, m
                 False)[0]
 
 
-def simulate_with_diagnostics(M, D, K, stops, B, C, loads, dt_load, *, output_dt=3e-3, dt=None, method="exact",
-                              keep="series", discard=0.0, sensor_names=None,
-                              refine_all=False) -> tuple[TransientResult, list[dict]]:
+def simulate_with_diagnostics(M: ArrayLike, D: ArrayLike, K: ArrayLike, stops: Sequence[Stop], B: ArrayLike,
+                              C: ArrayLike, loads: ArrayLike, dt_load: float, *, output_dt: float = 3e-3,
+                              dt: float | None = None, method: str = "exact", keep: str = "series",
+                              discard: float = 0.0, sensor_names: Sequence[str] | None = None,
+                              refine_all: bool = False) -> tuple[TransientResult, list[dict]]:
     """``simulate`` plus one dict of diagnostics per realisation (steps; for the exact method the
     flagged sub-steps, switches, rescans, exact evaluations and table properties). Tests and
     benchmarks only: ``refine_all=True`` sends every sub-step of the exact method through the exact

@@ -11,13 +11,16 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 from fractions import Fraction
 
 import numpy as np
 import scipy.linalg
+from numpy.typing import ArrayLike
 
 from tubeid._validation import positive
+from tubeid.dynamics.solver._base import Stop
 from tubeid.dynamics.solver._checks import check_stops, matrix_stack
 from tubeid.errors import SpecificationError
 
@@ -67,7 +70,7 @@ SYMPLECTIC_EULER_RULE = StepRule(
 )
 
 
-def highest_frequency(M, K, stops=()) -> float | np.ndarray:
+def highest_frequency(M: ArrayLike, K: ArrayLike, stops: Sequence[Stop] = ()) -> float | np.ndarray:
     """Highest undamped eigenfrequency (Hz) with every stop closed.
 
     Parameters
@@ -79,7 +82,8 @@ def highest_frequency(M, K, stops=()) -> float | np.ndarray:
 
     Returns
     -------
-    float for (N, N) matrices, else array (R,).
+    float or numpy.ndarray
+        f_max (Hz): a float for (N, N) matrices, else an array (R,).
     """
     Ms = matrix_stack("M", M)
     Ks = matrix_stack("K", K, Ms.shape[1])
