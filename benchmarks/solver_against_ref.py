@@ -71,6 +71,39 @@ def realisation(k: int, duration: float, delta: float = 0.45, delta_f: float = 0
     return (M, D, K, B, C, F, stops), clock() - t0
 
 
+_FIRST_CALL = """
+import sys, time
+sys.path.insert(0, {bench!r})
+import solver_against_ref as b
+mod = b.load_reference({ref!r}) if {which!r} == "ref" else __import__("tubeid.dynamics.solver", fromlist=["x"])
+case, _ = b.realisation(0, 3.0)
+M, D, K, B, C, F, stops = case
+st = [mod.Stop(b=x, gap=g, stiffness=k) for x, g, k in stops]
+w, c = time.perf_counter(), time.process_time()
+mod.simulate(M, D, K, st, B, C, F, 1e-3)
+print(time.perf_counter() - w, time.process_time() - c)
+"""
+
+
+def compile_times(ref: str, n: int) -> None:
+    """First call of the exact method in fresh processes with an empty numba cache, both solvers
+    alternately: wall and CPU seconds (the kernels' compilation dominates)."""
+    load_reference(ref)  # write the reference module once, outside the timed processes
+    out = {"ref": [], "new": []}
+    for _ in range(n):
+        for which in ("ref", "new"):
+            with tempfile.TemporaryDirectory() as cache:
+                env = dict(os.environ, NUMBA_CACHE_DIR=cache)
+                code = _FIRST_CALL.format(bench=os.path.dirname(os.path.abspath(__file__)), ref=ref, which=which)
+                res = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+                out[which].append(tuple(float(v) for v in res.stdout.split()[-2:]))
+    for which, v in out.items():
+        print(f"{which}: first call with an empty numba cache, wall " + ", ".join(f"{w:.1f}" for w, _ in v)
+              + " s; CPU " + ", ".join(f"{c:.1f}" for _, c in v) + " s")
+    print(f"ratio new/ref (CPU, mean): {np.mean([c for _, c in out['new']]) / np.mean([c for _, c in out['ref']]):.2f}; "
+          f"load average {os.getloadavg()[0]:.2f}")
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--ref", default="cd43bc9")
@@ -78,7 +111,11 @@ def main() -> None:
     p.add_argument("--duration", type=float, default=220.0)
     p.add_argument("--realisations", type=int, default=1)
     p.add_argument("--clock", choices=("cpu", "wall"), default="cpu")
+    p.add_argument("--compile", type=int, default=0, metavar="N",
+                   help="instead: time the first call (cold numba cache) of each solver in N fresh processes each")
     a = p.parse_args()
+    if a.compile:
+        return compile_times(a.ref, a.compile)
     clock = time.thread_time if a.clock == "cpu" else time.perf_counter
     from tubeid.dynamics import solver as new
     from tubeid.dynamics.spectra import psd_matrix
