@@ -1,6 +1,10 @@
 """Tests of tubeid.dynamics.solver against independent references (scipy DOP853, closed forms)."""
 
+import json
 import math
+import os
+import subprocess
+import sys
 import warnings
 
 import numpy as np
@@ -12,8 +16,8 @@ from tubeid.dynamics.solver import (
     choose_step,
     highest_frequency,
     simulate,
-    simulate_baseline,
 )
+from tubeid.dynamics.solver._simulate import simulate_with_diagnostics
 from tubeid.errors import SpecificationError
 from tubeid.seeds import rng_for
 
@@ -105,8 +109,7 @@ def test_two_stops_and_overdamped_mode_match_solve_ivp():
     F = 40.0 * rng_for(5, "solver-test-2stops").normal(size=(151, 1))
     s1 = Stop(np.array([1.0, 0, 0]), 2e-4, 5e5, name="a")
     s2 = Stop(np.array([0, 1.0, -1.0]), 1e-4, 2e5, name="b")
-    diag = []
-    res = simulate(M, D, K, [s1, s2], B, np.eye(N), F, DT_LOAD, output_dt=DT_LOAD, _diagnostics=diag)
+    res, diag = simulate_with_diagnostics(M, D, K, [s1, s2], B, np.eye(N), F, DT_LOAD, output_dt=DT_LOAD)
     assert not diag[0]["half_modes"]
     assert np.all(res.contact_events.values > 0)
     ref = reference(M, D, K, [s1, s2], B, np.eye(N), F, DT_LOAD)
@@ -156,14 +159,6 @@ def test_symplectic_euler_agrees_with_exact_at_small_step():
     assert 4 < err10 / err < 25, (err, err10)
 
 
-def test_baseline_agrees_with_symplectic_euler_kernel():
-    M, D, K, stop, B, C, F = contact_setup(n_t=51)
-    y_b, h = simulate_baseline(M, D, K, [stop], B, C, F, DT_LOAD, output_dt=DT_LOAD)
-    se = simulate(M, D, K, [stop], B, C, F, DT_LOAD, output_dt=DT_LOAD, dt=h, method="symplectic-euler")
-    # same scheme, same step; only summation order differs
-    np.testing.assert_allclose(y_b, se.observations.values[0], rtol=0, atol=1e-9 * np.max(np.abs(y_b)))
-
-
 def test_batch_equals_one_by_one_bitwise():
     M, D, K, stop, B, C, F0 = contact_setup(n_t=81)
     rng = rng_for(7, "batch")
@@ -181,9 +176,8 @@ def test_batch_equals_one_by_one_bitwise():
 def test_event_precheck_misses_nothing():
     """Default detection (Hermite pre-check with margin) vs exact re-examination of every step."""
     M, D, K, stop, B, C, F = contact_setup(n_t=1001)
-    d1, d2 = [], []
-    a = simulate(M, D, K, [stop], B, C, F, DT_LOAD, output_dt=DT_LOAD, _diagnostics=d1)
-    b = simulate(M, D, K, [stop], B, C, F, DT_LOAD, output_dt=DT_LOAD, _refine_all=True, _diagnostics=d2)
+    a, d1 = simulate_with_diagnostics(M, D, K, [stop], B, C, F, DT_LOAD, output_dt=DT_LOAD)
+    b, d2 = simulate_with_diagnostics(M, D, K, [stop], B, C, F, DT_LOAD, output_dt=DT_LOAD, refine_all=True)
     assert d1[0]["flagged_steps"] < d2[0]["flagged_steps"] == d2[0]["steps"]
     assert a.contact_events.values[0, 0] == b.contact_events.values[0, 0] > 20
     ya, yb = a.observations.values[0], b.observations.values[0]
@@ -303,52 +297,118 @@ def test_input_validation():
 
 def test_exact_evaluation_matches_block_rows_numpy_exp_and_its_derivatives():
     """The event path's exact evaluation of u, u', u'' (tabulated e^{lam tau} times a short series,
-    then one row product) against: the fast path's block rows at tau = h (different tables),
-    numpy's complex exp for the propagated modal state, and finite differences of itself, every
-    regime, random homogeneous state and piecewise-linear load."""
-    from tubeid.dynamics import solver as so
+    then the segment's modal coefficients) against: the fast path's block rows at tau = h (other
+    tables, other formula), numpy's complex exp for the propagated modal state, and finite
+    differences of itself; every regime, random homogeneous state and piecewise-linear load."""
+    from tubeid.dynamics.solver import _events, _modal, _regimes, _work
 
     M, D, K, stop, B, C, F = contact_setup()
-    h = choose_step(highest_frequency(M, K, [stop]), DT_LOAD)
+    f_max = highest_frequency(M, K, [stop])
+    h = choose_step(f_max, DT_LOAD)
     ns = int(round(DT_LOAD / h))
-    tb = so._build_tables(M, D, K, (stop,), B, C, h, ns, DT_LOAD)
+    tb, info = _regimes.build_tables(M, D, K, (stop,), B, C, h, ns, 2 * math.pi * f_max)
     rng = rng_for(4, "exact-evaluation")
-    n2, n2p, m = tb.lam.shape[1], tb.n2p, B.shape[1]
-    nx, nxl = 2 * n2p, tb.UC.shape[2]
+    n2, m = info["n_modes"], B.shape[1]
+    n2p = tb.lam_re.shape[1]
+    nx = 2 * n2p
+    W = _work.make_work(tb, C.shape[0])
+    lam = tb.lam_re[:, :n2] + 1j * tb.lam_im[:, :n2]
 
-    def evaluate(r, x0, f0, fdot, tau):
-        xl, us = np.zeros(nxl), np.zeros((3, 1))
-        ex = (tb.lr, tb.li, tb.Fr, tb.Fi, tb.CS, r, h, x0[:nx].reshape(2, n2p), xl, xl[:nx].reshape(2, n2p),
-              np.zeros(4), f0, fdot, 0.0)
-        so._exact_u(tau, ex, us)
-        return us[:, 0], xl[:nx]
+    def evaluate(r, tau):
+        _events.evaluate(tb.lam_re, tb.lam_im, tb.fine_re, tb.fine_im, tb.basis[r], h, tau, W.A, W.QS, W.E, W.ev)
+        return W.ev[:3].copy()
 
-    for r in range(tb.lam.shape[0]):
-        x0 = np.zeros(nxl)  # [zeta; f; f'; 1] at the segment start
+    for r in range(len(tb.codes)):
+        x0 = np.zeros(tb.block_rows.shape[2])  # [zeta; f; f'; 1] at the segment start
         x0[:n2], x0[n2p:n2p + n2] = rng.normal(size=(2, n2)) * 1e-6
         f0, fdot = rng.normal(size=m), rng.normal(size=m) / DT_LOAD
-        so._set_load(x0, nx, f0, fdot, 0.0)
-        # u, u' at tau = h from the block rows (table e^{lam h}, quasi-static rows at mm = 1):
+        x0[nx:nx + m], x0[nx + m:nx + 2 * m], x0[nx + 2 * m] = f0, fdot, 1.0
+        W.X[_work.X0] = x0
+        W.L[_work.FS, :m], W.L[_work.F1, :m] = f0, fdot
+        _events.segment_coefficients(tb, W, r, m, 0.0)
+        # u, u' at tau = h against the block rows (table e^{lam h}, quasi-static rows at mm = 1):
         # same quantity from different tables, round-off only (1e-12 of the scale)
-        (u, ud, udd), zt = evaluate(r, x0, f0, fdot, h)
-        col = np.zeros(tb.UC.shape[1])
-        so._rows8(tb.UC, r, 0, x0, nxl, col, 0)
+        u, ud, udd = evaluate(r, h)
+        col = tb.block_rows[r, :2] @ x0
         assert abs(col[0] - u) <= 1e-12 * abs(u) and abs(col[1] - ud) <= 1e-12 * abs(ud), (r, col[:2], u, ud)
         for tau in (0.0, 0.37 * h, h):
-            (u, ud, udd), zt = evaluate(r, x0, f0, fdot, tau)
             # the propagated homogeneous state: e^{lam tau} z to 1e-14 relative (table times a
             # degree-9 series: truncation < 1e-19, the rest is round-off)
+            _modal.expmul(tb.lam_re, tb.lam_im, tb.fine_re, tb.fine_im, tb.basis[r], h, tau, x0, W.X[_work.XS], W.E)
+            zt = W.X[_work.XS]
             zc = x0[:n2] + 1j * x0[n2p:n2p + n2]
-            want = np.exp(tb.lam[r] * tau) * zc
+            want = np.exp(lam[tb.basis[r]] * tau) * zc
             got = zt[:n2] + 1j * zt[n2p:n2p + n2]
             assert np.max(np.abs(got - want)) <= 1e-14 * np.max(np.abs(want))
             # u' and u'' against central differences of u and u' (step 1e-3 h: truncation ~1e-7
             # of the scale at the highest frequency, round-off ~1e-10): tolerance 1e-5
             e = 1e-3 * h
             t1, t2 = (tau - e, tau + e) if 0 < tau < h else ((tau, tau + 2 * e) if tau == 0 else (tau - 2 * e, tau))
-            (ua, uda, _), _z = evaluate(r, x0, f0, fdot, t1)
-            (ub, udb, _), _z = evaluate(r, x0, f0, fdot, t2)
-            mid = 0.5 * (t1 + t2)
-            (um, udm, uddm), _z = evaluate(r, x0, f0, fdot, mid)
+            ua, uda, _ = evaluate(r, t1)
+            ub, udb, _ = evaluate(r, t2)
+            um, udm, uddm = evaluate(r, 0.5 * (t1 + t2))
             assert abs((ub - ua) / (t2 - t1) - udm) <= 1e-5 * max(abs(udm), abs(um) / h), (r, tau)
             assert abs((udb - uda) / (t2 - t1) - uddm) <= 1e-5 * max(abs(uddm), abs(udm) / h), (r, tau)
+
+
+# ------------------------------------------------------------------ bit-identity across processes
+
+_BIT_IDENTITY_SCRIPT = """
+import hashlib, json
+from tubeid.dynamics.solver import Stop, simulate
+from tubeid.dynamics.solver import _fastpath
+from tubeid.mechanics import builtin_spec, reduce
+from tubeid.seeds import rng_for
+model = reduce(builtin_spec("paper-reference"))  # 50 coordinates: its tables depend on BLAS threads
+M, D, K = model.mean_matrices
+stops = [Stop(b=tuple(b), gap=s.gap, stiffness=s.stiffness) for b, s in zip(model.stop_vectors(), model.spec.stops)]
+B, C = model.load_matrix(), model.sensor_matrix()
+F = 40.0 * rng_for(11, "bit-identity").standard_normal((3001, B.shape[1]))
+y = simulate(M, D, K, stops, B, C, F, 1e-3, output_dt=1e-3).observations.values
+st = _fastpath.run_exact.stats
+print(json.dumps({"sha256": hashlib.sha256(y.tobytes()).hexdigest(), "compiled": sum(st.cache_misses.values()),
+                  "loaded": sum(st.cache_hits.values()), "contacts": int((abs(y[0, :, 0]) > 0).sum())}))
+"""
+
+
+def _run_in_subprocess(blas_threads: int, cache_dir) -> dict:
+    """The paper-reference model with contact for 3 s in a new process: hash of the series and
+    whether the kernel was compiled or loaded from numba's cache."""
+    env = dict(os.environ, OPENBLAS_NUM_THREADS=str(blas_threads), OMP_NUM_THREADS=str(blas_threads),
+               MKL_NUM_THREADS=str(blas_threads))
+    env["NUMBA_CACHE_DIR"] = str(cache_dir)
+    res = subprocess.run([sys.executable, "-c", _BIT_IDENTITY_SCRIPT], capture_output=True, text=True, env=env,
+                         timeout=900)
+    assert res.returncode == 0, res.stderr[-3000:]
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def test_results_do_not_depend_on_the_blas_threads_of_the_process():
+    """Dask workers run with one BLAS thread, a Python session may use several: the tables are
+    computed with one thread whatever the caller's setting (without that, on this 50-coordinate
+    model 1 and 2 threads give series that differ after a fraction of a second)."""
+    from threadpoolctl import threadpool_limits
+
+    from tubeid.mechanics import builtin_spec, reduce
+
+    model = reduce(builtin_spec("paper-reference"))
+    M, D, K = model.mean_matrices
+    stops = [Stop(b=tuple(b), gap=s.gap, stiffness=s.stiffness) for b, s in zip(model.stop_vectors(), model.spec.stops)]
+    B, C = model.load_matrix(), model.sensor_matrix()
+    F = 40.0 * rng_for(11, "bit-identity").standard_normal((3001, B.shape[1]))
+    series = []
+    for threads in (1, 2):
+        with threadpool_limits(limits=threads):
+            series.append(simulate(M, D, K, stops, B, C, F, DT_LOAD, output_dt=DT_LOAD).observations.values)
+    assert np.array_equal(series[0], series[1])
+
+
+@pytest.mark.slow
+def test_compiled_and_cached_kernels_give_the_same_bits(tmp_path):
+    """A process compiling the kernels into an empty numba cache and a process loading them from
+    that cache (with another BLAS thread count) produce the same bytes."""
+    cold = _run_in_subprocess(2, tmp_path / "numba-cache")
+    warm = _run_in_subprocess(1, tmp_path / "numba-cache")
+    assert cold["compiled"] >= 1 and cold["loaded"] == 0, cold  # the first process really compiled ...
+    assert warm["loaded"] >= 1 and warm["compiled"] == 0, warm  # ... and the second really loaded
+    assert cold["sha256"] == warm["sha256"], (cold, warm)

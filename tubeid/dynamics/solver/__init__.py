@@ -1,0 +1,53 @@
+"""Transient solver for linear structures with symmetric elastic stops.
+
+Equation (SI units, q in reduced coordinates), from rest (q = q' = 0)::
+
+    M q'' + D q' + K q + Σ_s b_s f_s(b_sᵀ q) = B F(t),     y = C q,
+    f_s(u) = k_s (|u| - g_s) sign(u)  if |u| > g_s  else 0.
+
+F is given by samples on a uniform grid of step dt_load and read as their continuous
+piecewise-linear interpolant.
+
+Method ``"exact"`` (default). The system is piecewise linear: each stop is open or in contact on
+one side, 3**S regimes. In each regime the modal equations are integrated exactly for the
+piecewise-linear load; nothing is approximated between regimes except the location of the
+switching instants, found by safeguarded Halley iterations on the exact closed form (tolerance
+1e-13 of the step), and a switch keeps the state continuous. A cubic-Hermite pre-check with a
+margin (4x the Hermite error of the highest mode) decides which sub-steps can contain a switch;
+the only approximation left is to miss a grazing excursion shallower than that margin.
+
+Method ``"symplectic-euler"`` (the semi-implicit Euler of industrial modal codes):
+v += dt M⁻¹ (B F - D v - K q - f); q += dt v. First order.
+
+Step rule (:func:`choose_step`): f_max is the highest undamped frequency with every stop closed
+(:func:`highest_frequency`; it bounds every regime). Exact: default dt <= 1/(4 f_max) (between
+events the solution is exact whatever the step; the step sets the pre-check's resolution), a user
+step above 1/(2 f_max) is refused (a whole contact oscillation can fall inside one step unseen),
+above 1/(3 f_max) warned. Symplectic Euler: default w_max dt <= 0.25, warned above 0.5, refused at
+2 (unstable). The paper's 3 ms is the OUTPUT sampling (MODEL.md section 3.7): as an integration
+step it is refused by both methods. Speed and accuracy figures: the README ("Performance") and
+``tubeid bench transient --json``.
+
+Module map (private modules behind this API):
+
+==================  ===========================================================================
+``_base``           :class:`Stop`, :class:`TransientResult` and the labelling of results
+``_checks``         every input check, up front: a validated ``Problem``
+``_step``           :func:`highest_frequency` and the methods' step rules
+``_simulate``       :func:`simulate`, :func:`choose_step` and the registry :data:`METHODS`
+``_exact``          method "exact": tables, scratch and kernel call of one realisation
+``_regimes``        the regimes' modal tables (numpy)
+``_work``           scratch arrays and counters of the exact kernels
+``_modal``          numba primitives on the modal state (row products, e^{λτ}, block advance)
+``_fastpath``       numba: the main loop (blocks of sub-steps, the event pre-check, outputs)
+``_events``         numba: a flagged sub-step integrated exactly (crossing search, switches)
+``_symplectic``     method "symplectic-euler" (numba kernel), the reference scheme
+``_determinism``    one BLAS thread for the tables: bit-identical results on any worker
+==================  ===========================================================================
+"""
+
+from tubeid.dynamics.solver._base import Stop, TransientResult
+from tubeid.dynamics.solver._simulate import METHODS, choose_step, simulate
+from tubeid.dynamics.solver._step import highest_frequency
+
+__all__ = ["Stop", "TransientResult", "simulate", "choose_step", "highest_frequency", "METHODS"]

@@ -1,0 +1,139 @@
+"""The solver's specification and result records: :class:`Stop` and :class:`TransientResult`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import xarray as xr
+
+from tubeid._validation import non_negative
+from tubeid.errors import Described, SpecificationError
+
+__all__ = ["Stop", "TransientResult", "assemble_result"]
+
+
+@dataclass(frozen=True)
+class Stop:
+    """A symmetric elastic stop acting on u = bᵀq.
+
+    Parameters
+    ----------
+    b : sequence of float, length N
+        Direction of the stop in the model's coordinates q (stored as a tuple); finite, not zero.
+    gap : float
+        g >= 0 (m).
+    stiffness : float
+        k >= 0 (N/m).
+    name : str
+        Label of the stop in results (default ``stop<i>``).
+
+    Notes
+    -----
+    Force on the structure: -b k (|u| - g) sign(u) for |u| > g, none otherwise. A zero gap makes
+    the stop a linear spring k b bᵀ (always in contact).
+    """
+
+    b: tuple
+    gap: float
+    stiffness: float
+    name: str = ""
+
+    def __post_init__(self):
+        try:
+            b = np.asarray(self.b, dtype=float).ravel()
+        except (TypeError, ValueError):
+            raise SpecificationError("stop.b", self.b, "must be a vector of real numbers") from None
+        if b.size == 0 or not np.all(np.isfinite(b)) or not np.any(b != 0):
+            raise SpecificationError("stop.b", self.b, "must be a finite, non-zero vector")
+        object.__setattr__(self, "b", tuple(float(v) for v in b))
+        object.__setattr__(self, "gap", non_negative("stop.gap", self.gap, "m"))
+        object.__setattr__(self, "stiffness", non_negative("stop.stiffness", self.stiffness, "N/m"))
+        if not isinstance(self.name, str):
+            raise SpecificationError("stop.name", Described(type(self.name).__name__), "must be a string")
+
+    @property
+    def vector(self) -> np.ndarray:
+        """b as a float array (N,)."""
+        return np.array(self.b)
+
+
+@dataclass(frozen=True)
+class TransientResult:
+    """Output of :func:`tubeid.dynamics.solver.simulate` (immutable).
+
+    Parameters
+    ----------
+    observations : xarray.DataArray (realisation, time, sensor) or None
+        y = C q at t = j output_dt >= discard, in the units of C q (None with ``keep="stats"``).
+    rms : xarray.DataArray (realisation, sensor)
+        Root mean square (not centred) of the observation samples at output_dt, t >= discard.
+    contact_fraction : xarray.DataArray (realisation, stop)
+        Fraction of [discard, T] with |u| > g (event-exact for the exact method, per step for
+        symplectic Euler); 1 for a stop with zero gap.
+    contact_events : xarray.DataArray (realisation, stop)
+        Number of open -> contact transitions in [discard, T].
+    dt : xarray.DataArray (realisation,)
+        Integration step used (s).
+    method : str
+        The method used.
+    output_dt : float
+        Output sampling (s).
+    discard : float
+        Discarded transient (s) as given; the kept series starts at the first output sample at
+        or after it.
+    """
+
+    observations: xr.DataArray | None
+    rms: xr.DataArray
+    contact_fraction: xr.DataArray
+    contact_events: xr.DataArray
+    dt: xr.DataArray
+    method: str
+    output_dt: float
+    discard: float
+
+    def to_dataset(self) -> xr.Dataset:
+        """All arrays in one Dataset.
+
+        Returns
+        -------
+        xarray.Dataset
+            rms, contact_fraction, contact_events, dt (and observations unless None); method,
+            output_dt and discard as attributes.
+        """
+        data = {
+            "rms": self.rms,
+            "contact_fraction": self.contact_fraction,
+            "contact_events": self.contact_events,
+            "dt": self.dt,
+        }
+        if self.observations is not None:
+            data["observations"] = self.observations
+        ds = xr.Dataset(data)
+        ds.attrs.update(method=self.method, output_dt=self.output_dt, discard=self.discard)
+        return ds
+
+
+def assemble_result(y, rms, contact_fraction, contact_events, dts, stops, sensors, output_dt, j0, method,
+                    discard) -> TransientResult:
+    """Label the solver's arrays: y (R, n_keep, n_obs) or None, rms (R, n_obs), contact_fraction
+    and contact_events (R, S), dts (R,); the kept series starts at output sample j0."""
+    R = len(dts)
+    stop_names = [s.name or f"stop{i}" for i, s in enumerate(stops)]
+    coords = {"realisation": np.arange(R), "sensor": list(sensors), "stop": stop_names}
+    data = {
+        "rms": (("realisation", "sensor"), rms, {"long_name": "RMS (not centred) of C q at output_dt, t >= discard"}),
+        "contact_fraction": (("realisation", "stop"), contact_fraction, {"long_name": "fraction of time with |u| > gap"}),
+        "contact_events": (("realisation", "stop"), contact_events, {"long_name": "number of open -> contact transitions"}),
+        "dt": (("realisation",), np.asarray(dts), {"units": "s"}),
+    }
+    if y is not None:
+        coords["time"] = (j0 + np.arange(y.shape[1])) * output_dt
+        data["observations"] = (("realisation", "time", "sensor"), y,
+                                {"long_name": "observation C q", "time_units": "s"})
+    ds = xr.Dataset(data, coords=coords)  # one set of indexes, shared by the arrays below
+    return TransientResult(
+        observations=ds["observations"] if y is not None else None, rms=ds["rms"],
+        contact_fraction=ds["contact_fraction"], contact_events=ds["contact_events"], dt=ds["dt"],
+        method=method, output_dt=output_dt, discard=discard)
