@@ -121,6 +121,31 @@ def test_j_closed_form_against_refined_quadrature():
     assert Jb[1] == pytest.approx(j_quadrature(sub.M, sub.D, 1.3 * sub.K, sub.n_c, 100.0, 32001), rel=1e-6, abs=0)
 
 
+def test_condensed_stiffness_against_a_two_dof_closed_form():
+    """Internal DOF (mass m, spring k0 and damper c0 to the ground) tied by k1 to the interface DOF:
+    Z(ω) = k1 − k1² / (k0 + k1 − ω² m + iω c0). Its imaginary part is the damping's (> 0 for ω > 0)."""
+    m, k0, k1, c0 = 3.0, 2e4, 5e3, 40.0
+    M = np.diag([m, 0.0])
+    D = np.diag([c0, 0.0])
+    K = np.array([[k0 + k1, -k1], [-k1, k1]])
+    w = np.array([0.0, 10.0, np.sqrt((k0 + k1) / m), 300.0])
+    Z = condensed_stiffness(M, D, K, 1, w)[:, 0, 0]
+    exact = k1 - k1**2 / (k0 + k1 - w**2 * m + 1j * w * c0)
+    np.testing.assert_allclose(Z, exact, rtol=1e-13, atol=0)
+    assert np.all(Z.imag[1:] > 0)
+
+
+def test_condensed_stiffness_of_the_paper_subsystem_is_passive():
+    """A damped structure dissipates: (Z − Zᴴ)/2i is positive semi-definite for ω > 0, negative for ω < 0."""
+    sub = reduce(builtin_spec("paper-simplified")).subsystem
+    w = 2 * np.pi * np.array([1.0, 5.4, 17.0, 60.0, 99.0])
+    Z = condensed_stiffness(sub.M, sub.D, sub.K, sub.n_c, np.concatenate([w, -w]))
+    dissipation = np.linalg.eigvalsh((Z - np.conj(np.swapaxes(Z, -1, -2))) / 2j)
+    scale = np.max(np.abs(Z), axis=(-2, -1))[:, None]
+    assert np.all(dissipation[: w.size] > -1e-12 * scale[: w.size]) and np.any(dissipation[: w.size] > 1e-6 * scale[: w.size])
+    assert np.all(dissipation[w.size:] < 1e-12 * scale[w.size:])
+
+
 def test_j_refuses_singular_reduced_mass():
     spec = builtin_spec("paper-simplified").replace(reduction=ReductionSpec(b_cutoff_hz=None))
     sub = reduce(spec).subsystem
