@@ -27,7 +27,6 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-import pyuff
 import xarray as xr
 
 from tubeid.errors import SpecificationError
@@ -38,6 +37,10 @@ from tubeid.mechanics.spec import load_spec, spec_from_dict, spec_to_dict
 from tubeid.seeds import rng_for
 
 import tubeid
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from test_measured import _ascii_uff, _claiming  # noqa: E402 - the tests' own hostile files
+from test_mechanics import HOSTILE, _paths  # noqa: E402
 
 REPO = Path(tubeid.__file__).resolve().parents[1]  # the tree under test (its cluster/tls kit too)
 SKIP_HUGE = False  # --no-huge: leave out the 150 M-sample header and the alias bomb (for unprotected code)
@@ -88,18 +91,6 @@ def _sweep(orig, full: Path, folder: Path, step=1):
     return out
 
 
-def _ascii_uff(path: Path, rec, positions: bool) -> Path:
-    sets = [pyuff.prepare_58(binary=0, id1=str(s), id4=f"tube=centre x={float(rec.x[j])}" if positions else "",
-                             func_type=1, rsp_node=j + 1, rsp_dir=1, ref_node=0, ref_dir=0, abscissa_spacing=1,
-                             abscissa_spec_data_type=17, abscissa_axis_units_lab="s", ordinate_spec_data_type=8,
-                             ordinate_axis_units_lab="m", orddenom_spec_data_type=0,
-                             data=rec.displacement.values[:, j], x=rec.time.values)
-            for j, s in enumerate(rec.sensor.values)]
-    path.write_bytes(b"")
-    pyuff.UFF(str(path)).write_sets(sets, mode="add")
-    return path
-
-
 def truncations(tmp: Path) -> dict:
     orig = _record()
     rows = {}
@@ -133,21 +124,6 @@ def truncations(tmp: Path) -> dict:
             f.write_bytes(good)
     rows["Zarr: each file deleted, emptied, garbage"] = out
     return rows
-
-
-def _claiming_nc(path: Path, n: int) -> Path:
-    import h5netcdf
-    import h5py
-
-    with h5netcdf.File(path, "w") as f:
-        f.dimensions = {"time": n, "sensor": 2}
-        f.create_variable("time", ("time",), float, chunks=(max(n // 100, 1),)).attrs["units"] = "s"
-        d = f.create_variable("displacement", ("time", "sensor"), float, chunks=(max(n // 100, 1), 2))
-        d.attrs.update(units="m", coordinates="x tube")
-        f.create_variable("sensor", ("sensor",), h5py.string_dtype())[:] = ["S1", "S2"]
-        f.create_variable("x", ("sensor",), float)[:] = [1.0, 2.0]
-        f.create_variable("tube", ("sensor",), h5py.string_dtype())[:] = ["centre", "centre"]
-    return path
 
 
 def values(tmp: Path) -> dict:
@@ -191,7 +167,7 @@ def values(tmp: Path) -> dict:
     cases["1000 sensors (NetCDF, CSV)"] = [write_measurements(wide, tmp / "wide.nc", validate=False),
                                             write_measurements(wide, tmp / "wide.csv", validate=False)]
     if not SKIP_HUGE:
-        cases["header claiming 150 M × 2 samples (NetCDF-4, a few kB)"] = [_claiming_nc(tmp / "claim.nc", 150_000_000)]
+        cases["header claiming 150 M × 2 samples (NetCDF-4, a few kB)"] = [_claiming(tmp / "claim.nc", 150_000_000, "h5netcdf")]
     out = {}
     for label, paths in cases.items():  # every case here is bad input: accepting it is a wrong value
         out[label] = collections.Counter(_invalid(_outcome(lambda p=p: read_measurements(p))) for p in paths)
@@ -200,20 +176,6 @@ def values(tmp: Path) -> dict:
 
 def _invalid(outcome: str) -> str:
     return "wrong" if outcome == "accepted" else outcome
-
-
-HOSTILE = ["16", "", None, True, [], {}, [1, 2], {"a": 1}, math.nan, math.inf, -math.inf, -1, 0, 1e308, 1e-308,
-           10**30, 10**5000, "x" * 10_000, 3.5, 7]
-
-
-def _paths(node, path=()):
-    if isinstance(node, dict):
-        for k, v in node.items():
-            yield from _paths(v, path + (k,))
-    elif isinstance(node, list):
-        for i, v in enumerate(node):
-            yield from _paths(v, path + (i,))
-    yield path
 
 
 #: Specification fields where None is a documented value (the ground, all modes, the stops' tube).
