@@ -112,7 +112,7 @@ def test_band_residual_is_zero_inside_and_log_distance_outside():
     f = np.arange(6.0)
     # DC and Nyquist bins are not compared: only bins 1..4 count -> sqrt((0 + 0 + 4 + 0)/4) = 1
     P6 = np.array([1e6, 5.0, 5.0, 1000.0, 5.0, 1e-6])
-    assert held_out_error(P6, np.full(6, 1.0), np.full(6, 10.0), f) == pytest.approx(1.0, rel=1e-12)
+    assert held_out_error(P6, np.full(6, 1.0), np.full(6, 10.0), f) == pytest.approx(1.0, rel=1e-12, abs=0)
 
 
 def test_measured_spectra_of_white_noise_match_the_two_sided_level():
@@ -178,7 +178,7 @@ def test_stop_signature_follows_low_rms_and_kurtosis_at_one_sensor():
     z = np.zeros((3, 3))
     z[2] = [-8.0, 0.0, -5.0]
     sig = signature_scores(f, med, lo, hi, med, z, sel, np.array(XS), 0.02)
-    assert sig["stop"]["score"] == pytest.approx(0.5)
+    assert sig["stop"]["score"] == pytest.approx(0.5, abs=0)
     assert sig["stop"]["estimate"]["x"] == 10.0
 
 

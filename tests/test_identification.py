@@ -73,8 +73,8 @@ def test_delta_identification_recovers_a_known_delta():
 
 def test_model_to_model_likelihood_is_computed_and_labelled():
     ds = identify_delta(n_realisations=60, n_bootstrap=20, deltas=np.linspace(0.05, 0.8, 16))
-    assert ds.attrs["J_ref"] == pytest.approx(reference_j("paper-reference"))
+    assert ds.attrs["J_ref"] == pytest.approx(reference_j("paper-reference"), abs=0)
     assert set(ds.data_vars) >= {"likelihood", "log_likelihood", "likelihood_std", "J"}
     assert np.all(np.isfinite(ds.log_likelihood))
     sub = reduce(builtin_spec("paper-reference")).subsystem
-    assert ds.attrs["J_ref"] == pytest.approx(float(j_functional(sub.M, sub.D, sub.K, 3, 100.0)))
+    assert ds.attrs["J_ref"] == pytest.approx(float(j_functional(sub.M, sub.D, sub.K, 3, 100.0)), abs=0)

@@ -136,7 +136,7 @@ def test_psd_factor_both_paths():
     S_pd = A @ np.conj(np.swapaxes(A, -1, -2))  # Hermitian PD
     L = psd_factor(S_pd)
     np.testing.assert_allclose(np.conj(np.swapaxes(L, -1, -2)) @ L, S_pd, rtol=0, atol=1e-12 * np.abs(S_pd).max())
-    assert np.allclose(np.tril(L[0], -1), 0)  # Cholesky path: upper triangular (the paper's L_F)
+    assert np.allclose(np.tril(L[0], -1), 0, atol=0)  # Cholesky path: upper triangular (the paper's L_F)
     B = A[:, :, :2]
     S_sing = B @ np.conj(np.swapaxes(B, -1, -2))  # rank 2: eigen square root path
     L = psd_factor(S_sing)

@@ -147,13 +147,13 @@ def test_lab_ascii_uff_with_sidecar_positions_and_mm(tmp_path):
 @pytest.mark.parametrize("unit, metres", [("m", 1.0), ("mm", 1e-3), ("um", 1e-6), ("\u00b5m", 1e-6),
                                           ("\u03bcm", 1e-6), ("micron", 1e-6), ("nm", 1e-9)])
 def test_units_to_metres_in_memory(unit, metres):
-    values = np.full((4, 3), 2.5)
-    values[1] = -1.0  # not constant (a constant channel is refused as dead)
-    values[2] = 0.5
+    values = np.full((4, 3), 2.5e-4)  # within the plausibility bound of 1 m in every unit
+    values[1] = -1e-4  # not constant (a constant channel is refused as dead)
+    values[2] = 0.5e-4
     ds = validate_measurements(raw_dataset(values, units=unit))
     assert ds.displacement.attrs["units"] == "m"
-    # One multiplication by the table factor: within 1 ulp of the closed form 2.5 * metres.
-    np.testing.assert_allclose(ds.displacement.values[0], 2.5 * metres, rtol=2.3e-16, atol=0)
+    # One multiplication by the table factor: within 1 ulp of the closed form 2.5e-4 * metres.
+    np.testing.assert_allclose(ds.displacement.values[0], 2.5e-4 * metres, rtol=2.3e-16, atol=0)
 
 
 def test_csv_in_mm_converted_to_m(tmp_path, record):
@@ -316,12 +316,13 @@ def test_refuses_clipped_channel(tmp_path):
     clipped = good.copy()
     clipped[:, 1] = np.clip(clipped[:, 1], -10, 2.0)  # saturates the top only, ~2.3 % of samples
     t = np.arange(8192) / FS
-    assert read_measurements(good_csv(tmp_path / "fine.csv", values=good, t=t)).sizes["sensor"] == 2
-    path = good_csv(tmp_path / "clip.csv", values=clipped, t=t)
+    um = ("um", "um")  # unit-variance records in µm: plausible tube vibrations
+    assert read_measurements(good_csv(tmp_path / "fine.csv", values=good, t=t, units=um)).sizes["sensor"] == 2
+    path = good_csv(tmp_path / "clip.csv", values=clipped, t=t, units=um)
     refused(lambda: read_measurements(path), "clip.csv", "'S2'", "clipped", "maximum")
     dead = good.copy()
     dead[:, 0] = 0.0
-    refused(lambda: validate_measurements(raw_dataset(dead, names=("a", "b"), x=(0.1, 0.2), tube=("c", "c"))),
+    refused(lambda: validate_measurements(raw_dataset(dead, names=("a", "b"), x=(0.1, 0.2), tube=("c", "c"), units="um")),
             "'a'", "constant")
 
 
@@ -340,7 +341,7 @@ def test_clipping_rule_does_not_fire_on_gaussian_data(kind):
             y = np.round(y / step) * step
         elif kind == "white32":
             y = y.astype(np.float32).astype(float)
-        validate_measurements(raw_dataset(y[:, None], names=("s",), x=(0.5,), tube=("c",)))
+        validate_measurements(raw_dataset(y[:, None], names=("s",), x=(0.5,), tube=("c",), units="um"))
 
 
 def test_refuses_fewer_than_two_samples(tmp_path):
@@ -375,7 +376,7 @@ def test_refuses_malformed_csv(tmp_path):
     path = tmp_path / "text.csv"
     path.write_text("time,S1\n0.0,abc\n0.001,1e-4\n")
     sidecar_path(path).write_text("sensor,tube,x\nS1,centre,0.1\n")
-    refused(lambda: read_measurements(path), "text.csv", "CSV of numbers")
+    refused(lambda: read_measurements(path), "text.csv: line 2, column 'S1' = 'abc': must be a number")
     path.write_text("t,S1\n0.0,1e-4\n")
     refused(lambda: read_measurements(path), "text.csv", "time,<sensor>")
 
@@ -434,3 +435,302 @@ def test_zarr_writer_will_not_overwrite_a_foreign_directory(tmp_path, record):
     path = write_measurements(record, tmp_path / "ok.zarr")
     write_measurements(record, path)  # an existing store is replaced
     xr.testing.assert_identical(read_measurements(path).displacement, record.displacement)
+
+
+# --------------------------------------------------------------------------- whole files only
+def _small_record(n=12, m=3) -> xr.Dataset:
+    return validate_measurements(raw_dataset(gaussian(n, m, key="small", scale=1e-6), t0=0.25, names=("S1", "S2", "S3")[:m],
+                                             x=(0.10, 0.55, 0.30)[:m], tube=("centre", "centre", "north")[:m]))
+
+
+def _read_cut(orig: xr.Dataset, path: Path) -> str:
+    """What reading a cut file gives: 'refused', 'identical', 'prefix' (the first rows, exact) or
+    'fewer channels' (some channels, exact); anything else fails the test (a wrong value)."""
+    try:
+        back = read_measurements(path)
+    except SpecificationError:
+        return "refused"
+    a, b = orig.displacement.values, back.displacement.values
+    names = list(orig.sensor.values)
+    if b.shape == a.shape and np.array_equal(a, b):
+        return "identical"
+    if b.shape[1] == a.shape[1] and np.array_equal(a[: b.shape[0]], b):
+        return "prefix"
+    assert all(np.array_equal(a[:, names.index(s)], b[:, j]) for j, s in enumerate(back.sensor.values)), path
+    return "fewer channels"
+
+
+def _cuts(orig, full: Path, folder: Path, step: int = 1):
+    """Cut ``full`` at every ``step``-th byte (its sidecar kept whole) and count the outcomes."""
+    folder.mkdir()
+    cut = folder / full.name
+    if sidecar_path(full).exists():
+        sidecar_path(cut).write_bytes(sidecar_path(full).read_bytes())
+    data, counts = full.read_bytes(), {}
+    for k in range(0, len(data), step):
+        cut.write_bytes(data[:k])
+        outcome = _read_cut(orig, cut)
+        counts[outcome] = counts.get(outcome, 0) + 1
+    return counts
+
+
+def test_csv_cut_anywhere_is_refused_or_reads_as_the_exact_first_rows(tmp_path):
+    """988 cut points of a 12-row CSV: before, 206 read wrong values; now a cut is refused unless it
+    falls exactly on a line break, where the file is a shorter record of exact values (10 points)."""
+    orig = _small_record()
+    full = write_measurements(orig, tmp_path / "r.csv")
+    counts = _cuts(orig, full, tmp_path / "cut")
+    assert counts == {"refused": len(full.read_bytes()) - 10, "prefix": 10}
+
+
+def test_a_number_cut_short_is_refused_naming_file_line_and_column(tmp_path):
+    path = good_csv(tmp_path / "rec.csv", values=gaussian(6, 2, key="cut", scale=1e-6))
+    text = path.read_text()
+    last = text.rstrip("\n").split("\n")[-1].split(",")[-1]
+    assert len(last) > 10
+    path.write_text(text[: len(text) - 1 - (len(last) - 5)])  # the last value keeps 5 characters
+    refused(lambda: read_measurements(path), "rec.csv: line 7, column 'S2'", repr(last[:5]), "cut short")
+    path.write_text(text.replace("\n", "\n\n", 1)[:-1] + "\n")  # a blank line is harmless
+    assert read_measurements(path).sizes["time"] == 6
+    lines = text.split("\n")
+    lines[3] = lines[3].rsplit(",", 1)[0]  # a row with a field missing
+    path.write_text("\n".join(lines))
+    refused(lambda: read_measurements(path), "rec.csv: line 4", "2 fields", "header's 3 fields")
+    sidecar_path(path).write_text("sensor,tube,x\nS1,centre,0.1\nS2,centre,0.")  # a cut sidecar
+    path.write_text(text)
+    refused(lambda: read_measurements(path), "rec.sensors.csv: line 3, column 'x'", "cut short")
+
+
+def _ascii_uff(path: Path, rec: xr.Dataset, positions: bool) -> Path:
+    """An ASCII UFF 58 file as a lab tool writes it (pyuff directly; no 'channel k of n' lines)."""
+    sets = []
+    for j, name in enumerate(rec.sensor.values):
+        sets.append(pyuff.prepare_58(
+            binary=0, id1=str(name), id4=f"tube=centre x={0.1 * (j + 1)}" if positions else "", func_type=1,
+            rsp_node=j + 1, rsp_dir=1, ref_node=0, ref_dir=0, abscissa_spacing=1, abscissa_spec_data_type=17,
+            abscissa_axis_units_lab="s", ordinate_spec_data_type=8, ordinate_axis_units_lab="m",
+            orddenom_spec_data_type=0, data=rec.displacement.values[:, j], x=rec.time.values))
+    path.write_bytes(b"")
+    pyuff.UFF(str(path)).write_sets(sets, mode="add")
+    return path
+
+
+def test_uff_cut_anywhere_is_refused(tmp_path):
+    """pyuff silently drops an unclosed last dataset: before, 2228 of 3342 cut points of a 3-channel
+    binary file read as fewer channels. Now every cut inside a dataset is refused, and so is a cut
+    between datasets of a file tubeid wrote ('channel k of n') or whose sidecar lists every channel."""
+    orig = _small_record()
+    full = write_measurements(orig, tmp_path / "r.uff")
+    # (the one cut that only drops the final line break reads the whole record)
+    assert _cuts(orig, full, tmp_path / "binary") == {"refused": len(full.read_bytes()) - 1, "identical": 1}
+    lab = _ascii_uff(tmp_path / "lab.uff", orig, positions=False)
+    sidecar_path(lab).write_text("sensor,tube,x\nS1,centre,0.1\nS2,centre,0.2\nS3,centre,0.3\n")
+    counts = _cuts(validate_measurements(read_measurements(lab)), lab, tmp_path / "ascii", step=3)
+    assert set(counts) == {"refused"}
+    # A lab file with positions in ID line 4 and no sidecar says nothing of its channel count: a cut
+    # exactly between two datasets (a few bytes each) reads as fewer channels of exact values.
+    # (per byte: 3485 refused, 12 fewer channels, 1 whole; every 5th byte here, for time)
+    alone = _ascii_uff(tmp_path / "alone.uff", orig, positions=True)
+    counts = _cuts(validate_measurements(read_measurements(alone)), alone, tmp_path / "alone", step=5)
+    assert counts["refused"] > 0.99 * len(range(0, len(alone.read_bytes()), 5)) and counts.get("fewer channels", 0) <= 12
+    assert set(counts) <= {"refused", "fewer channels", "identical"}
+
+
+def test_uff_dataset_holding_fewer_values_than_its_header_declares_is_refused(tmp_path):
+    orig = _small_record()
+    lab = _ascii_uff(tmp_path / "lab.uff", orig, positions=True)
+    lines = lab.read_text().split("\n")
+    record7 = next(i for i, line in enumerate(lines) if line.startswith("         4        12"))
+    lines[record7] = lines[record7].replace("         4        12", "         4        13", 1)
+    lab.write_text("\n".join(lines))
+    refused(lambda: read_measurements(lab), "lab.uff: channel 'S1' data", "12 values", "declares 13", "incomplete")
+
+
+def test_whole_concatenated_uff_files_are_read(tmp_path):
+    """Files written by tubeid and joined whole (cat a.uff b.uff) keep every channel."""
+    a = write_measurements(_small_record(m=2), tmp_path / "a.uff")
+    other = validate_measurements(raw_dataset(gaussian(12, 1, key="o", scale=1e-6), names=("S9",), x=(0.2,),
+                                              tube=("north",), t0=0.25))
+    b = write_measurements(other, tmp_path / "b.uff")
+    both = tmp_path / "both.uff"
+    both.write_bytes(a.read_bytes() + b.read_bytes())
+    assert list(read_measurements(both).sensor.values) == ["S1", "S2", "S9"]
+    both.write_bytes(b.read_bytes() + a.read_bytes()[: len(a.read_bytes()) // 2 + 1])
+    refused(lambda: read_measurements(both), "dataset", "cut short")
+
+
+@pytest.mark.parametrize("name, fmt, step", [("r.nc", None, 37), ("r3.nc", "netcdf3", 3)])
+def test_netcdf_cut_anywhere_is_refused(tmp_path, name, fmt, step):
+    orig = _small_record()
+    full = write_measurements(orig, tmp_path / name, format=fmt)
+    counts = _cuts(orig, full, tmp_path / "cut", step=step)
+    assert counts == {"refused": len(range(0, len(full.read_bytes()), step))}
+
+
+def _claiming(path: Path, n: int, engine: str) -> Path:
+    """A record whose metadata claims n × 2 float64 samples but which holds no data (a few kB):
+    written small, then its declared sizes raised (Zarr), or made with h5netcdf without writing."""
+    if engine == "zarr":
+        import json
+
+        write_measurements(raw_dataset(gaussian(100, 2, key="claim", scale=1e-6), names=("S1", "S2"), x=(1.0, 2.0),
+                                       tube=("c", "c")), path)
+        for name in ("displacement", "time"):
+            meta = json.loads((path / name / "zarr.json").read_text())
+            meta["shape"][0] = n
+            (path / name / "zarr.json").write_text(json.dumps(meta))
+        return path
+    import h5netcdf
+    import h5py
+
+    with h5netcdf.File(path, "w") as f:
+        f.dimensions = {"time": n, "sensor": 2}
+        f.create_variable("time", ("time",), float, chunks=(n // 100,)).attrs["units"] = "s"
+        d = f.create_variable("displacement", ("time", "sensor"), float, chunks=(n // 100, 2))
+        d.attrs.update(units="m", coordinates="x tube")
+        f.create_variable("sensor", ("sensor",), h5py.string_dtype())[:] = ["S1", "S2"]
+        f.create_variable("x", ("sensor",), float)[:] = [1.0, 2.0]
+        f.create_variable("tube", ("sensor",), h5py.string_dtype())[:] = ["c", "c"]
+    return path
+
+
+@pytest.mark.parametrize("name, engine", [("huge.nc", "h5netcdf"), ("huge.zarr", "zarr")])
+def test_claimed_size_is_refused_before_anything_is_loaded(tmp_path, monkeypatch, name, engine):
+    """A 6 kB header claiming 150 M × 2 samples took 6.2 GB before its refusal: now refused from the
+    metadata, naming the claimed size and the limit, and nothing is loaded."""
+    path = _claiming(tmp_path / name, 150_000_000, engine)
+    assert sum(f.stat().st_size for f in ([path] if path.is_file() else path.rglob("*"))) < 100_000
+
+    def no_load(self, **kw):
+        raise AssertionError("loaded before the size check")
+
+    monkeypatch.setattr(xr.Dataset, "load", no_load)
+    refused(lambda: read_measurements(path), name, "(time 150000000, sensor 2) of 3.35 GiB",
+            "larger than the memory limit 2.00 GiB", "tubeid.io.max-bytes")
+    import dask.config
+
+    monkeypatch.undo()
+    small = _claiming(tmp_path / ("small" + name), 1000, engine)
+    with dask.config.set({"tubeid.io.max-bytes": "10 kB"}):  # configurable
+        refused(lambda: read_measurements(small), "claiming (time 1000, sensor 2) of 2", "larger than the memory limit 9.77 kiB")
+
+
+def test_large_text_files_are_refused_before_they_are_read(tmp_path):
+    import dask.config
+
+    path = good_csv(tmp_path / "rec.csv")
+    size = path.stat().st_size
+    with dask.config.set({"tubeid.io.max-bytes": size - 1}):
+        refused(lambda: read_measurements(path), "rec.csv", "CSV file of", "larger than the memory limit")
+    assert read_measurements(path).sizes["sensor"] == 2
+
+
+@pytest.mark.filterwarnings("ignore:Object at displacement is not recognized")
+def test_zarr_with_a_missing_or_damaged_chunk_is_refused(tmp_path):
+    orig = _small_record(n=64)
+    path = tmp_path / "rec.zarr"
+    readers._strings_as_objects(orig.chunk({"time": 16})).to_zarr(path, consolidated=False)  # 4 chunks
+    assert read_measurements(path).sizes["time"] == 64
+    chunks = sorted((path / "displacement" / "c").rglob("*"))
+    chunks = [c for c in chunks if c.is_file()]
+    assert len(chunks) == 4
+    good = chunks[2].read_bytes()
+    chunks[2].unlink()
+    refused(lambda: read_measurements(path), "rec.zarr: displacement", "3 of 4 chunks present", "fill value")
+    chunks[2].write_bytes(b"\x00garbage" * 8)
+    refused(lambda: read_measurements(path), "rec.zarr", "cannot be read as Zarr")
+    chunks[2].write_bytes(good)
+    (path / "displacement" / "zarr.json").unlink()
+    refused(lambda: read_measurements(path), "rec.zarr", "displacement")
+
+
+# --------------------------------------------------------------------------- plausibility
+def test_implausible_amplitudes_are_refused_naming_sensor_value_and_bound(tmp_path):
+    import dask.config
+
+    values = gaussian(200, 3, key="amp", scale=1e-6)
+    values[57, 1] = 1e294
+    refused(lambda: validate_measurements(raw_dataset(values)), "channel 'S2' displacement[57]", "1e+294 m",
+            "beyond ± 1 m", "tubeid.io.max-displacement")
+    values[57, 1] = 3e-6
+    path = good_csv(tmp_path / "mm.csv", values=values[:, :2] * 1e3 * 2e5, units=("mm", "mm"))  # ~0.2 m
+    assert read_measurements(path).sizes["sensor"] == 2
+    with dask.config.set({"tubeid.io.max-displacement": 0.1}):
+        refused(lambda: read_measurements(path), "mm.csv: channel", "beyond ± 0.1 m")
+
+
+def test_integer_samples_need_an_explicit_scale(tmp_path):
+    counts = np.round(gaussian(300, 3, key="int", scale=1000.0)).astype(np.int16)
+    raw = raw_dataset(counts, units="um")
+    raw["displacement"] = raw.displacement.astype(np.int16)
+    refused(lambda: validate_measurements(raw), "displacement.dtype = 'int16'", "explicit scale", "scale_factor")
+    raw.displacement.attrs.update(scale_factor=0.05, add_offset=1.0)
+    ds = validate_measurements(raw)
+    np.testing.assert_array_equal(ds.displacement.values, (counts * 0.05 + 1.0) * 1e-6)
+    # In a file: CF packing (integers + scale_factor) is unpacked by xarray; without it refused,
+    # also when a _FillValue made xarray hand the integers over as floats.
+    packed = tmp_path / "packed.nc"
+    raw.to_netcdf(packed, engine="h5netcdf")
+    np.testing.assert_allclose(read_measurements(packed).displacement.values, ds.displacement.values, rtol=1e-15, atol=0)
+    bare = raw.copy()
+    bare["displacement"] = bare.displacement.copy()
+    bare.displacement.attrs.pop("scale_factor")
+    bare.displacement.attrs.pop("add_offset")
+    bare.displacement.encoding["_FillValue"] = -32768
+    bare.to_netcdf(tmp_path / "bare.nc", engine="h5netcdf")
+    refused(lambda: read_measurements(tmp_path / "bare.nc"), "bare.nc: displacement.dtype = 'int16'", "explicit scale")
+
+
+def test_integer_csv_columns_need_a_scale_in_the_sidecar(tmp_path):
+    counts = np.round(gaussian(100, 2, key="csvint", scale=1000.0)).astype(int)
+    path = tmp_path / "counts.csv"
+    rows = [f"{i / FS!r},{a},{b}" for i, (a, b) in enumerate(counts)]
+    path.write_text("time,S1,S2\n" + "\n".join(rows) + "\n")
+    sidecar_path(path).write_text("sensor,tube,x,units\nS1,centre,0.1,um\nS2,centre,0.2,um\n")
+    refused(lambda: read_measurements(path), "channel 'S1' = integer values only", "explicit scale", "'scale' column")
+    sidecar_path(path).write_text("sensor,tube,x,units,scale\nS1,centre,0.1,um,0.05\nS2,centre,0.2,um,0.05\n")
+    np.testing.assert_array_equal(read_measurements(path).displacement.values, counts * 0.05 * 1e-6)
+    sidecar_path(path).write_text("sensor,tube,x,units,scale\nS1,centre,0.1,um,-1\nS2,centre,0.2,um,0.05\n")
+    refused(lambda: read_measurements(path), "channel 'S1' scale = '-1'", "> 0")
+
+
+def test_too_many_sensors_are_refused_with_a_memory_estimate(tmp_path):
+    values = gaussian(50, 1000, key="many", scale=1e-6)
+    names = [f"s{j}" for j in range(1000)]
+    raw = raw_dataset(values, names=names, x=np.linspace(0, 1, 1000), tube=["c"] * 1000)
+    refused(lambda: validate_measurements(raw), "sensor = 1000 sensors", "at most 64",
+            "15.26 MiB per frequency bin", "14.90 GiB per realisation")
+    path = tmp_path / "wide.csv"
+    path.write_text("time," + ",".join(names) + "\n")
+    refused(lambda: read_measurements(path), "wide.csv: header = 1000 sensors", "at most 64")
+
+
+# --------------------------------------------------------------------------- hostile records, end to end
+def _hostile_records(tmp_path: Path) -> dict[str, tuple[Path, str]]:
+    rec = validate_measurements(raw_dataset(gaussian(64, 3, key="hostile", scale=1e-6), tube=("centre",) * 3,
+                                            x=(2.0, 6.0, 10.0)))  # on the centre tube of paper-simplified
+    cases = {}
+    p = write_measurements(rec, tmp_path / "cut.csv")
+    p.write_bytes(p.read_bytes()[:-9])
+    cases["csv cut inside a number"] = (p, "cut short")
+    p = write_measurements(rec, tmp_path / "cut.uff")
+    p.write_bytes(p.read_bytes()[:-100])
+    cases["uff cut inside its last dataset"] = (p, "never closed")
+    cases["netcdf claiming 150 M samples"] = (_claiming(tmp_path / "huge.nc", 150_000_000, "h5netcdf"), "memory limit")
+    big = rec.copy(deep=True)
+    big["displacement"][3, 1] = 1e294
+    cases["amplitude 1e294 m"] = (write_measurements(big, tmp_path / "big.nc", validate=False), "implausible")
+    return cases
+
+
+def test_hostile_records_are_refused_by_the_api_and_the_cli(tmp_path, capsys):
+    """tubeid.read_measurements and `tubeid diagnose` give the refusal, never a traceback."""
+    import tubeid
+    from tubeid.cli import main
+
+    for what, (path, words) in _hostile_records(tmp_path).items():
+        refused(lambda: tubeid.read_measurements(path), path.name, words)
+        assert main(["diagnose", str(path), "--out", str(tmp_path / "out"), "--workers", "0"]) == 2, what
+        err = capsys.readouterr().err
+        assert err.startswith("tubeid: error: ") and path.name in err and words in err, (what, err)
+        assert "Traceback" not in err

@@ -38,9 +38,9 @@ def _sg_plus_j_from_zero(n, delta, m, rng):
 
 def test_delta_max_values():
     # MODEL.md: n = 22 gives sqrt(23/27), n = 2 gives sqrt(3/7)
-    assert delta_max(22) == pytest.approx(math.sqrt(23 / 27), rel=1e-15)
-    assert delta_max(2) == pytest.approx(math.sqrt(3 / 7), rel=1e-15)
-    assert delta_max(1) == pytest.approx(math.sqrt(2 / 6), rel=1e-15)
+    assert delta_max(22) == pytest.approx(math.sqrt(23 / 27), rel=1e-15, abs=0)
+    assert delta_max(2) == pytest.approx(math.sqrt(3 / 7), rel=1e-15, abs=0)
+    assert delta_max(1) == pytest.approx(math.sqrt(2 / 6), rel=1e-15, abs=0)
 
 
 def test_shapes_symmetry_positivity_and_reproducibility():

@@ -119,24 +119,24 @@ def test_summary_values_are_those_of_the_identification_functions(full):
     d = groups["delta"]
     curve = likelihood_curve(d.J, d.attrs["J_ref"], d.delta.values, "delta", n_bootstrap=N_BOOT,
                              rng=rng_for(2008, "report", "delta"))
-    assert q["delta_opt"]["value"] == pytest.approx(curve.attrs["argmax"], rel=1e-12)
-    assert q["delta_opt"]["std"] == pytest.approx(curve.attrs["argmax_std"], rel=1e-12)
-    assert q["delta_opt"]["low"] == pytest.approx(curve.attrs["argmax_low"], rel=1e-12)
+    assert q["delta_opt"]["value"] == pytest.approx(curve.attrs["argmax"], rel=1e-12, abs=0)
+    assert q["delta_opt"]["std"] == pytest.approx(curve.attrs["argmax_std"], rel=1e-12, abs=0)
+    assert q["delta_opt"]["low"] == pytest.approx(curve.attrs["argmax_low"], rel=1e-12, abs=0)
 
     dm = distance_map(groups["load_r"].psd, groups["response"].psd_reference, n_bootstrap=N_BOOT,
                       rng=rng_for(2008, "report", "load_r"))
     for n, key in enumerate(("r1_opt", "r2_opt")):
-        assert q[key]["value"] == pytest.approx(dm.attrs["r_opt"][n], rel=1e-12)
-        assert q[key]["std"] == pytest.approx(dm.attrs["r_opt_std"][n], rel=1e-12)
-    assert s["details"]["load_r"]["D_min"] == pytest.approx(dm.attrs["D_min"], rel=1e-12)
+        assert q[key]["value"] == pytest.approx(dm.attrs["r_opt"][n], rel=1e-12, abs=0)
+        assert q[key]["std"] == pytest.approx(dm.attrs["r_opt_std"][n], rel=1e-12, abs=0)
+    assert s["details"]["load_r"]["D_min"] == pytest.approx(dm.attrs["D_min"], rel=1e-12, abs=0)
     # the synthetic store was built around r = (18, 20) with 15 % noise on 3 records
-    assert q["r1_opt"]["value"] == pytest.approx(18.0, rel=0.1)
-    assert q["r2_opt"]["value"] == pytest.approx(20.0, rel=0.1)
+    assert q["r1_opt"]["value"] == pytest.approx(18.0, rel=0.1, abs=0)
+    assert q["r2_opt"]["value"] == pytest.approx(20.0, rel=0.1, abs=0)
 
     lf = groups["load_delta_f"]
     lk = delta_f_likelihood(lf.J_s, lf.attrs["J_s_exp"], n_bootstrap=N_BOOT, rng=rng_for(2008, "report", "load_delta_f"))
-    assert q["delta_F_opt"]["value"] == pytest.approx(lk.attrs["delta_F_opt"], rel=1e-12)
-    assert q["delta_F_opt"]["std"] == pytest.approx(lk.attrs["delta_F_opt_std"], rel=1e-12)
+    assert q["delta_F_opt"]["value"] == pytest.approx(lk.attrs["delta_F_opt"], rel=1e-12, abs=0)
+    assert q["delta_F_opt"]["std"] == pytest.approx(lk.attrs["delta_F_opt_std"], rel=1e-12, abs=0)
 
     for key, paper in [("delta_opt", 0.45), ("r1_opt", 18.0), ("r2_opt", 20.0), ("delta_F_opt", 0.04)]:
         assert q[key]["paper"] == paper
@@ -191,7 +191,7 @@ def test_missing_and_partial_stages_are_reported(tmp_path):
     ok = groups["delta"].isel(realisation=slice(0, 30))
     curve = likelihood_curve(ok.J, 3.4e-9, ok.delta.values, "delta", n_bootstrap=N_BOOT,
                              rng=rng_for(2008, "report", "delta"))
-    assert s["quantities"]["delta_opt"]["value"] == pytest.approx(curve.attrs["argmax"], rel=1e-12)
+    assert s["quantities"]["delta_opt"]["value"] == pytest.approx(curve.attrs["argmax"], rel=1e-12, abs=0)
     assert "r1_opt" not in s["quantities"]
     md = (out / "summary.md").read_text()
     assert "## Missing or incomplete stages" in md and "load_delta_f" in md
@@ -205,9 +205,9 @@ def test_real_scalar_psds_give_the_same_report(tmp_path, full):
     assert _run(store, tmp_path / "out") == 0
     s = json.loads((tmp_path / "out" / "summary.json").read_text())
     for key in ("r1_opt", "r2_opt"):
-        assert s["quantities"][key]["value"] == pytest.approx(complex_summary["quantities"][key]["value"], rel=1e-10)
+        assert s["quantities"][key]["value"] == pytest.approx(complex_summary["quantities"][key]["value"], rel=1e-10, abs=0)
     assert s["details"]["response"]["confidence_region_coverage"] == pytest.approx(
-        complex_summary["details"]["response"]["confidence_region_coverage"])
+        complex_summary["details"]["response"]["confidence_region_coverage"], abs=0)
     assert sorted(s["figures"]) == sorted(FIGURES)
 
 

@@ -46,7 +46,7 @@ def test_linear_case_matches_exact_frequency_domain_psd():
         p_sim = np.trapezoid(sim[sel], f[sel]) if hasattr(np, "trapezoid") else np.trapz(sim[sel], f[sel])
         self = (fine >= f[sel][0]) & (fine <= f[sel][-1])
         p_ex = np.trapezoid(exact[self], fine[self])
-        assert p_sim == pytest.approx(p_ex, rel=0.15), (lo, p_sim / p_ex)
+        assert p_sim == pytest.approx(p_ex, rel=0.15, abs=0), (lo, p_sim / p_ex)
 
 
 def test_stop_closes_about_60_percent_of_the_time_with_micrometre_rms():
@@ -86,13 +86,13 @@ def test_tone_and_sensor_noise_effects_appear_where_they_should():
     p0 = plain.psd.real.isel(sensor=0, sensor_=0).mean("realisation").values
     p1 = noisy.psd.real.isel(sensor=0, sensor_=0).mean("realisation").values
     hi = (f > 120) & (f < 160)  # above the load band the structure's response is far below the floor
-    assert np.mean(p1[hi] - p0[hi]) == pytest.approx(1e-14, rel=0.1)
+    assert np.mean(p1[hi] - p0[hi]) == pytest.approx(1e-14, rel=0.1, abs=0)
     toned = simulate_responses(reduce(apply_effects(base, [Tone(frequency_hz=23.0, amplitude=400.0)])), coherent_forces(), [0, 1], seed=4, settings=s)
     p2 = toned.psd.real.isel(sensor=0, sensor_=0).mean("realisation").values
     k = np.argmin(np.abs(f - 23.0))
     assert p2[k] > 10 * p0[k]
     far = np.abs(f - 23.0) > 3
-    assert np.median(p2[far] / p0[far]) == pytest.approx(1.0, rel=0.3)  # the contact couples the tone a little
+    assert np.median(p2[far] / p0[far]) == pytest.approx(1.0, rel=0.3, abs=0)  # the contact couples the tone a little
 
 
 def test_tone_power_matches_the_frequency_response():
@@ -118,7 +118,7 @@ def test_tone_power_matches_the_frequency_response():
     M, D, K = m0.mean_matrices
     w = 2 * np.pi * 23.0
     H = m0.sensor_matrix() @ np.linalg.solve(K - w**2 * M + 1j * w * D, m0.load_matrix((LoadPoint(name="t", tube=tone.tube, x=tone.x),)))
-    assert power == pytest.approx(abs(H[0, 0]) ** 2 * 400.0**2 / 4, rel=0.03)
+    assert power == pytest.approx(abs(H[0, 0]) ** 2 * 400.0**2 / 4, rel=0.03, abs=0)
 
 
 def _paper_system(delta=0.45, seed=2):
@@ -189,8 +189,8 @@ def test_long_run_psd_is_step_independent_and_parseval_holds():
             f, S = psd_matrix(y, 3e-3, segment_seconds=8.0)
             P[i].append(S.real[:, 0, 0])
             var = float(np.real(variance_from_psd(f, S)[0]))  # diagonal: one value per sensor
-            assert var == pytest.approx(np.mean(y[:, 0] ** 2), rel=0.01)
+            assert var == pytest.approx(np.mean(y[:, 0] ** 2), rel=0.01, abs=0)
     coarse, fine = np.mean(P[0], axis=0), np.mean(P[1], axis=0)
     for lo in range(0, 100, 5):
         sel = (f >= lo) & (f < lo + 5)
-        assert coarse[sel].mean() == pytest.approx(fine[sel].mean(), rel=0.02), lo
+        assert coarse[sel].mean() == pytest.approx(fine[sel].mean(), rel=0.02, abs=0), lo

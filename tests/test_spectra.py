@@ -15,14 +15,14 @@ def test_white_noise_level():
     sigma, dt = 3.0, 2e-3
     x = sigma * rng_for(0, "white").standard_normal((2**18, 1))
     f, S = psd_matrix(x, dt, segment_seconds=1024 * dt)
-    assert f[0] == 0 and f[-1] == pytest.approx(0.5 / dt) and S.shape == (513, 1, 1)
+    assert f[0] == 0 and f[-1] == pytest.approx(0.5 / dt, abs=0) and S.shape == (513, 1, 1)
     level = S[:, 0, 0].real / (sigma**2 * dt)
     # overall mean level: ~511 segments x 513 bins -> relative std < 0.3 %; 1.5 % tolerance.
-    assert level[1:-1].mean() == pytest.approx(1.0, rel=0.015)
+    assert level[1:-1].mean() == pytest.approx(1.0, rel=0.015, abs=0)
     # per bin (~511 Hann segments, 50 % overlap: relative std ~ sqrt(1.08 / 511) = 4.6 %): all within
     # 6 sigma, and the spread matches.
     assert np.all(np.abs(level[1:-1] - 1) < 6 * 0.046)
-    assert np.std(level[1:-1]) == pytest.approx(0.046, rel=0.15)
+    assert np.std(level[1:-1]) == pytest.approx(0.046, rel=0.15, abs=0)
     # a one-sided (x2) or per-rad/s (/2pi) convention would be off by 100 % or 84 %.
 
 
@@ -54,7 +54,7 @@ def test_phase_convention_with_a_delay():
     expected_phase = -2 * np.pi * f[sel] * d * dt
     err = np.angle(S[sel, 0, 1] * np.exp(-1j * expected_phase))
     assert np.max(np.abs(err)) < 0.05  # coherence 1: phase noise ~ bias of the shifted window, small
-    assert np.allclose(np.abs(S[sel, 0, 1]), S[sel, 1, 1].real, rtol=0.02)
+    assert np.allclose(np.abs(S[sel, 0, 1]), S[sel, 1, 1].real, rtol=0.02, atol=0)
 
 
 def test_parseval():
@@ -84,7 +84,7 @@ def test_welch_band_average_variance_factor():
     bands = a[:, 1:491].reshape(40, 49, 10).mean(-1)  # 1960 band averages
     factor = bands.var() * 119 * 10
     # chi-square std of a variance estimate from ~ 1960 / (bin correlation) values: ~ 5 %.
-    assert factor == pytest.approx(2.0, rel=0.15)
+    assert factor == pytest.approx(2.0, rel=0.15, abs=0)
 
 
 def test_batched_equals_loop():
@@ -113,7 +113,7 @@ def test_psd_dataset_labels():
                       attrs={"units": "m"})
     da2 = psd_dataset(xa, segment_seconds=1.0)
     np.testing.assert_array_equal(da2.values, S)
-    assert da2.attrs["dt"] == pytest.approx(0.01) and list(da2["x"].values) == [6.0, 8.0]
+    assert da2.attrs["dt"] == pytest.approx(0.01, abs=0) and list(da2["x"].values) == [6.0, 8.0]
     assert list(da2["x_"].values) == [6.0, 8.0]
     # transposed input: dims are found by name
     da3 = psd_dataset(xa.transpose("sensor", "time", "realisation"), segment_seconds=1.0)
@@ -161,25 +161,25 @@ def test_j_s_and_distance_closed_forms():
     S = np.zeros((f.size, 2, 2), dtype=complex)
     S[f <= band] = np.diag([r1, r2])
     # J_s = (r1^2 + r2^2) * 2 (both signs) * 2 pi (rad/s per Hz) * band
-    assert j_s(f, S, band) == pytest.approx((r1**2 + r2**2) * 2 * 2 * np.pi * band, rel=1e-14)
+    assert j_s(f, S, band) == pytest.approx((r1**2 + r2**2) * 2 * 2 * np.pi * band, rel=1e-14, abs=0)
     # complex off-diagonal c counts twice (|S_12|^2 + |S_21|^2)
     c = 3.0 - 4.0j
     S2 = S.copy()
     S2[f <= band, 0, 1] = c
     S2[f <= band, 1, 0] = np.conj(c)
-    assert j_s(f, S2, band) == pytest.approx((r1**2 + r2**2 + 2 * abs(c) ** 2) * 4 * np.pi * band, rel=1e-14)
+    assert j_s(f, S2, band) == pytest.approx((r1**2 + r2**2 + 2 * abs(c) ** 2) * 4 * np.pi * band, rel=1e-14, abs=0)
     # band not on the grid: integrate to the edge (interpolated integrand of a constant)
-    assert j_s(f, S2, 99.7) == pytest.approx((r1**2 + r2**2 + 2 * abs(c) ** 2) * 4 * np.pi * 99.7, rel=1e-14)
+    assert j_s(f, S2, 99.7) == pytest.approx((r1**2 + r2**2 + 2 * abs(c) ** 2) * 4 * np.pi * 99.7, rel=1e-14, abs=0)
     # scalar PSD a f on [0, B]: J = 4 pi a^2 B^3 / 3 (trapezoid error (Δf/B)^2 / 2 ~ 1.3e-5)
     a = 0.01
-    assert j_s(f, a * f, band) == pytest.approx(4 * np.pi * a**2 * band**3 / 3, rel=2e-5)
+    assert j_s(f, a * f, band) == pytest.approx(4 * np.pi * a**2 * band**3 / 3, rel=2e-5, abs=0)
     # batched
     both = np.stack([S, S2])
     np.testing.assert_allclose(j_s(f, both, band), [j_s(f, S, band), j_s(f, S2, band)], rtol=1e-14)
     # D between constant diag(r) and diag(r') = |r - r'|^2 * 4 pi band
     Sexp = np.zeros_like(S)
     Sexp[f <= band] = np.diag([15.0, 21.0])
-    assert distance(f, S, Sexp, band) == pytest.approx((3.0**2 + 1.0**2) * 4 * np.pi * band, rel=1e-14)
+    assert distance(f, S, Sexp, band) == pytest.approx((3.0**2 + 1.0**2) * 4 * np.pi * band, rel=1e-14, abs=0)
     assert distance(f, S, S, band) == 0.0
     with pytest.raises(SpecificationError):
         j_s(f, S, 300.0)  # grid does not cover the band

@@ -19,9 +19,10 @@ from typing import Any
 
 import numpy as np
 
-from tubeid.errors import SpecificationError
+from tubeid.errors import Described, SpecificationError
 
-__all__ = ["real", "positive", "non_negative", "integer", "open_unit", "one_of", "seed", "is_number"]
+__all__ = ["real", "positive", "non_negative", "integer", "open_unit", "one_of", "seed", "is_number", "limit",
+           "byte_size", "channel_count"]
 
 
 def _unit(unit: str | None) -> str:
@@ -65,7 +66,10 @@ def real(field: str, value: Any, *, unit: str | None = None, low: float | None =
     rule += _unit(unit)
     if not is_number(value):
         raise SpecificationError(field, value, rule)
-    v = float(value)
+    try:
+        v = float(value)
+    except OverflowError:  # an int beyond the float range
+        raise SpecificationError(field, value, rule) from None
     if not math.isfinite(v):
         raise SpecificationError(field, value, rule)
     if low is not None and (v < low or (low_open and v == low)):
@@ -122,3 +126,52 @@ def seed(field: str, value: Any) -> int:
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (numbers.Integral, np.integer)) or value < 0:
         raise SpecificationError(field, value, "must be a non-negative integer")
     return int(value)
+
+
+# -- resource limits (configuration section ``tubeid.io``) ----------------------------------------
+def limit(key: str) -> float:
+    """The configured limit ``tubeid.io.<key>`` as a number > 0 (sizes such as ``"2 GiB"`` in bytes).
+
+    A bad configured value is refused naming the configuration key.
+    """
+    from tubeid import config
+
+    value = config.get(f"io.{key}")
+    if isinstance(value, str):
+        from dask.utils import parse_bytes
+
+        try:
+            value = parse_bytes(value)
+        except ValueError:
+            pass
+    return real(f"configuration tubeid.io.{key}", value, low=0.0, low_open=True)
+
+
+def byte_size(nbytes: float) -> str:
+    """``nbytes`` for people: ``"14.90 GiB"``."""
+    from dask.utils import format_bytes
+
+    return format_bytes(int(nbytes)) if nbytes < 2**63 else f"{nbytes:.3g} B"
+
+
+#: Frequency bins over which :func:`channel_count` states the memory of the cross-spectra.
+ESTIMATE_BINS = 1000
+
+
+def channel_count(field: str, count: int, noun: str = "sensors") -> int:
+    """``count`` channels (sensors, load points) if within ``tubeid.io.max-sensors``; else refused
+    with a memory estimate.
+
+    Every analysis of several channels keeps their cross-spectral matrices (frequency × channel ×
+    channel, complex128): 16·m² bytes per frequency bin and realisation, quoted over
+    :data:`ESTIMATE_BINS` bins.
+    """
+    bound = int(limit("max-sensors"))
+    if count > bound:
+        per_bin = 16.0 * count * count
+        raise SpecificationError(
+            field, Described(f"{count} {noun}"),
+            f"at most {bound} (configuration tubeid.io.max-sensors): cross-spectra grow as the square of the "
+            f"count, {count} × {count} complex values take {byte_size(per_bin)} per frequency bin, "
+            f"{byte_size(per_bin * ESTIMATE_BINS)} per realisation over {ESTIMATE_BINS} bins")
+    return count

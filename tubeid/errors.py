@@ -1,16 +1,62 @@
 """The exception types tubeid raises for bad input and for a missing optional dependency.
 
 Every ``SpecificationError`` message names the field, the value and the rule, e.g.
-``tubes[1].length = -2.0 m: must be > 0``. A ``MissingDependencyError`` names the feature, the
-package it needs and the extra that installs it, e.g.
-``tubeid report needs matplotlib: pip install "tubeid[plot]"``.
+``tubes[1].length = -2.0 m: must be > 0``. Long values are shortened in the message (at most
+:data:`VALUE_CHARS` characters, nested containers to a few items and levels, strings and huge
+integers with their size stated; fields and rules, which may embed user text, likewise); the
+exception keeps the field, value and rule themselves in ``.field``, ``.value`` and ``.rule``.
+A ``MissingDependencyError`` names the feature, the package it needs and the extra that installs
+it, e.g. ``tubeid report needs matplotlib: pip install "tubeid[plot]"``.
 """
 
 from __future__ import annotations
 
+import reprlib
 from typing import Any
 
-__all__ = ["SpecificationError", "MissingDependencyError", "Described"]
+__all__ = ["SpecificationError", "MissingDependencyError", "Described", "shown", "VALUE_CHARS"]
+
+#: Longest value shown in a message.
+VALUE_CHARS = 240
+
+
+class _Short(reprlib.Repr):
+    """A bounded ``repr``: never builds the whole text of a huge value."""
+
+    def __init__(self):
+        super().__init__()  # Python 3.11 takes no keyword arguments here
+        self.maxlevel = 3
+        self.maxtuple = self.maxlist = self.maxarray = self.maxdict = self.maxset = self.maxfrozenset = 8
+        self.maxdeque = 8
+        self.maxstring = self.maxlong = self.maxother = VALUE_CHARS
+
+    def repr_str(self, x, level):
+        if len(x) <= VALUE_CHARS - 40:
+            return repr(x)
+        return f"{x[:120]!r}…{x[-60:]!r} ({len(x)} characters)"  # head and tail: a path keeps its name
+
+    def repr_Described(self, x, level):
+        return x if len(x) <= VALUE_CHARS else f"{x[:120]}…{x[-60:]} ({len(x)} characters)"
+
+    def repr_int(self, x, level):
+        if x.bit_length() > 128:  # repr of a huge int is slow, and refused beyond 4300 digits
+            return f"<integer of {x.bit_length()} bits>"
+        return repr(x)
+
+
+def shown(value) -> str:
+    """``value`` as a message shows it: its ``repr``, shortened to at most :data:`VALUE_CHARS` characters."""
+    try:
+        text = _Short().repr(value)
+    except Exception:  # noqa: BLE001 - a value whose repr fails must not hide the error
+        text = f"<{type(value).__name__}>"
+    return text if len(text) <= VALUE_CHARS else f"{text[:VALUE_CHARS - 1]}…"
+
+
+def _clip(text: str, chars: int) -> str:
+    """A field or rule that may embed user text (a key, a sensor name), kept to ``chars``."""
+    text = str(text)
+    return text if len(text) <= chars else f"{text[:chars - 80]}…{text[-60:]} ({len(text)} characters)"
 
 
 class SpecificationError(ValueError):
@@ -28,7 +74,7 @@ class SpecificationError(ValueError):
 
     def __init__(self, field: str, value: Any, rule: str) -> None:
         self.field, self.value, self.rule = field, value, rule
-        super().__init__(f"{field} = {value!r}: {rule}")
+        super().__init__(f"{_clip(field, VALUE_CHARS)} = {shown(value)}: {_clip(rule, 4 * VALUE_CHARS)}")
 
 
 class MissingDependencyError(ImportError):

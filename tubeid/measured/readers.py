@@ -12,8 +12,10 @@ Formats (chosen by ``format=`` or by the extension):
   Both hold the canonical layout (MODEL.md §5); ``displacement`` must carry a ``units`` attribute.
 - ``csv`` (``.csv``): one header line ``time,<sensor>,…`` then one row per sample (time in s,
   displacement in m). Sidecar ``<stem>.sensors.csv`` beside it with columns ``sensor,tube,x``
-  (x in m) and optionally ``units`` (per channel; empty or absent = ``m``). Every data column must
-  be listed in the sidecar and every sidecar row must be a data column.
+  (x in m) and optionally ``units`` (per channel; empty or absent = ``m``) and ``scale`` (the size
+  of one count in ``units``: required for a channel written in integers only, counts, e.g.
+  ``S1,centre,6.0,um,0.05``). Every data column must be listed in the sidecar and every sidecar
+  row must be a data column.
 - ``uff`` (``.uff``, ``.unv``): universal file, one type-58 dataset per channel (other dataset
   types are ignored), read and written with pyuff. Convention:
 
@@ -24,11 +26,30 @@ Formats (chosen by ``format=`` or by the extension):
     both present must agree; neither is refused;
   * units = ordinate units label (record 9, field 6); the unit exponents are ignored;
   * function type (record 6) must be 1 (time response), data real, abscissa time
-    (specific data type 0 or 17, label ``s`` or blank) and identical for all channels.
+    (specific data type 0 or 17, label ``s`` or blank) and identical for all channels;
+  * ID line 5 reads ``channel k of n`` in files tubeid writes; when present, the file must hold
+    those n datasets in order.
 
   Written as binary 58b in float64 with an explicit abscissa, so data and time round-trip
   bit-exactly (pyuff's ASCII 58 keeps 12 significant digits for data, and only 6 for
   the abscissa start and increment of evenly spaced records).
+
+Whole files only. A file cut short (a truncated copy or download) is refused, never read as wrong
+or fewer data: a CSV (and sidecar) must end its last line with a line break, every row must have
+the header's field count and every value must parse as a whole number token (the message names
+file, line and column); a UFF file must close every dataset (pyuff silently drops an unclosed last
+one), hold nothing outside datasets, and each dataset must hold the number of values its header
+(record 7) declares; NetCDF and HDF5 check their own structure. What no format can reveal: a CSV
+cut exactly at a line break reads as a shorter record of exact values, and a UFF file without
+``channel k of n`` lines (or a sidecar listing every channel) cut exactly between datasets as
+fewer channels.
+
+Limits (configuration ``tubeid.io``, checked before anything is loaded): a NetCDF/Zarr record whose
+variables claim more than ``max-bytes`` once loaded (shape × dtype, from the metadata alone), and a
+CSV/UFF file larger than that, are refused naming both sizes; more than ``max-sensors`` channels are
+refused (:func:`tubeid._validation.channel_count`); Zarr arrays must have all their chunks (a missing
+chunk would read as its fill value). :func:`~tubeid.measured.validation.validate_measurements` then
+refuses implausible amplitudes (``max-displacement``) and unscaled integer data.
 
 Safety: nothing is ever loaded by unpickling. This module uses neither ``pickle`` nor
 ``np.load``; ``.npy``/``.pkl`` and other extensions are refused as unknown formats, and a file
@@ -48,7 +69,8 @@ import numpy as np
 import xarray as xr
 
 from tubeid._optional import require
-from tubeid.errors import SpecificationError
+from tubeid._validation import byte_size, channel_count, limit
+from tubeid.errors import Described, SpecificationError
 from tubeid.measured.validation import check_options, layout, length_scale, validate_measurements
 
 __all__ = ["read_measurements", "write_measurements", "sidecar_path", "EXTENSIONS", "FORMATS"]
@@ -93,13 +115,46 @@ def _fail_read(source: str, kind: str, exc: Exception):
     raise SpecificationError(source, kind, f"cannot be read as {kind}: {type(exc).__name__}: {exc}") from exc
 
 
+# --------------------------------------------------------------------------- limits
+def _check_claimed(source: str, nbytes: int, what: str) -> None:
+    """Refuse a record claiming more memory than ``tubeid.io.max-bytes`` (before anything is loaded)."""
+    bound = limit("max-bytes")
+    if nbytes > bound:
+        raise SpecificationError(
+            source, Described(f"{what} of {byte_size(nbytes)}"),
+            f"larger than the memory limit {byte_size(bound)} for a record (configuration tubeid.io.max-bytes, "
+            f"e.g. TUBEID_IO__MAX_BYTES='{byte_size(2 * nbytes)}' to read it)")
+
+
+def _read_bytes(path: Path, source: str, kind: str) -> bytes:
+    """The whole file, once its size is within the memory limit (text is read whole)."""
+    _check_claimed(source, path.stat().st_size, f"{kind} file")
+    return path.read_bytes()
+
+
 # --------------------------------------------------------------------------- NetCDF / Zarr
+def _claimed_bytes(ds: xr.Dataset) -> int:
+    """Memory the variables of a lazily opened Dataset claim once loaded (shape × decoded dtype)."""
+    return sum(math.prod(v.shape) * max(v.dtype.itemsize, 1) for v in ds.variables.values())
+
+
 def _open_xarray(path: Path, source: str, engine: str, kind: str, **kw) -> xr.Dataset:
-    try:
-        with xr.open_dataset(path, engine=engine, decode_times=False, decode_timedelta=False, **kw) as raw:
-            return raw.load()
+    try:  # lazily, without indexes: nothing is read but the metadata until the size is known
+        raw = xr.open_dataset(path, engine=engine, decode_times=False, decode_timedelta=False,
+                              create_default_indexes=False, **kw)
     except Exception as exc:  # noqa: BLE001 - every library failure becomes a clear refusal
         _fail_read(source, kind, exc)
+    with raw:
+        _check_claimed(source, _claimed_bytes(raw), f"{kind} record claiming {_shapes(raw)}")
+        try:
+            return raw.load()
+        except Exception as exc:  # noqa: BLE001
+            _fail_read(source, kind, exc)
+
+
+def _shapes(ds: xr.Dataset) -> str:
+    dims = ", ".join(f"{d} {n}" for d, n in ds.sizes.items())
+    return f"({dims})" if dims else "no dimensions"
 
 
 def _read_netcdf(path: Path, source: str) -> tuple[xr.Dataset, str]:
@@ -119,12 +174,63 @@ def _read_netcdf(path: Path, source: str) -> tuple[xr.Dataset, str]:
 def _read_zarr(path: Path, source: str) -> xr.Dataset:
     if not path.is_dir():
         raise SpecificationError(source, "zarr", "a Zarr store must be a directory")
-    return _open_xarray(path, source, "zarr", "Zarr", consolidated=False)
+    ds = _open_xarray(path, source, "zarr", "Zarr", consolidated=False)
+    _check_zarr_chunks(path, source, ds)
+    return ds
+
+
+def _check_zarr_chunks(path: Path, source: str, ds: xr.Dataset) -> None:
+    """Refuse a store whose numeric arrays lack chunks: Zarr reads a missing chunk as its fill value
+    (NaN, or 0, which would pass as data)."""
+    import zarr
+
+    try:
+        group = zarr.open_group(path, mode="r")
+        for name, var in ds.variables.items():
+            if var.dtype.kind not in "iuf" or name not in group:
+                continue
+            arr = group[name]
+            have, need = arr.nchunks_initialized, arr.nchunks
+            if have < need:
+                raise SpecificationError(
+                    f"{source}: {name}", Described(f"{have} of {need} chunks present"),
+                    "chunks are missing from the store (deleted or never written); their fill value would be "
+                    "read as data")
+    except SpecificationError:
+        raise
+    except Exception as exc:  # noqa: BLE001
+        _fail_read(source, "Zarr", exc)
 
 
 # --------------------------------------------------------------------------- CSV
+def _decode(raw: bytes, source: str, kind: str) -> str:
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        _fail_read(source, kind, exc)
+
+
+def _check_complete_text(text: str, source: str, header: list[str] | None) -> None:
+    """A text file must end its last line with a line break: a file cut short (a truncated copy or
+    download) ends inside a line, often inside a number that still parses (``-1.14`` of
+    ``-1.1431685078884962e-06``), so an unterminated last line is refused, naming it."""
+    if not text or text.endswith("\n"):
+        return
+    line_no = text.count("\n") + 1
+    last = text[text.rfind("\n") + 1:]
+    cells = last.split(",")
+    column = len(cells) - 1
+    name = header[column] if header is not None and column < len(header) else f"#{column + 1}"
+    where = f"{source}: line {line_no}" + (f", column {name!r}" if header is not None else "")
+    raise SpecificationError(
+        where, cells[-1],
+        "the file ends inside this line, without a line break: it looks cut short (a truncated copy or "
+        "download), and the value may be cut too; a complete file ends every line, the last included, with a "
+        "line break")
+
+
 def _read_sidecar(data_path: Path, source: str, *, required: bool):
-    """Rows of the sidecar as {sensor: (tube, x, units or "")}; None if absent and not required."""
+    """Rows of the sidecar as {sensor: (tube, x, units or "", scale or None)}; None if absent and not required."""
     side = sidecar_path(data_path)
     if not side.is_file():
         if required:
@@ -132,20 +238,18 @@ def _read_sidecar(data_path: Path, source: str, *, required: bool):
                                      "sensor sidecar file is missing; it must list columns sensor,tube,x")
         return None
     sname = str(side)
-    try:
-        text = side.read_text(encoding="utf-8-sig")
-    except UnicodeDecodeError as exc:
-        _fail_read(sname, "UTF-8 CSV", exc)
-    reader = csv.reader(text.splitlines())
+    text = _decode(_read_bytes(side, sname, "sidecar"), sname, "UTF-8 CSV")
+    reader = csv.reader(text.split("\n"))
     header = next(reader, None)
-    if header is None:
+    if not header:
         raise SpecificationError(sname, "", "empty sidecar; header must be sensor,tube,x")
     header = [h.strip() for h in header]
+    _check_complete_text(text, sname, header)
     missing = [c for c in ("sensor", "tube", "x") if c not in header]
     if missing:
         raise SpecificationError(f"{sname}: header", header, f"sidecar lacks column(s) {missing}; needs sensor,tube,x")
-    col = {c: header.index(c) for c in ("sensor", "tube", "x", "units") if c in header}
-    rows: dict[str, tuple[str, float, str]] = {}
+    col = {c: header.index(c) for c in ("sensor", "tube", "x", "units", "scale") if c in header}
+    rows: dict[str, tuple[str, float, str, float | None]] = {}
     for lineno, row in enumerate(reader, start=2):
         if not row or all(not cell.strip() for cell in row):
             continue
@@ -153,42 +257,87 @@ def _read_sidecar(data_path: Path, source: str, *, required: bool):
             raise SpecificationError(f"{sname}: line {lineno}", row, f"must have {len(header)} fields")
         name, tube, xs = row[col["sensor"]].strip(), row[col["tube"]].strip(), row[col["x"]].strip()
         units = row[col["units"]].strip() if "units" in col else ""
+        scale_text = row[col["scale"]].strip() if "scale" in col else ""
         if name in rows:
             raise SpecificationError(f"{sname}: line {lineno}", name, "duplicate sensor name in sidecar")
         try:
             x = float(xs) if xs else math.nan
         except ValueError:
             raise SpecificationError(f"{sname}: channel {name!r} x", xs, "must be a number (m)") from None
-        rows[name] = (tube, x, units)
+        scale = None
+        if scale_text:
+            try:
+                scale = float(scale_text)
+            except ValueError:
+                scale = math.nan
+            if not math.isfinite(scale) or scale <= 0:
+                raise SpecificationError(f"{sname}: channel {name!r} scale", scale_text,
+                                         "must be a finite number > 0 (the size of one count in the channel's units)")
+        rows[name] = (tube, x, units, scale)
     return rows
+
+
+def _csv_rows(lines: list[str], ncols: int, header: list[str], source: str, first_line: int):
+    """Locate the first bad row of a CSV body (wrong field count or a value that is not a number)."""
+    for k, line in enumerate(lines):
+        line = line[:-1] if line.endswith("\r") else line
+        if not line.strip():
+            continue
+        cells = line.split(",")
+        where = f"{source}: line {first_line + k}"
+        if len(cells) != ncols:
+            raise SpecificationError(where, Described(f"{len(cells)} fields"),
+                                     f"every row must have the header's {ncols} fields (time,<sensor>,...)")
+        for j, cell in enumerate(cells):
+            try:
+                float(cell)
+            except ValueError:
+                raise SpecificationError(f"{where}, column {header[j]!r}", cell.strip(),
+                                         "must be a number (a decimal such as -1.25e-06, or nan/inf)") from None
+
+
+_NOT_INTEGER = re.compile(r"[.eEnNiI]")  # a decimal point, an exponent, nan or inf
+
+
+def _integer_written(lines: list[str], column: int) -> bool:
+    """Whether every value of ``column`` is written as an integer (no decimal point, exponent, nan, inf)."""
+    for line in lines:
+        if line.strip():
+            cells = line.split(",")
+            if _NOT_INTEGER.search(cells[column]):
+                return False
+    return True
 
 
 def _read_csv(path: Path, source: str) -> xr.Dataset:
     if not path.is_file():
         raise SpecificationError(source, "csv", "a CSV record must be a file")
-    try:
-        with open(path, newline="", encoding="utf-8-sig") as fh:
-            header = next(csv.reader(fh), None)
-    except UnicodeDecodeError as exc:
-        _fail_read(source, "CSV", exc)
-    if not header:
+    text = _decode(_read_bytes(path, source, "CSV"), source, "CSV")
+    header_line, _, body = text.partition("\n")
+    header = next(csv.reader([header_line.rstrip("\r")]), None)
+    if not header or not text.strip():
         raise SpecificationError(source, "", "empty CSV; the header must be time,<sensor>,...")
     header = [h.strip() for h in header]
+    _check_complete_text(text, source, header)
     if header[0] != "time" or len(header) < 2:
         raise SpecificationError(f"{source}: header", header, "must be time,<sensor>,... (time in s first)")
     names = header[1:]
     dup = sorted({s for s in names if names.count(s) > 1})
     if dup:
         raise SpecificationError(f"{source}: header", dup, "duplicate sensor names (each channel needs its own name)")
+    channel_count(f"{source}: header", len(names))
+    lines = body.split("\n")[:-1]  # the text ends with a line break (checked above)
     try:
         with warnings.catch_warnings():
-            warnings.simplefilter("ignore", UserWarning)  # "input contained no data"
-            data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2, dtype=float, encoding="utf-8")
-    except Exception as exc:  # noqa: BLE001
-        _fail_read(source, "CSV of numbers", exc)
+            warnings.simplefilter("ignore", UserWarning)  # "input contained no data": refused below
+            data = np.loadtxt(lines, delimiter=",", ndmin=2, dtype=float, comments=None, encoding=None)
+    except ValueError as exc:
+        _csv_rows(lines, len(header), header, source, first_line=2)
+        _fail_read(source, "CSV of numbers", exc)  # a value numpy refuses though Python reads it (1_000)
     if data.size == 0:
         data = np.empty((0, len(header)))
     if data.shape[1] != len(header):
+        _csv_rows(lines, len(header), header, source, first_line=2)
         raise SpecificationError(source, data.shape[1], f"rows must have {len(header)} fields like the header")
     side = _read_sidecar(path, source, required=True)
     extra = [s for s in side if s not in names]
@@ -198,7 +347,20 @@ def _read_csv(path: Path, source: str) -> xr.Dataset:
         if name not in side:
             raise SpecificationError(f"{source}: channel {name!r}", "position",
                                      f"sensor is missing its position: not listed in sidecar {sidecar_path(path)}")
-    return _raw_dataset(data[:, 0], data[:, 1:], names,
+    values = data[:, 1:]
+    for j, name in enumerate(names):
+        scale = side[name][3]
+        col = values[:, j]
+        if scale is None and col.size and np.all(np.isfinite(col)) and np.all(col == np.trunc(col)) \
+                and _integer_written(lines, j + 1):
+            raise SpecificationError(
+                f"{source}: channel {name!r}", Described("integer values only"),
+                f"integer data (counts) need an explicit scale: give the size of one count in the channel's units "
+                f"in a 'scale' column of the sidecar {sidecar_path(path)} (e.g. sensor,tube,x,units,scale / "
+                f"{name},centre,6.0,um,0.05), or write the values as decimals")
+        if scale is not None:
+            values[:, j] = col * scale
+    return _raw_dataset(data[:, 0], values, names,
                         [side[s][0] for s in names], [side[s][1] for s in names], [side[s][2] or "m" for s in names])
 
 
@@ -218,19 +380,81 @@ def _uff_text(value) -> str:
     return "" if s == "NONE" else s
 
 
+def _uff_delimiters(raw: bytes) -> list[int]:
+    """Offsets of the ``    -1`` lines that open and close UFF datasets, by pyuff's own rule (the tag
+    ends the file, a line, or is padded with blanks to column 80)."""
+    tags, i = [], -1
+    while (i := raw.find(b"    -1", i + 1)) != -1:
+        end = i + 6
+        if end == len(raw) or raw[end] in (10, 13) or raw[end:i + 80] == b" " * 74:
+            tags.append(i)
+    return tags
+
+
+def _check_uff_whole(raw: bytes, source: str) -> None:
+    """pyuff silently drops a dataset that is not closed (a file cut short loses its last channel)."""
+    tags = _uff_delimiters(raw)
+    if len(tags) % 2:
+        raise SpecificationError(
+            f"{source}: dataset {len(tags) // 2 + 1}", Described(f"opened at byte {tags[-1]} of {len(raw)}, never closed"),
+            "the file ends inside this dataset (no closing '    -1' line): it looks cut short (a truncated copy or "
+            "download), and the dataset's channel would be lost")
+    tail = raw[tags[-1] + 6:] if tags else raw
+    if tail.strip():
+        raise SpecificationError(
+            source, Described(f"{len(tail.strip())} bytes after the last dataset"),
+            "data outside any dataset (between '    -1' lines): a cut or damaged file")
+
+
+_UFF_CHANNEL_OF = re.compile(r"^channel (\d+) of (\d+)$")
+
+
+def _check_uff_channel_count(sets: list[dict], source: str) -> None:
+    """tubeid writes ``channel k of n`` in ID line 5 of its datasets: a file cut between two of them
+    (which still parses) is refused. Files concatenated whole pass (each group complete, in order);
+    datasets without the line are taken as they are."""
+    expected = None  # (k, n) the next dataset must carry, within a group
+    for i, s in enumerate(sets):
+        mark = _UFF_CHANNEL_OF.match(_uff_text(s.get("id5")))
+        k, n = (int(mark.group(1)), int(mark.group(2))) if mark else (None, None)
+        if expected is not None and (k, n) != expected:
+            raise SpecificationError(
+                f"{source}: dataset {i + 1} ID line 5", _uff_text(s.get("id5")),
+                f"must read 'channel {expected[0]} of {expected[1]}': the datasets of one written record must "
+                f"follow each other whole (channels lost or reordered: a truncated or edited file?)")
+        if mark and (k < 1 or k > n or (expected is None and k != 1)):
+            raise SpecificationError(f"{source}: dataset {i + 1} ID line 5", _uff_text(s.get("id5")),
+                                     "a record written as 'channel k of n' must start at channel 1")
+        expected = (k + 1, n) if mark and k < n else None
+    if expected is not None:
+        raise SpecificationError(
+            f"{source}: dataset {len(sets)}", _uff_text(sets[-1].get("id5")),
+            f"the file ends before 'channel {expected[0]} of {expected[1]}': channels are missing (a file cut "
+            f"short between datasets?)")
+
+
 def _read_uff(path: Path, source: str) -> xr.Dataset:
     pyuff = require("pyuff", "reading UFF 58 files")
 
     if not path.is_file():
         raise SpecificationError(source, "uff", "a UFF record must be a file")
+    _check_uff_whole(_read_bytes(path, source, "UFF"), source)
     try:
         uff = pyuff.UFF(str(path))
         types = list(uff.get_set_types())
-        sets = [uff.read_sets(i) for i, kind in enumerate(types) if int(kind) == 58]
     except Exception as exc:  # noqa: BLE001
         _fail_read(source, "UFF", exc)
+    sets = []
+    for i, kind in enumerate(types):
+        if int(kind) == 58:
+            try:
+                sets.append(uff.read_sets(i))
+            except Exception as exc:  # noqa: BLE001
+                _fail_read(f"{source}: dataset {i + 1}", "UFF 58", exc)
     if not sets:
         raise SpecificationError(source, [int(k) for k in types], "no type-58 dataset (function at nodal DOF) found")
+    channel_count(f"{source}: type-58 datasets", len(sets))
+    _check_uff_channel_count(sets, source)
     side = None
     names, tubes, xs, units, columns = [], [], [], [], []
     t_ref, ref_name = None, None
@@ -243,6 +467,11 @@ def _read_uff(path: Path, source: str) -> xr.Dataset:
         data = np.asarray(s["data"])
         if np.iscomplexobj(data):
             raise SpecificationError(f"{where} data", str(data.dtype), "must be real (a time response)")
+        declared = s.get("num_pts")
+        if not isinstance(declared, (int, np.integer)) or data.shape != (declared,) or np.shape(s["x"]) != (declared,):
+            raise SpecificationError(
+                f"{where} data", Described(f"{data.size} values and {np.size(s['x'])} abscissae"),
+                f"the dataset header (record 7) declares {declared}: the dataset is incomplete or damaged")
         if int(s.get("abscissa_spec_data_type", 0)) not in (0, 17) or \
                 _uff_text(s.get("abscissa_axis_units_lab")) not in ("", "s", "sec", "second", "seconds"):
             raise SpecificationError(f"{where} abscissa", (s.get("abscissa_spec_data_type"),
@@ -264,6 +493,9 @@ def _read_uff(path: Path, source: str) -> xr.Dataset:
             raise SpecificationError(f"{where} ID line 4", id4, "must hold both tube=<name> and x=<metres>")
         if side is None:
             side = _read_sidecar(path, source, required=False) or {}
+        if name in side and side[name][3] is not None:
+            raise SpecificationError(f"{sidecar_path(path)}: channel {name!r} scale", side[name][3],
+                                     "a scale applies to integer CSV columns only; UFF 58 holds real numbers")
         if name in side and side[name][2]:
             side_unit = side[name][2]
             if length_scale(side_unit, f"{sidecar_path(path)}: channel {name!r} units") != length_scale(
@@ -277,12 +509,12 @@ def _read_uff(path: Path, source: str) -> xr.Dataset:
             except ValueError:
                 raise SpecificationError(f"{where} ID line 4 x", mx.group(1), "must be a number (m)") from None
             if name in side:
-                st, sx, _ = side[name]
+                st, sx = side[name][:2]
                 if st != tube or not math.isclose(sx, x, rel_tol=1e-9, abs_tol=1e-12):
                     raise SpecificationError(f"{where} position", (tube, x),
                                              f"conflicts with sidecar {sidecar_path(path)} ({st!r}, {sx!r})")
         elif name in side:
-            tube, x, _ = side[name]
+            tube, x = side[name][:2]
         else:
             raise SpecificationError(
                 f"{where} position", id4 or None,
@@ -312,10 +544,27 @@ def read_measurements(path, *, format: str | None = None, min_resolution_hz: flo
                       tubes=None) -> xr.Dataset:
     """Read a measured record (NetCDF, Zarr, CSV + sidecar or UFF 58) into the canonical Dataset.
 
-    ``format``: one of :data:`FORMATS` (default: from the extension, :data:`EXTENSIONS`).
-    ``min_resolution_hz``: refuse records shorter than 1 / min_resolution_hz (s).
-    ``tubes``: {tube name: length (m)}; refuse sensors on unknown tubes or off them.
-    Raises :class:`~tubeid.errors.SpecificationError` naming the file, channel and rule.
+    Parameters
+    ----------
+    path : str or path-like
+        The record (a file, or a directory for Zarr).
+    format : str, optional
+        One of :data:`FORMATS` (default: from the extension, :data:`EXTENSIONS`).
+    min_resolution_hz : float, optional
+        Refuse records shorter than 1 / min_resolution_hz (s).
+    tubes : mapping, optional
+        {tube name: length (m)}; refuse sensors on unknown tubes or off them.
+
+    Returns
+    -------
+    xarray.Dataset
+        The canonical form (module docstring): ``displacement`` (time, sensor) in m, float64.
+
+    Raises
+    ------
+    SpecificationError
+        Naming the file, line/channel and rule, for every refusal of the module docstring
+        (incomplete files, limits, units, time, samples); never a library traceback.
     """
     path = _as_path(path, "path")
     source = str(path)
@@ -391,7 +640,8 @@ def _write_uff(lay: dict, path: Path) -> None:
         if len(id4) > 80 or len(unit) > 20 or not unit.isascii():
             raise SpecificationError(f"{path}: channel {name!r}", (id4, unit), "does not fit UFF 58 fixed fields")
         sets.append(pyuff.prepare_58(
-            binary=1, id1=name, id2="tubeid measured displacement", id3="", id4=id4, id5="",
+            binary=1, id1=name, id2="tubeid measured displacement", id3="", id4=id4,
+            id5=f"channel {j + 1} of {len(lay['names'])}",
             func_type=1, rsp_node=j + 1, rsp_dir=0, ref_node=0, ref_dir=0,
             abscissa_spacing=0, abscissa_spec_data_type=17, abscissa_axis_units_lab="s",
             ordinate_spec_data_type=8, ordinate_len_unit_exp=1, ordinate_axis_units_lab=unit or "NONE",

@@ -17,13 +17,17 @@ coordinate on the ``sensor`` dim (used by the CSV and UFF readers); ``x`` in the
 Refusals (:class:`~tubeid.errors.SpecificationError`; the message names the source, the channel
 when there is one, and the rule):
 
-- fewer than 2 samples; no sensor; duplicate or malformed sensor names;
+- fewer than 2 samples; no sensor, or more than ``tubeid.io.max-sensors`` (the message states the
+  memory of their cross-spectra); duplicate or malformed sensor names;
+- integer samples (counts) without an explicit scale: the CF attribute ``scale_factor`` (size of one
+  count in ``units``, optional ``add_offset``) on ``displacement``;
 - a sensor missing its position (no/NaN ``x``, no/empty ``tube``); with ``tubes`` given, a sensor on
   an unknown tube or off it (``x < 0`` or ``x > length``);
 - missing or unknown units;
 - non-finite, non-increasing or non-uniform time: uniform means
   ``max |diff(t) - dt| <= UNIFORM_RTOL * dt``;
-- NaN or infinite samples;
+- NaN or infinite samples; implausible samples, beyond ± ``tubeid.io.max-displacement`` m (default
+  1 m: tube vibrations are micrometres; a sample of metres means wrong units or unscaled counts);
 - clipped channels: a channel is clipped at its top (bottom) when more than ``CLIP_FRACTION`` of
   its samples lie within ``CLIP_RTOL * max(|max|, |min|)`` of its maximum (minimum) *and* at least
   ``CLIP_RUN`` of them are consecutive. Continuous (even 16-bit quantised) Gaussian data reach their
@@ -44,7 +48,8 @@ from collections.abc import Mapping
 import numpy as np
 import xarray as xr
 
-from tubeid.errors import SpecificationError
+from tubeid._validation import channel_count, limit, real
+from tubeid.errors import Described, SpecificationError
 
 __all__ = [
     "validate_measurements",
@@ -147,6 +152,7 @@ def layout(ds, source: str) -> dict:
     da = da.transpose("time", "sensor")
     if not (np.issubdtype(da.dtype, np.integer) or np.issubdtype(da.dtype, np.floating)):
         raise SpecificationError(f"{source}: displacement.dtype", str(da.dtype), "must be real numbers")
+    values = _unpacked(da, source)
     if "time" not in da.coords:
         raise SpecificationError(f"{source}: time", None, "coordinate 'time' (s) is missing")
     time = da.coords["time"]
@@ -185,7 +191,7 @@ def layout(ds, source: str) -> dict:
         units = [da.attrs.get("units")] * m
     return {
         "time": np.asarray(time.values, dtype=float),
-        "values": np.asarray(da.values, dtype=float),
+        "values": values,
         "names": names,
         "x": x,
         "x_units": x_units,
@@ -193,6 +199,29 @@ def layout(ds, source: str) -> dict:
         "units": units,
         "time_units": time.attrs.get("units"),
     }
+
+
+def _unpacked(da: xr.DataArray, source: str) -> np.ndarray:
+    """The samples as float64; integer samples (counts) only with an explicit scale.
+
+    The scale is the CF attribute ``scale_factor`` (the size of one count in the variable's
+    ``units``; optional ``add_offset``), on ``displacement`` in memory. A NetCDF or Zarr file
+    carrying it is unpacked by xarray when read; stored integers without it are refused, also
+    when xarray turned them into floats to mask a ``_FillValue``.
+    """
+    stored = np.dtype(da.encoding.get("dtype", da.dtype))
+    packed = "scale_factor" in da.encoding or "scale_factor" in da.attrs
+    if np.issubdtype(stored, np.integer) and not packed:
+        raise SpecificationError(
+            f"{source}: displacement.dtype", str(stored),
+            "integer samples (counts) need an explicit scale: give the size of one count in the variable's units "
+            "as its CF attribute scale_factor (optionally add_offset), e.g. units = 'um', scale_factor = 0.05")
+    if np.issubdtype(da.dtype, np.integer):  # in memory, scale_factor in attrs: unpack here
+        scale, offset = da.attrs["scale_factor"], da.attrs.get("add_offset", 0.0)
+        real(f"{source}: displacement.scale_factor", scale, low=0.0, low_open=True)
+        real(f"{source}: displacement.add_offset", offset)
+        return np.asarray(da.values, dtype=float) * float(scale) + float(offset)
+    return np.asarray(da.values, dtype=float)
 
 
 def _longest_run(mask: np.ndarray) -> int:
@@ -274,6 +303,7 @@ def validate_measurements(ds: xr.Dataset, *, min_resolution_hz: float | None = N
     # Sensors: names, positions, tubes.
     if m == 0:
         raise SpecificationError(f"{source}: sensor", [], "at least one sensor is required")
+    channel_count(f"{source}: sensor", m)
     for name in names:
         if not name or name != name.strip() or any(c in name for c in "\r\n"):
             raise SpecificationError(f"{source}: sensor name", name,
@@ -307,6 +337,7 @@ def validate_measurements(ds: xr.Dataset, *, min_resolution_hz: float | None = N
     dt = _time_checks(t, lay["time_units"], source)
 
     # Samples.
+    bound = limit("max-displacement")
     for j, name in enumerate(names):
         col = values[:, j]
         bad = np.flatnonzero(~np.isfinite(col))
@@ -315,6 +346,13 @@ def validate_measurements(ds: xr.Dataset, *, min_resolution_hz: float | None = N
             raise SpecificationError(
                 _where(source, name, f"displacement[{i}]"), float(col[i]),
                 f"samples must be finite: {bad.size} NaN or infinite sample(s), first at t = {t[i]!r} s")
+        big = np.flatnonzero(np.abs(col) * scale[j] > bound)
+        if big.size:
+            i = int(big[np.argmax(np.abs(col[big]))])
+            raise SpecificationError(
+                _where(source, name, f"displacement[{i}]"), Described(f"{col[i] * scale[j]:.6g} m"),
+                f"implausible: {big.size} sample(s) beyond ± {bound:g} m (configuration tubeid.io.max-displacement); "
+                f"wrong units, or unscaled counts?")
         _check_clipping(col, name, source)
 
     # Frequency resolution.

@@ -26,6 +26,7 @@ import math
 from dataclasses import dataclass
 from typing import ClassVar
 
+from tubeid._validation import is_number
 from tubeid.errors import SpecificationError
 from tubeid.mechanics.spec import BundleSpec, StopSpec
 
@@ -33,10 +34,12 @@ __all__ = ["Tone", "ExtraStop", "AddedMass", "Damping", "SensorNoise", "EFFECTS"
 
 
 def _num(field: str, value, *, positive: bool = False, nonneg: bool = False) -> float:
+    if not is_number(value):  # numbers are numbers: "16" or True is refused, not converted
+        raise SpecificationError(field, value, "must be a number")
     try:
         v = float(value)
-    except (TypeError, ValueError):
-        raise SpecificationError(field, value, "must be a number") from None
+    except OverflowError:
+        v = math.inf
     if not math.isfinite(v) or (positive and v <= 0) or (nonneg and v < 0):
         raise SpecificationError(field, value, "must be > 0" if positive else "must be >= 0" if nonneg else "must be finite")
     return v
@@ -66,6 +69,11 @@ class ExtraStop:
     gap: float
     stiffness: float
     name: ClassVar[str] = "stop"
+
+    def __post_init__(self):
+        _num("stop.x", self.x)
+        _num("stop.gap", self.gap, nonneg=True)
+        _num("stop.stiffness", self.stiffness, positive=True)
 
 
 @dataclass(frozen=True)
@@ -113,7 +121,7 @@ def effect_from_dict(data: dict, where: str = "effects[0]"):
     if not isinstance(data, dict) or "kind" not in data:
         raise SpecificationError(where, data, f"must be a mapping with 'kind' in {sorted(EFFECTS)}")
     kind = data["kind"]
-    if kind not in EFFECTS:
+    if not isinstance(kind, str) or kind not in EFFECTS:
         raise SpecificationError(f"{where}.kind", kind, f"must be one of {sorted(EFFECTS)}")
     cls = EFFECTS[kind]
     known = {f.name for f in dataclasses.fields(cls)}

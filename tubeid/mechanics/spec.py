@@ -9,19 +9,32 @@ where a link joins A to B.
 
 A specification is built in Python or read from YAML/TOML by :func:`load_spec`. Every rule is
 checked when the object is made; a broken rule raises :class:`~tubeid.errors.SpecificationError`
-naming the field (``tubes[1].length``), the value and the rule.
+naming the field (``tubes[1].length``), the value and the rule. Numbers must be numbers (``"16"``
+in quotes is refused, never converted). Limits (configuration ``tubeid.io``): at most ``max-dof``
+degrees of freedom in the bundle and ``max-sensors`` sensors, load points or tones, each refusal
+stating the memory it would take.
+
+Files: YAML is read with PyYAML's safe loader with three changes: **aliases** (``*name``, also in
+``<<:`` merges) are refused, so a specification cannot expand beyond its own size (an "alias bomb"
+is refused at its first alias); a key given twice in a mapping is refused (YAML would keep the last
+silently); and a number with an exponent but no dot or exponent sign (``7.5e8``, ``1e6``), text
+under YAML 1.1, is read as the number a user means, as YAML 1.2 does.
+A file larger than ``tubeid.io.max-specification-bytes`` is refused before it is parsed.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
+import io
 import math
 import pathlib
+import re
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
-from tubeid._validation import non_negative, positive
-from tubeid.errors import SpecificationError
+from tubeid._validation import byte_size, channel_count, integer, limit, non_negative, positive, real
+from tubeid.errors import Described, SpecificationError
 
 __all__ = [
     "TubeSpec",
@@ -40,6 +53,21 @@ END_CONDITIONS = ("clamped", "pinned", "free")
 LOAD_KINDS = ("force", "moment")
 _NODE_TOL = 1e-9  # m: a position closer than this to a node is that node
 
+
+
+def _check_dof(field: str, value, n_dof: int, what: str) -> None:
+    """Refuse a model of more than ``tubeid.io.max-dof`` degrees of freedom, stating its memory."""
+    bound = int(limit("max-dof"))
+    if n_dof > bound:
+        if n_dof < 10**15:
+            count, memory = str(n_dof), byte_size(24.0 * n_dof**2)
+        else:  # beyond float range for a huge int: state the order of magnitude
+            digits = int(n_dof.bit_length() * math.log10(2))
+            count, memory = f"about 10^{digits}", f"about 10^{2 * digits + 1} B"
+        raise SpecificationError(
+            field, value,
+            f"{what} would have {count} degrees of freedom, at most {bound} (configuration tubeid.io.max-dof): "
+            f"its dense mass, damping and stiffness matrices alone take 3 × 8 B × N² = {memory}")
 
 
 @dataclass(frozen=True)
@@ -100,7 +128,25 @@ class TubeSpec:
             raise SpecificationError(f"{where}.wall", self.wall, f"must be <= outer_radius ({self.outer_radius} m)")
         if not isinstance(self.n_elements, int) or isinstance(self.n_elements, bool) or self.n_elements < 1:
             raise SpecificationError(f"{where}.n_elements", self.n_elements, "must be an integer >= 1")
-        if len(self.ends) != 2 or any(e not in END_CONDITIONS for e in self.ends):
+        _check_dof(f"{where}.n_elements", self.n_elements, 2 * (self.n_elements + 1), "this tube alone")
+        # The element matrices' scales (mass ρA·Le, ρA·Le³; stiffness EI/Le³, EI/Le) with a margin of 1e3 for
+        # their coefficients and sums, and of their eigenvalues with a margin of 1e10: finite and > 0 in
+        # floating point (no overflow, no cancellation or underflow to 0).
+        try:
+            le = self.length / self.n_elements
+            rho_a, ei = self.density * self.area, self.youngs_modulus * self.inertia
+            omega2 = ei / (rho_a * le**4)  # the scale of the eigenvalues ω²: its inverse must be finite too
+            scales = (self.area, self.inertia, 1e3 * rho_a * le, 1e3 * rho_a * le**3, 1e3 * ei / le**3, 1e3 * ei / le,
+                      1e10 * omega2, 1e10 / omega2)
+        except (OverflowError, ZeroDivisionError):  # beyond the range of doubles, or underflow to 0
+            scales = (math.inf,)
+        if not all(math.isfinite(v) and v > 0 for v in scales):
+            raise SpecificationError(
+                where, Described(f"length {self.length!r} m, outer_radius {self.outer_radius!r} m, wall {self.wall!r} m, "
+                                 f"density {self.density!r}, youngs_modulus {self.youngs_modulus!r}"),
+                "the section's area and inertia and the element mass and stiffness must be finite numbers > 0 "
+                "in floating point (a value is beyond the range of doubles)")
+        if not isinstance(self.ends, tuple) or len(self.ends) != 2 or any(e not in END_CONDITIONS for e in self.ends):
             raise SpecificationError(f"{where}.ends", self.ends, f"must be two of {END_CONDITIONS}")
         if non_negative(f"{where}.damping_ratio", self.damping_ratio) >= 1.0:
             raise SpecificationError(f"{where}.damping_ratio", self.damping_ratio, "must be in [0, 1)")
@@ -340,15 +386,33 @@ class BundleSpec:
         SpecificationError
             Naming the field (``tubes[1].length``, ``stops[0].x``), the value and the rule.
         """
+        if not isinstance(self.name, str) or not self.name:
+            raise SpecificationError("name", self.name, "must be a non-empty string")
+        if not isinstance(self.assumptions, str):
+            raise SpecificationError("assumptions", self.assumptions, "must be text")
         if not self.tubes:
             raise SpecificationError("tubes", [], "a bundle needs at least one tube")
         names = [t.name for t in self.tubes]
         for i, t in enumerate(self.tubes):
+            if not isinstance(t, TubeSpec):
+                raise SpecificationError(f"tubes[{i}]", t, "must be a TubeSpec")
             t.validate(f"tubes[{i}]")
             if names.index(t.name) != i:
                 raise SpecificationError(f"tubes[{i}].name", t.name, "tube names must be unique")
+        _check_dof("tubes", Described(f"{len(self.tubes)} tubes"), sum(2 * (t.n_elements + 1) for t in self.tubes),
+                   "the bundle")
+        channel_count("sensors", len(self.sensors), "sensors")
+        channel_count("loads", len(self.loads) + sum(1 for e in self.effects if type(e).__name__ == "Tone"),
+                      "load points and tones")
         positive("band_hz", self.band_hz)
+        if not isinstance(self.reduction, ReductionSpec):
+            raise SpecificationError("reduction", self.reduction, "must be a ReductionSpec")
         self.reduction.validate()
+        for what, items, cls in (("links", self.links, LinkSpec), ("stops", self.stops, StopSpec),
+                                 ("loads", self.loads, LoadPoint), ("sensors", self.sensors, SensorSpec)):
+            for i, item in enumerate(items):
+                if not isinstance(item, cls):
+                    raise SpecificationError(f"{what}[{i}]", item, f"must be a {cls.__name__}")
 
         def tube_of(where: str, name: str) -> TubeSpec:
             if name not in names:
@@ -356,10 +420,7 @@ class BundleSpec:
             return self.tubes[names.index(name)]
 
         def on_tube(where: str, tube: TubeSpec, x) -> None:
-            try:
-                xv = float(x)
-            except (TypeError, ValueError):
-                raise SpecificationError(where, x, "must be a number (m)") from None
+            xv = real(where, x, unit="m")
             if not (-_NODE_TOL <= xv <= tube.length + _NODE_TOL):
                 raise SpecificationError(where, x, f"is off tube {tube.name!r}: must be in [0, {tube.length}] m")
 
@@ -370,6 +431,8 @@ class BundleSpec:
             positive(f"{w}.stiffness", link.stiffness)
             if t.node_index(link.x) is None:
                 raise SpecificationError(f"{w}.x", link.x, f"must be a node of tube {t.name!r} (nodes {list(t.nodes)})")
+            if link.to_x is not None and link.to_tube is None:
+                raise SpecificationError(f"{w}.to_x", link.to_x, "needs to_tube (a link to the ground has no to_x)")
             if link.to_tube is not None:
                 o = tube_of(f"{w}.to_tube", link.to_tube)
                 on_tube(f"{w}.to_x", o, link.other_x)
@@ -382,11 +445,8 @@ class BundleSpec:
             t = tube_of(f"{w}.tube", s.tube)
             on_tube(f"{w}.x", t, s.x)
             non_negative(f"{w}.gap", s.gap, "m")
-            try:
-                k = float(s.stiffness)
-            except (TypeError, ValueError):
-                raise SpecificationError(f"{w}.stiffness", s.stiffness, "must be a number (N/m)") from None
-            if not math.isfinite(k) or k <= 0:
+            k = real(f"{w}.stiffness", s.stiffness, unit="N/m")
+            if k <= 0:
                 rule = "must be > 0 (a stop pushes back; with a zero gap a negative stiffness would make the tube unstable)"
                 raise SpecificationError(f"{w}.stiffness", s.stiffness, rule)
         for what, items in (("loads", self.loads), ("sensors", self.sensors)):
@@ -471,6 +531,8 @@ def _build(cls, data: Any, where: str):
         raise SpecificationError(f"{where}.{key}", None, "is required")
     kwargs = dict(data)
     if "ends" in kwargs:
+        if not isinstance(kwargs["ends"], (list, tuple)):
+            raise SpecificationError(f"{where}.ends", kwargs["ends"], f"must be a list of two of {END_CONDITIONS}")
         kwargs["ends"] = tuple(kwargs["ends"])
     return cls(**kwargs)
 
@@ -506,7 +568,10 @@ def spec_from_dict(data: Mapping[str, Any]) -> BundleSpec:
     if "effects" in data:
         from tubeid.mechanics.effects import effect_from_dict
 
-        data["effects"] = tuple(effect_from_dict(e, f"effects[{i}]") for i, e in enumerate(data["effects"] or []))
+        items = data["effects"] or []
+        if not isinstance(items, (list, tuple)):
+            raise SpecificationError("effects", items, "must be a list")
+        data["effects"] = tuple(effect_from_dict(e, f"effects[{i}]") for i, e in enumerate(items))
     if "name" not in data:
         raise SpecificationError("name", None, "is required")
     return BundleSpec(**data)
@@ -536,38 +601,114 @@ def spec_to_dict(spec: BundleSpec) -> dict[str, Any]:
     return out
 
 
+_MAX_DEPTH = 32  # nesting levels of a YAML specification (it needs 4)
+
+
+@functools.cache
+def _spec_loader():
+    """PyYAML's safe loader without aliases, reading ``7.5e8`` as a number (see the module docstring)."""
+    import yaml
+
+    class SpecLoader(yaml.SafeLoader):
+        depth = 0
+
+        def compose_node(self, parent, index):
+            if self.check_event(yaml.AliasEvent):
+                event = self.peek_event()
+                raise yaml.composer.ComposerError(
+                    None, None, f"alias *{event.anchor} refused: aliases are not allowed in specifications "
+                    f"(write the value out)", event.start_mark)
+            if self.depth >= _MAX_DEPTH:
+                raise yaml.composer.ComposerError(
+                    None, None, f"nested more than {_MAX_DEPTH} levels deep", self.peek_event().start_mark)
+            self.depth += 1
+            try:
+                return super().compose_node(parent, index)
+            finally:
+                self.depth -= 1
+
+        def construct_mapping(self, node, deep=False):
+            seen = set()
+            for key_node, _ in node.value:
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    duplicate = key in seen
+                    seen.add(key)
+                except TypeError:  # an unhashable key: PyYAML refuses it itself
+                    continue
+                if duplicate:
+                    raise yaml.constructor.ConstructorError(
+                        "while reading a mapping", node.start_mark,
+                        f"key {key!r} given twice (the last would silently win)", key_node.start_mark)
+            return super().construct_mapping(node, deep=deep)
+
+    # YAML 1.2 core-schema floats with an exponent that YAML 1.1 leaves as text: 1e6, 7.5e8, 2.E-3.
+    SpecLoader.add_implicit_resolver(
+        "tag:yaml.org,2002:float",
+        re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9][0-9_]*)[eE][-+]?[0-9]+$"),
+        list("-+0123456789."))
+    return SpecLoader
+
+
+def _read_yaml(text: str, source: str):
+    import yaml
+
+    stream = io.StringIO(text)
+    stream.name = source  # named in PyYAML's marks
+    try:
+        return yaml.load(stream, Loader=_spec_loader())  # noqa: S506 - a SafeLoader subclass
+    except yaml.YAMLError as exc:
+        raise SpecificationError("specification file", source, f"is not valid YAML ({exc})") from None
+    except (ValueError, RecursionError) as exc:
+        _unreadable(source, exc)
+
+
+def _unreadable(source: str, exc: Exception):
+    """Parsers' own limits as refusals: an integer of more than 4300 digits, nesting beyond the stack."""
+    what = "is nested too deeply" if isinstance(exc, RecursionError) else f"cannot be read ({exc})"
+    raise SpecificationError("specification file", source, what) from None
+
+
+def _read_toml(text: str, source: str):
+    import tomllib
+
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise SpecificationError("specification file", source, f"is not valid TOML ({exc})") from None
+    except (ValueError, RecursionError) as exc:
+        _unreadable(source, exc)
+
+
 def load_spec(path: str | pathlib.Path) -> BundleSpec:
     """Read a bundle specification from a ``.yaml``/``.yml`` or ``.toml`` file.
 
     Parameters
     ----------
-    path : str or pathlib.Path
-        The file; its fields are those of ``BundleSpec`` (tables of tubes, links, ...).
+    path : str or path-like
+        The file; its suffix chooses the format. YAML: safe loading without aliases, ``7.5e8`` read
+        as a number (module docstring). At most ``tubeid.io.max-specification-bytes``, UTF-8.
 
     Returns
     -------
     BundleSpec
-        The validated specification; a missing file, bad syntax or a broken rule raises
-        ``SpecificationError``.
+        The validated specification. Any bad input raises
+        :class:`~tubeid.errors.SpecificationError` naming the file or field, the value and the rule.
     """
     p = pathlib.Path(path)
+    source = str(p)
+    if p.suffix not in (".yaml", ".yml", ".toml"):
+        raise SpecificationError("specification file", source, "must end in .yaml, .yml or .toml")
     if not p.is_file():
-        raise SpecificationError("specification file", str(p), "does not exist")
-    text = p.read_text()
-    if p.suffix in (".yaml", ".yml"):
-        import yaml
-
-        try:
-            data = yaml.safe_load(text)
-        except yaml.YAMLError as exc:
-            raise SpecificationError("specification file", str(p), f"is not valid YAML ({exc})") from None
-    elif p.suffix == ".toml":
-        import tomllib
-
-        try:
-            data = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as exc:
-            raise SpecificationError("specification file", str(p), f"is not valid TOML ({exc})") from None
-    else:
-        raise SpecificationError("specification file", str(p), "must end in .yaml, .yml or .toml")
+        raise SpecificationError("specification file", source, "does not exist or is not a file")
+    size, bound = p.stat().st_size, limit("max-specification-bytes")
+    if size > bound:
+        raise SpecificationError("specification file", source,
+                                 f"is {byte_size(size)}, larger than {byte_size(bound)} "
+                                 f"(configuration tubeid.io.max-specification-bytes)")
+    try:
+        text = p.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise SpecificationError("specification file", source, f"is not UTF-8 text ({exc})") from None
+    data = _read_toml(text, source) if p.suffix == ".toml" else _read_yaml(text, source)
     return spec_from_dict(data)

@@ -1,0 +1,86 @@
+"""cluster/tls/make-certs.sh: what goes where. (The kit running a TLS cluster end to end is
+tests/test_runner_distributed.py::test_tls_cluster_from_the_cluster_settings.)
+
+The directory the cluster README mounts in every pod (OUTPUT_DIR) must never hold the CA's private
+key: whoever has it can issue certificates the cluster accepts. Keys are compared by their public
+halves with openssl, not by file name.
+"""
+
+import shutil
+import stat
+import subprocess
+from pathlib import Path
+
+import pytest
+import yaml
+
+pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl")
+SCRIPT = Path(__file__).resolve().parents[1] / "cluster" / "tls" / "make-certs.sh"
+
+
+def _make(*args, check=True):
+    return subprocess.run(["bash", str(SCRIPT), *map(str, args)], capture_output=True, text=True, check=check)
+
+
+def _openssl(*args) -> str:
+    return subprocess.run(["openssl", *args], capture_output=True, text=True, check=True).stdout
+
+
+def _public_of_key(path: Path) -> str:
+    return _openssl("pkey", "-in", str(path), "-pubout")
+
+
+def _private_keys(folder: Path) -> list[Path]:
+    return [p for p in folder.rglob("*") if p.is_file() and "PRIVATE KEY" in p.read_text(errors="replace")]
+
+
+def test_the_ca_key_never_lands_in_the_mounted_directory(tmp_path):
+    out, ca = tmp_path / "tls", tmp_path / "tls.ca"
+    _make(out)
+    ca_public = _openssl("x509", "-in", str(ca / "ca.pem"), "-noout", "-pubkey")
+    keys = _private_keys(out)
+    assert sorted(k.name for k in keys) == ["client-key.pem", "scheduler-key.pem", "worker-key.pem"]
+    assert all(_public_of_key(k) != ca_public for k in keys)
+    assert _public_of_key(ca / "ca-key.pem") == ca_public  # the CA key is in CA_DIR, outside OUTPUT_DIR
+    assert (out / "ca.pem").read_bytes() == (ca / "ca.pem").read_bytes()
+    for folder in (out, ca):
+        assert stat.S_IMODE(folder.stat().st_mode) == 0o700
+        assert all(stat.S_IMODE(p.stat().st_mode) == 0o600 for p in folder.iterdir())
+    for role in ("scheduler", "worker", "client"):
+        assert f"{role}.pem: OK" in _openssl("verify", "-CAfile", str(out / "ca.pem"), str(out / f"{role}.pem"))
+    config = yaml.safe_load((out / "dask-tls.yaml").read_text())["distributed"]["comm"]["tls"]
+    files = [config["ca-file"]] + [config[r][k] for r in ("scheduler", "worker", "client") for k in ("cert", "key")]
+    assert all(Path(f).parent == out.resolve() and Path(f).is_file() for f in files)
+
+
+def test_a_second_run_issues_new_certificates_from_the_same_ca(tmp_path):
+    out, ca = tmp_path / "tls", tmp_path / "offline-ca"
+    _make(out, "DNS:localhost", ca)
+    first_ca, first_worker = (ca / "ca.pem").read_bytes(), (out / "worker.pem").read_bytes()
+    run = _make(tmp_path / "more", "DNS:node2", ca)
+    assert "reusing the CA" in run.stdout
+    assert (ca / "ca.pem").read_bytes() == first_ca == (tmp_path / "more" / "ca.pem").read_bytes()
+    assert (tmp_path / "more" / "worker.pem").read_bytes() != first_worker
+    assert "OK" in _openssl("verify", "-CAfile", str(ca / "ca.pem"), str(tmp_path / "more" / "worker.pem"))
+    assert not _private_keys(tmp_path / "more") or all(
+        _public_of_key(k) != _public_of_key(ca / "ca-key.pem") for k in _private_keys(tmp_path / "more"))
+
+
+@pytest.mark.parametrize("layout", ["ca inside output", "ca is output", "legacy key in output"])
+def test_layouts_that_would_expose_the_ca_key_are_refused(tmp_path, layout):
+    out = tmp_path / "tls"
+    if layout == "legacy key in output":  # what the earlier script left there
+        out.mkdir()
+        (out / "ca-key.pem").write_text("-----BEGIN PRIVATE KEY-----\n")
+        ca = tmp_path / "ca"
+    else:
+        ca = out / "ca" if layout == "ca inside output" else out
+    run = _make(out, "DNS:localhost", ca, check=False)
+    assert run.returncode == 2 and "make-certs.sh:" in run.stderr
+    assert not [p for p in tmp_path.rglob("*.pem") if p.name != "ca-key.pem" or layout != "legacy key in output"]
+
+
+def test_an_openssl_failure_is_reported_and_leaves_no_request_files(tmp_path):
+    run = _make(tmp_path / "tls", "not-a-subject-alt-name", check=False)
+    assert run.returncode == 1 and "openssl failed" in run.stderr and "subjectAltName" in run.stderr
+    assert not list((tmp_path / "tls").glob("*.csr")) and not list((tmp_path / "tls").glob("*.ext"))
