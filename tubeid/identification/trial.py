@@ -107,7 +107,7 @@ def identify_r(psd_grid: xr.DataArray, psd_exp: xr.DataArray, *, distance: str =
         ``"relative"``: ``weight_psd``. Attributes: ``distance``, ``distance_description``,
         ``grid_dims``, ``r_opt``, ``r_opt_discrete``, ``r_opt_std``, ``r_opt_low``,
         ``r_opt_high``, ``r_opt_corr`` (lists in ``grid_dims`` order), ``r_opt_at_boundary``
-        (bool: the grid minimum lies on an edge of the grid: widen it), ``D_min``, ``D_units``,
+        (bool: the grid minimum lies on an edge of an axis with more than one value: widen it), ``D_min``, ``D_units``,
         ``refined`` (bool), ``weight_source`` and the engine's settings (``n_realisations``,
         ``n_experimental_records``, ``n_bootstrap``, ``bootstrap``, ...).
     """
@@ -126,8 +126,8 @@ def identify_r(psd_grid: xr.DataArray, psd_exp: xr.DataArray, *, distance: str =
         if weight_psd is None:
             paper = distance_map(psd_grid, psd_exp, band_hz=band, n_bootstrap=0, dim=dim, refine=None)
             weight_psd = _mean_at_minimum(psd_grid, paper, dim)
-            weight_source = ("this grid's mean PSD at the grid minimum of the paper's D, r = ("
-                             + ", ".join(f"{v:.6g}" for v in paper.attrs["r_opt_discrete"]) + ")")
+            weight_source = ("mean model PSD at r = (" + ", ".join(f"{v:.6g}" for v in paper.attrs["r_opt_discrete"])
+                             + "), the paper D's grid minimum on the grid the weight was computed from")
         else:
             if not isinstance(weight_psd, xr.DataArray):
                 raise SpecificationError("weight_psd", _Desc(type(weight_psd).__name__), "must be an xarray.DataArray")
@@ -149,6 +149,10 @@ def identify_r(psd_grid: xr.DataArray, psd_exp: xr.DataArray, *, distance: str =
                                ("r_opt_high", a["r_opt_high"], f"bootstrap {100 * a['confidence']:g} % interval of r_opt, high")):
         out[name] = xr.DataArray(np.asarray(values, dtype=float), dims=("parameter",),
                                  attrs={"long_name": what, "units": "; ".join(units)})
+    edge = [bool(fine_ax.size > 1 and v in (fine_ax[0], fine_ax[-1]))
+            for fine_ax, v in ((np.asarray(psd_grid[d].values, dtype=float), r) for d, r in zip(dims, a["r_opt_discrete"]))]
+    out["at_grid_edge"] = xr.DataArray(np.asarray(edge), dims=("parameter",),
+                                       attrs={"long_name": "the grid minimum lies on the first or last value of this axis"})
     if distance == "relative":
         wp = xr.DataArray(np.asarray(weight_psd.values), dims=weight_psd.dims,
                           coords={d: weight_psd[d] for d in weight_psd.dims if d in weight_psd.coords},
@@ -156,7 +160,7 @@ def identify_r(psd_grid: xr.DataArray, psd_exp: xr.DataArray, *, distance: str =
                                  "units": str(psd_grid.attrs.get("units", "m^2/Hz")), "weight_source": weight_source})
         out["weight_psd"] = wp
     out.attrs.update(distance=distance, distance_description=DISTANCES[distance], r_opt=[float(v) for v in r_opt],
-                     r_opt_at_boundary=bool(a["r_opt_at_boundary"]), refined=bool(refine), weight_source=weight_source)
+                     r_opt_at_boundary=bool(any(edge)), refined=bool(refine), weight_source=weight_source)
     for n, d in enumerate(dims):
         out.attrs[f"{d}_opt"] = float(r_opt[n])
     return out
