@@ -399,16 +399,22 @@ def summarize_delta_f(ds):
 
 
 def r_identification(results):
-    """r_opt of every distance on the fine grid (point estimates; JSON text of plain values)."""
+    """r_opt of every distance (point estimates, JSON-ready): on the fine grid (placed for the study's
+    distance) and, refined, on the coarse grid (where another distance's minimum may lie)."""
     out = {}
     for name in DISTANCES:
         try:
             a = identify_fine(results, name).attrs
+            weight = identify_coarse(results, "relative").weight_psd if name == "relative" else None
+            c = identify_r(results["load_r"].psd, _experiment(results), distance=name, band_hz=_band(results),
+                           weight_psd=weight).attrs
         except SpecificationError as exc:  # e.g. a band without energy: say so instead of failing the study
             out[name] = {"error": str(exc)}
             continue
         out[name] = {"r_opt": a["r_opt"], "r_opt_discrete": a["r_opt_discrete"], "at_grid_edge": a["r_opt_at_boundary"],
-                     "D_min": a["D_min"], "D_units": a["D_units"], "weight_source": a["weight_source"]}
+                     "D_min": a["D_min"], "D_units": a["D_units"], "weight_source": a["weight_source"],
+                     "coarse": {"r_opt": c["r_opt"], "r_opt_discrete": c["r_opt_discrete"],
+                                "at_grid_edge": c["r_opt_at_boundary"]}}
     return out
 
 

@@ -59,16 +59,18 @@ def test_j_monte_carlo_common_random_numbers_and_labels():
 def test_delta_identification_recovers_a_known_delta():
     """Synthetic experiments: 30 independent J observations of the simplified model at δ = 0.3.
 
-    The joint likelihood's argmax has a Monte Carlo spread of about ±0.03 here (measured with
-    independent seeds: 0.15 → 0.15, 0.3 → 0.325, 0.5 → 0.525 on a 0.025 grid), so a 0.075
-    tolerance (3 grid steps) is about 2.5 spreads.
+    The bootstrap resamples the model realisations and the observations, so its σ covers both
+    (checked against independent sets in ``test_likelihood.py``). Measured here: 0.228 ± 0.044 (the 30
+    observations happen to scatter less than J(0.3) does: 300 observations give 0.303); tolerance
+    3 σ, and σ itself below 0.08 (a bootstrap that blows up would pass anything).
     """
     true = 0.3
     observed = random_j(SUB, Dispersion(stiffness=true), 99, np.arange(10_000, 10_030), 100.0)
-    ds = identify_delta(j_reference=observed, n_realisations=300, seed=1, n_bootstrap=40)
-    assert abs(ds.attrs["delta_opt"] - true) < 0.075
-    assert ds.attrs["delta_opt_low"] <= ds.attrs["delta_opt"] <= ds.attrs["delta_opt_high"]
-    assert ds.attrs["n_observations"] == 30
+    ds = identify_delta(j_reference=observed, n_realisations=300, seed=1, n_bootstrap=200)
+    a = ds.attrs
+    assert 0 < a["delta_opt_std"] < 0.08 and abs(a["delta_opt"] - true) < 3 * a["delta_opt_std"], a
+    assert a["delta_opt_low"] <= a["delta_opt"] <= a["delta_opt_high"]
+    assert a["n_observations"] == 30 and a["flat"] == 0
 
 
 def test_model_to_model_likelihood_is_computed_and_labelled():

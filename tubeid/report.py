@@ -353,7 +353,7 @@ def _likelihood_quantity(a: dict, n: int, grid, stored=None, key: str = "", note
         value = float(stored)
     return {"value": value, "std": a["argmax_std"], "low": a["argmax_low"], "high": a["argmax_high"],
             "discrete": a["argmax_discrete"], "at_grid_edge": bool(a["argmax_at_boundary"]), "flat": bool(a["flat"]),
-            "log_likelihood_range": a["log_likelihood_range"], "log_likelihood_range_std": a["log_likelihood_range_std"],
+            "log_likelihood_range": a["log_likelihood_range"], "n_excluded": a["n_excluded"],
             "lr_interval": [a["lr_interval_low"], a["lr_interval_high"]], "grid_ends": [float(grid[0]), float(grid[-1])],
             "n_realisations": n}
 
@@ -638,7 +638,8 @@ def _stage_load_r(store, out, n_bootstrap, seed, written, notes, run, targets) -
             r_opt = list(stored[name]["r_opt"])
         details[f"r_opt_{name}"] = {"note": DISTANCES[name], "r_opt": r_opt, "r_opt_std": a["r_opt_std"],
                                     "r_opt_corr": a["r_opt_corr"], "at_grid_edge": bool(a["r_opt_at_boundary"]),
-                                    "D_min": a["D_min"], "D_units": a["D_units"]}
+                                    "D_min": a["D_min"], "D_units": a["D_units"],
+                                    "coarse": (stored or {}).get(name, {}).get("coarse")}
     if passed is not None and not np.allclose(passed, details[f"r_opt_{used}"]["r_opt"], rtol=1e-12, atol=0):
         notes.append(f"the r passed downstream {passed} is not the stored r_opt of distance {used!r}")
     if "bands" in maps:  # goodness of fit: about 1 if the experiment is a draw of the model class
@@ -736,10 +737,9 @@ def _verdict(key: str, q: dict, targets: dict, label: str, corr=None) -> str:
     if v is None or not math.isfinite(v):
         return "Not identified."
     if q.get("flat"):
-        sd = q.get("log_likelihood_range_std")
-        return (f"Flat likelihood (its log varies by {q['log_likelihood_range']:.2g} across the grid, below "
-                f"max(1.92, 2 × its bootstrap σ {_fmt(sd, 2)})): not identified by these data; no agreement with the "
-                f"{label} can be claimed.")
+        return (f"Flat likelihood (its log varies by {q['log_likelihood_range']:.2g} across the grid, and no grid "
+                "value is excluded by a 95 % likelihood-ratio test beyond 2 bootstrap σ): not identified by these "
+                f"data; no agreement with the {label} can be claimed.")
     if q.get("at_grid_edge"):
         return f"On the edge of its grid ({v:.4g}): a bound, not an estimate; no agreement with the {label} can be claimed."
     target = targets[key]
@@ -827,7 +827,7 @@ def _markdown(summary: dict) -> str:
         q = summary["quantities"].get("delta_opt")
         if q:
             lines.append(f"- δ likelihood: log-likelihood range across the grid {_fmt(q['log_likelihood_range'])} "
-                         f"(bootstrap σ {_fmt(q['log_likelihood_range_std'], 2)}); 95 % likelihood-ratio interval "
+                         f"({q['n_excluded']} grid values excluded at 95 % beyond 2 bootstrap σ); 95 % likelihood-ratio interval "
                          f"[{_fmt(q['lr_interval'][0])}, {_fmt(q['lr_interval'][1])}]; admissible bound "
                          f"{_fmt(d.get('delta_max'))}.")
     if "response" in det:
@@ -841,10 +841,16 @@ def _markdown(summary: dict) -> str:
         lines.append(f"- The table's r: {lr['distance']} distance ({DISTANCES[lr['distance']]}) on {lr['grid']}.")
         for name in DISTANCES:
             rr = lr.get(f"r_opt_{name}")
-            if rr is not None and name != lr["distance"]:
+            if rr is None:
+                continue
+            if name != lr["distance"]:
                 lines.append(f"- With the {name} distance: r_opt = ({', '.join(_fmt(v, 4) for v in rr['r_opt'])}) ± "
                              f"({', '.join(_fmt(v, 2) for v in rr['r_opt_std'])})"
                              + (" — on the grid edge." if rr["at_grid_edge"] else "."))
+            c = rr.get("coarse")
+            if c:
+                lines.append(f"  - {name} on the coarse grid (refined): ({', '.join(_fmt(v, 4) for v in c['r_opt'])})"
+                             + (" — on the coarse grid's edge." if c["at_grid_edge"] else "."))
         msr = (lr.get("r_opt_bands") or {}).get("mean_squared_standardised_residual")
         if msr is not None:
             verdict = ("no sign of model-form error" if msr < 10 else

@@ -17,13 +17,13 @@ Conventions:
   Gaussian-shaped likelihood; stays within those neighbours). At a grid end, or when a neighbour
   has likelihood 0, the grid value itself is returned.
 * The pdf has the inverse unit of the samples (e.g. 1/J if the samples are values of J).
-* Flat likelihood: with Λ = max − min of the log-likelihood over the grid (the log of the
-  likelihood ratio across the grid) and σ_Λ its bootstrap standard deviation, the curve is
-  ``flat`` when Λ < max(χ²₁(0.95)/2, 2 σ_Λ) = max(1.92, 2 σ_Λ): no grid value is less likely than
-  the best by the factor e^1.92 ≈ 6.8 of a 95 % likelihood-ratio test, or the ratio is within the
-  Monte Carlo noise. The likelihood-ratio interval {θ : log p(θ) ≥ max − 1.92} is reported on the
-  grid (``lr_interval_low``/``_high``); when it reaches an end of the grid the data do not bound θ
-  on that side.
+* Flat likelihood: with d(θ) = max log p − log p(θ) the log likelihood ratio of each grid value
+  against the best and σ(θ) its bootstrap standard deviation, a grid value is *excluded* when
+  d(θ) > χ²₁(0.95)/2 + 2 σ(θ) = 1.92 + 2 σ(θ) — a 95 % likelihood-ratio test that the Monte Carlo
+  error cannot overturn. The curve is ``flat`` when no grid value is excluded: the data (at this
+  Monte Carlo size) prefer no part of the grid. The likelihood-ratio interval {θ : d(θ) ≤ 1.92}
+  is reported on the grid (``lr_interval_low``/``_high``); when it reaches an end of the grid the
+  data do not bound θ on that side.
 """
 
 from __future__ import annotations
@@ -154,9 +154,9 @@ def likelihood_curve(samples, x_ref, grid, grid_name: str = "delta", n_bootstrap
     ``likelihood_high`` (percentile interval of probability ``confidence``); attributes
     ``argmax`` (parabola-refined if ``refine``), ``argmax_discrete``, ``argmax_std``,
     ``argmax_low``, ``argmax_high``, ``argmax_at_boundary`` (0/1), the flatness verdict (module
-    docstring) ``log_likelihood_range`` (Λ), ``log_likelihood_range_std`` (σ_Λ, NaN without
-    bootstrap), ``flat`` (bool), ``lr_interval_low``, ``lr_interval_high`` (grid values), and the
-    settings used.
+    docstring) ``log_likelihood_range`` (max − min of the log-likelihood over the grid),
+    ``n_excluded`` (grid values excluded at 95 % beyond 2 bootstrap σ), ``flat`` (0/1: none is),
+    ``lr_interval_low``, ``lr_interval_high`` (grid values), and the settings used.
     Bootstrap replicates resample realisation indices jointly across the grid; each replicate
     recomputes its Silverman bandwidth. With several observations each replicate also resamples
     them (with replacement), so ``argmax_std`` includes the sampling error of the observations, not
@@ -219,7 +219,8 @@ def likelihood_curve(samples, x_ref, grid, grid_name: str = "delta", n_bootstrap
     G, N = s.shape
     nan_curve = np.full(G, np.nan)
     std = low = high = nan_curve
-    a_std = a_low = a_high = range_std = math.nan
+    a_std = a_low = a_high = math.nan
+    drop_std = np.zeros(G)
     if n_bootstrap > 0:
         chunk = max(1, _CHUNK_ELEMENTS // (G * N))
         boot_p, boot_arg, boot_range = [], [], []
@@ -241,14 +242,15 @@ def likelihood_curve(samples, x_ref, grid, grid_name: str = "delta", n_bootstrap
                 boot_p.append(np.exp(lb - scale_b))
             d_b, r_b = _refine_argmax(g, lb)
             boot_arg.append(r_b if refine else d_b)
-            boot_range.append(np.max(lb, axis=-1) - np.min(lb, axis=-1))
+            boot_range.append(np.max(lb, axis=-1, keepdims=True) - lb)
         bp, ba = np.concatenate(boot_p), np.concatenate(boot_arg)
         tail = 50.0 * (1.0 - float(confidence))
         std = bp.std(axis=0, ddof=1) if n_bootstrap > 1 else nan_curve
         low, high = np.percentile(bp, [tail, 100.0 - tail], axis=0)
-        br = np.concatenate(boot_range)
-        if n_bootstrap > 1 and np.all(np.isfinite(br)):
-            range_std = float(np.std(br, ddof=1))
+        drops = np.concatenate(boot_range)  # (n_bootstrap, G): each replicate's log ratio to its own best
+        if n_bootstrap > 1:
+            with np.errstate(invalid="ignore"):
+                drop_std = np.where(np.all(np.isfinite(drops), axis=0), np.std(drops, axis=0, ddof=1), np.inf)
         if np.any(np.isfinite(ba)):
             a_std = float(np.nanstd(ba, ddof=1)) if np.sum(np.isfinite(ba)) > 1 else math.nan
             a_low, a_high = (float(v) for v in np.nanpercentile(ba, [tail, 100.0 - tail]))
@@ -257,7 +259,9 @@ def likelihood_curve(samples, x_ref, grid, grid_name: str = "delta", n_bootstrap
     top = float(np.max(ll))
     with np.errstate(invalid="ignore"):
         lr_range = float(top - np.min(ll)) if math.isfinite(top) else math.nan
-    flat = bool(lr_range < max(LR_THRESHOLD, 2.0 * range_std if math.isfinite(range_std) else 0.0))
+    with np.errstate(invalid="ignore"):
+        excluded = (top - ll) > LR_THRESHOLD + 2.0 * drop_std
+    flat = not bool(np.any(excluded))
     inside = np.flatnonzero(ll >= top - LR_THRESHOLD) if math.isfinite(top) else np.array([], dtype=int)
     lr_low, lr_high = (float(g[inside[0]]), float(g[inside[-1]])) if inside.size else (math.nan, math.nan)
     dims = (grid_name,)
@@ -279,9 +283,9 @@ def likelihood_curve(samples, x_ref, grid, grid_name: str = "delta", n_bootstrap
             "argmax_high": a_high,
             "argmax_at_boundary": int(np.argmax(ll) in (0, G - 1)),
             "log_likelihood_range": lr_range,
-            "log_likelihood_range_std": range_std,
+            "n_excluded": int(np.sum(excluded)),
             "flat": int(flat),
-            "flat_rule": f"max - min of the log-likelihood over the grid < max({LR_THRESHOLD:.2f}, 2 bootstrap std)",
+            "flat_rule": f"no grid value has max log p - log p > {LR_THRESHOLD:.2f} + 2 bootstrap std of that difference",
             "lr_interval_low": lr_low,
             "lr_interval_high": lr_high,
             "argmax_method": ("parabola through the log-likelihood at the discrete maximum and its two neighbours"
