@@ -587,7 +587,7 @@ def _figure6(regions, f, rec_auto, name, band, out, written, details, run) -> No
                  f"(0–35 Hz {_pct(cov['0-35'])}, 35–100 Hz {_pct(cov['35-100'])})\n"
                  f"calibration: the reference model's own region covers it at {_pct(self_cov.get('0-100'))}\n"
                  f"quantiles 2.5–97.5 % per bin; {estimator}", fontsize=8.5)
-    ax.legend(fontsize=7, loc="lower left")
+    ax.legend(fontsize=7, loc="upper right")
     out.save_figure(fig, "fig6_confidence_region.png", dpi=110)
     written.append("fig6_confidence_region.png")
 

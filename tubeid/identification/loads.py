@@ -328,6 +328,15 @@ def _map_dataset(D, boot, refined, discrete, *, grid_dims, axes, psd_model, conf
     return ds
 
 
+def _sampling_attrs(band, N, n_exp, n_bootstrap, exp_extra, held_fixed="") -> dict:
+    """The settings every trial-grid map records: band, sample sizes and what its bootstrap resamples."""
+    return {"band_hz": band, "n_realisations": int(N), "n_experimental_records": int(max(n_exp, 1)),
+            "n_bootstrap": n_bootstrap,
+            "bootstrap": "model realisation indices resampled jointly across the grid (common random numbers kept)"
+                         + ("; experimental records resampled independently" if exp_extra else
+                            "; experimental PSD held fixed") + held_fixed}
+
+
 def _grid_inputs(psd_model, psd_exp, band_hz, n_bootstrap, rng, dim, fit, confidence, key):
     """Validate the inputs of the trial-grid maps; returns a namespace of arrays and settings."""
     # ---- validation, all up front ----
@@ -524,13 +533,7 @@ def distance_map(psd_model, psd_exp, band_hz: float = 100.0, n_bootstrap: int = 
                              None: "grid minimum"}[refine],
             "weight": "none (paper's D)" if weight is None else str(weight.attrs.get("long_name", "given")),
             "J_s_exp": js_exp,
-            "band_hz": band,
-            "n_realisations": int(N),
-            "n_experimental_records": int(max(n_exp, 1)),
-            "n_bootstrap": n_bootstrap,
-            "bootstrap": "model realisation indices resampled jointly across the grid (common random numbers kept)"
-                         + ("; experimental records resampled independently" if exp_extra else
-                            "; experimental PSD held fixed"),
+            **_sampling_attrs(band, N, n_exp, n_bootstrap, exp_extra),
         })
 
 
@@ -670,13 +673,7 @@ def log_band_distance_map(psd_model, psd_exp, band_hz: float = 100.0, band_width
             "band_width_hz": width,
             "n_bands": n_bands,
             "n_levels": int(K),
-            "band_hz": band,
-            "n_realisations": int(N),
-            "n_experimental_records": int(n_exp),
-            "n_bootstrap": n_bootstrap,
-            "bootstrap": "model realisation indices resampled jointly across the grid (common random numbers kept)"
-                         + ("; experimental records resampled independently" if exp_extra else
-                            "; experimental PSD held fixed") + "; the band variances held fixed",
+            **_sampling_attrs(band, N, n_exp, n_bootstrap, exp_extra, "; the band variances held fixed"),
         })
 
 
@@ -747,13 +744,7 @@ def log_spectral_distance_map(psd_model, psd_exp, band_hz: float = 100.0, n_boot
                              "around the grid minimum, its distance minimised within them" if refine else "grid minimum"),
             "weight": "log10 auto-spectra, every (sensor, bin) alike",
             "n_levels": int(K),
-            "band_hz": band,
-            "n_realisations": int(N),
-            "n_experimental_records": int(n_exp),
-            "n_bootstrap": n_bootstrap,
-            "bootstrap": "model realisation indices resampled jointly across the grid (common random numbers kept)"
-                         + ("; experimental records resampled independently" if exp_extra else
-                            "; experimental PSD held fixed"),
+            **_sampling_attrs(band, N, n_exp, n_bootstrap, exp_extra),
         })
 
 
