@@ -106,6 +106,7 @@ def _model(simplified: str):
     """The reduced simplified model of a ``simplified`` parameter value (its JSON content)."""
     return reduce(spec_from_dict(json.loads(simplified)["spec"]))
 
+
 SIZES = {
     # δ grid step, J realisations per δ, realisations for the confidence region, r grid size per axis,
     # realisations per r (coarse grid), fine r grid size, realisations per fine r, realisations per δ_F,

@@ -322,10 +322,11 @@ def test_end_to_end_recovery_with_the_papers_distance():
     """Paper's unweighted D and the relative D on a 4 × 4 grid of ±25 %, 32 model realisations and
     32 records of 150 s (~100 s).
 
-    Measured: paper's D r_opt = (17.07, 21.59) ± (0.73, 1.24) (4.1 %, 6.2 %; correlation −0.93),
-    relative D (17.86, 19.82) ± (0.20, 0.21) (1.1 %). The paper's D cannot be held to 10 % at 3σ
-    with this much data (r2 would need ~3.5 times more), so it is checked against its own bootstrap
-    (within 4σ, spread below 8 %), and the relative D against 10 % (9 of its σ) and 4σ.
+    Measured with paper-simplified (MODEL.md §2): paper's D r_opt = (18.11, 21.53) ± (0.58, 1.04)
+    (3.2 %, 5.2 %; correlation −0.63), relative D (17.97, 20.03) ± (0.20, 0.14) (1.1 %, 0.7 %). The
+    paper's D cannot be held to 10 % at 3σ with this much data (r2 would need ~1.5 times more), so it
+    is checked against its own bootstrap (within 4σ, spread below 8 %), and the relative D against
+    10 % (9 of its σ) and 4σ.
     """
     r1 = 18.0 * np.array([0.8, 0.93, 1.07, 1.24])
     r2 = 20.0 * np.array([0.78, 0.92, 1.08, 1.27])
