@@ -382,3 +382,45 @@ def test_region_coverage_is_calibrated_on_the_reference_model():
     assert both["0-100"] == pytest.approx(np.mean(cov), rel=1e-12, abs=0)
     with pytest.raises(SpecificationError, match="records.dims"):
         region_coverage(region, records)
+
+
+def _texts_fit(fig):
+    """Every title and tick label of ``fig`` lies inside the figure, and no two tick labels of an axis overlap."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    renderer = canvas.get_renderer()
+    W, H = fig.bbox.width, fig.bbox.height
+    problems = []
+    for ax in fig.axes:
+        for t in (ax.title, ax._left_title, ax._right_title):
+            if t.get_text():
+                b = t.get_window_extent(renderer)
+                if b.x0 < -1 or b.x1 > W + 1 or b.y1 > H + 1:
+                    problems.append(f"title {t.get_text()[:40]!r} outside the figure")
+        for axis in (ax.xaxis, ax.yaxis):
+            boxes = [(t.get_text(), t.get_window_extent(renderer)) for t in axis.get_ticklabels(which="both")
+                     if t.get_visible() and t.get_text()]
+            for i, (na, a) in enumerate(boxes):
+                problems += [f"tick labels {na!r} and {nb!r} overlap" for nb, b in boxes[i + 1:] if a.overlaps(b)]
+    return problems
+
+
+@pytest.mark.parametrize("real", [False, True])
+def test_every_figure_is_legible(tmp_path, monkeypatch, real):
+    """Titles inside the figure and tick labels apart, on every figure of a full report (complex and real
+    PSDs; the D map of a three-decade grid is tested above)."""
+    figures = {}
+    original = OutputDir.save_figure
+
+    def keep(self, fig, name, **kw):
+        figures[name] = fig
+        return original(self, fig, name, **kw)
+
+    monkeypatch.setattr(OutputDir, "save_figure", keep)
+    store = _write(tmp_path / "p.zarr", _groups(real=real), {"delta": 0.45, "distance": "paper"})
+    make_report(store, tmp_path / "out", n_bootstrap=0)
+    assert sorted(figures) == sorted(FIGURES)
+    for name, fig in figures.items():
+        assert _texts_fit(fig) == [], name

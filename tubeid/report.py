@@ -548,7 +548,7 @@ def _figure4(mean, f, rec_auto, name, band, sensor, out, written, notes, details
     high = float(np.mean(lr[fp > 35])) if np.any(fp > 35) else None
     details["mean_model_log10_error_0_35_hz"] = low
     details["mean_model_log10_error_35_100_hz"] = high
-    ax.set_title(f"Reference vs mean simplified model (Figure 4): mean |log10 ratio| {_fmt(low, 2)} "
+    ax.set_title(f"Reference vs mean simplified model (Figure 4)\nmean |log10 ratio| {_fmt(low, 2)} "
                  f"(0–35 Hz), {_fmt(high, 2)} (35–100 Hz)", fontsize=9)
     ax.legend(fontsize=8)
     out.save_figure(fig, "fig4_mean_model.png", dpi=110)
