@@ -5,29 +5,42 @@ load are the experimental data. Stages (one Zarr group each; every realisation a
 runner task; random streams keyed by the realisation, so every grid shares common random numbers):
 
 ``delta``         J(δ) Monte Carlo of the stochastic simplified model (random K_B ∈ SE+) over a δ
-                  grid → p_J(J_ref; δ), δ_opt (Figure 5).
+                  grid → p_J(J_ref; δ), δ_opt, its edge flag and flatness verdict (Figure 5).
 ``reference``     the "experiment": the reference model and the mean simplified model under the
                   same 7-point load history → response PSDs at P_obs (Figure 4).
+``calibration``   realisations of the experiment's generator independent of the experimental record
+                  (as many as ``response``, same estimator): the reference model's own 95 % region,
+                  against which the coverage of Figure 6 is calibrated (beyond the paper).
 ``response``      the stochastic simplified model at δ_opt under the 7-point load → 95 %
                   confidence region of the response PSD (Figure 6).
 ``load_r``        trial grid over r = (r1, r2) of the (T, M) load at x = 8 m, stochastic model at
-                  δ_opt → D(r) map and r_opt.
-``load_r_fine``   a finer grid around the coarse minimum (beyond the paper).
-``load_delta_f``  J_s over a δ_F grid at (δ_opt, r_opt) → p_Js(J_s,exp; δ_F), δ_F,opt.
+                  δ_opt → D(r) map and the coarse r_opt.
+``load_r_fine``   a finer grid, ± one coarse step around the coarse minimum (beyond the paper).
+``load_delta_f``  J_s over a δ_F grid at (δ_opt, r_opt) → p_Js(J_s,exp; δ_F), δ_F,opt. Its stage
+                  parameters hold r_opt of every distance on the fine grid (``r_identification``,
+                  JSON): what the study passed downstream, read by ``tubeid report``.
 
 Proof of identification: ``--set experiment=synthetic`` replaces the reference model by the
 stochastic simplified model itself with known TRUTH (δ = 0.3 for the J observations, r = (18, 20),
 δ_F = 0.04, 8 experimental records): the report then compares what is identified with the truth.
 
-``--set distance=relative`` weights D(r) by the model's own PSD for the r_opt passed downstream;
-``--set distance=bands`` uses the generalised least squares of the log band energies
-(``log_band_distance_map``), the best conditioned without model-form error (see ``_r_opt``).
+The simplified model is a parameter: ``--set simplified=NAME_OR_SPEC_FILE`` (default the built-in
+``paper-simplified``, MODEL.md §2). Its specification's *content* becomes the parameter's value
+(JSON), so it is stored with the study and part of its hash (a changed file is never mixed with a
+store made from the old one) and workers need no access to the file.
 
-Sizes: ``--set size=paper`` (default: 200 realisations per δ, 100 for the confidence region, a
-10 × 10 grid of r) or ``--set size=quick`` (a look in about a minute). ``--set delta=0.45`` imposes δ
-for the later stages instead of δ_opt (e.g. the paper's value). Then ``tubeid report STORE``.
+r_opt comes from ``tubeid.identification.identify_r`` (the one home of the trial method):
+``--set distance=relative`` weights D(r) by the model's own PSD for the r_opt passed downstream;
+``--set distance=bands`` uses the generalised least squares of the log band energies, the best
+conditioned without model-form error; ``--set distance=log`` the mean squared log10 ratio.
+
+Sizes: ``--set size=paper`` (default: 200 realisations per δ, 100 for the confidence region and
+its calibration, a 10 × 10 grid of r) or ``--set size=quick`` (a look: too small to identify r or
+δ_F). ``--set delta=0.45`` imposes δ for the later stages instead of δ_opt (e.g. the paper's value).
+Then ``tubeid report STORE``.
 """
 
+import functools
 import json
 
 import numpy as np
@@ -35,22 +48,65 @@ import numpy as np
 from tubeid.dynamics import warmup
 from tubeid.dynamics.response import ResponseSettings, simulate_responses
 from tubeid.dynamics.spectra import j_s
+from tubeid.errors import SpecificationError
 from tubeid.identification.delta import default_delta_grid, reference_j
-from tubeid.identification.loads import distance_map, log_band_distance_map, relative_weight
 from tubeid.identification.likelihood import likelihood_curve
-from tubeid.mechanics.library import builtin_spec
+from tubeid.identification.trial import DISTANCES, fine_grid, identify_r
+from tubeid.mechanics.library import builtin_spec, resolve_spec
 from tubeid.mechanics.reduction import J_UNITS, j_functional, reduce
-from tubeid.mechanics.spec import spec_to_dict
+from tubeid.mechanics.spec import spec_from_dict, spec_to_dict
 from tubeid.runner.pipeline import Pipeline
 from tubeid.runner.study import Output, Parameter, Study, Warmup
 from tubeid.uncertainty.loads import coherent_forces, force_and_moment
-from tubeid.uncertainty.random_matrices import Dispersion
+from tubeid.uncertainty.random_matrices import Dispersion, delta_max
 from tubeid.uncertainty.random_models import germs_from_rngs, random_subsystem
 
-SIMPLIFIED = reduce(builtin_spec("paper-simplified"))
 REFERENCE = reduce(builtin_spec("paper-reference"))
-SUB = SIMPLIFIED.subsystem
 BAND = 100.0
+
+
+class ModelParameter(Parameter):
+    """A bundle model given as a built-in name or a .yaml/.toml file; its value becomes the content.
+
+    ``check`` turns the name or path into canonical JSON text ``{"source": ..., "spec": {...}}`` (the
+    specification's fields): that text is what the stages receive, store and hash. JSON text already
+    in that form is validated and passed through, so the check is idempotent (workers receive it).
+    The model must observe the reference's point: subsystem A on the tube ``centre``, its first
+    sensor where the reference's P_obs is, and the reference's band.
+    """
+
+    def check(self, name, value):
+        field = f"parameters.{name}"
+        if not isinstance(value, str) or not value:
+            raise SpecificationError(field, value, "must be a built-in model name or a .yaml/.toml specification file")
+        try:
+            if value.lstrip().startswith("{"):
+                content = json.loads(value)
+                source, spec = str(content["source"]), spec_from_dict(content["spec"])
+            else:
+                source, spec = value, resolve_spec(value)
+        except SpecificationError as exc:
+            raise SpecificationError(field, value if len(value) < 200 else value[:200] + "...", str(exc)) from None
+        except (ValueError, KeyError, TypeError, OSError) as exc:
+            raise SpecificationError(field, value[:200], f"is neither a model name, a specification file nor its "
+                                                          f"content ({type(exc).__name__}: {exc})") from None
+        ref = REFERENCE.spec
+        p_obs = ref.sensors[0]
+        if spec.a_tube != "centre":
+            raise SpecificationError(f"{field}: nonlinear tube", spec.a_tube, "must be 'centre' (the reference's subsystem A)")
+        if not spec.sensors or (spec.sensors[0].tube, spec.sensors[0].x) != (p_obs.tube, p_obs.x):
+            raise SpecificationError(f"{field}: sensors[0]", spec.sensors[0] if spec.sensors else None,
+                                     f"must observe the reference's {p_obs.name} (tube {p_obs.tube!r}, x = {p_obs.x:g} m)")
+        if spec.band_hz != ref.band_hz:
+            raise SpecificationError(f"{field}: band_hz", spec.band_hz, f"must be the reference's {ref.band_hz:g} Hz")
+        return json.dumps({"source": source, "spec": spec_to_dict(spec)}, sort_keys=True)
+
+
+@functools.lru_cache(maxsize=4)
+def _model(simplified: str):
+    """The reduced simplified model of a ``simplified`` parameter value (its JSON content)."""
+    return reduce(spec_from_dict(json.loads(simplified)["spec"]))
+
 
 SIZES = {
     # δ grid step, J realisations per δ, realisations for the confidence region, r grid size per axis,
@@ -83,6 +139,7 @@ def _frequencies(size):
 
 
 def _psd_block(model, load, block, rng, *, size, dispersion, load_dispersion=0.0, axis="realisation"):
+    """P_obs auto-PSD (first sensor) of one realisation per coordinate of ``axis`` in the block."""
     reals = [int(r) for r in block[axis]]
     rngs = [rng.at({axis: r}) for r in reals]
     ds = simulate_responses(model, load, reals, rngs=rngs, dispersion=dispersion, load_dispersion=load_dispersion, settings=_settings(size))
@@ -90,50 +147,63 @@ def _psd_block(model, load, block, rng, *, size, dispersion, load_dispersion=0.0
 
 
 # -- stage 1: δ ------------------------------------------------------------------------------------
-def j_block(block, rng, *, size, experiment):
-    germs = germs_from_rngs(SUB.n, [rng.at({"realisation": int(r)}) for r in block["realisation"]])
+def j_block(block, rng, *, size, experiment, simplified):
+    sub = _model(simplified).subsystem
+    germs = germs_from_rngs(sub.n, [rng.at({"realisation": int(r)}) for r in block["realisation"]])
     out = np.empty((len(block["delta"]), len(block["realisation"])))
     for i, d in enumerate(block["delta"]):
-        M, D, K = random_subsystem(SUB, Dispersion(stiffness=float(d)), 0, block["realisation"], germs=germs)
-        out[i] = j_functional(M, D, K, SUB.n_c, BAND)
+        M, D, K = random_subsystem(sub, Dispersion(stiffness=float(d)), 0, block["realisation"], germs=germs)
+        out[i] = j_functional(M, D, K, sub.n_c, BAND)
     return {"J": out}
 
 
-def _j_observed(experiment):
+def _j_observed(experiment, simplified):
     """J_ref of the reference model, or J observations of the synthetic experiment (joint likelihood)."""
     if experiment == "reference":
         return reference_j("paper-reference")
     from tubeid.uncertainty.random_models import random_j
 
-    return [float(v) for v in random_j(SUB, Dispersion(stiffness=TRUTH["delta"]), 7, range(10**6, 10**6 + N_J_OBSERVATIONS), BAND)]
+    sub = _model(simplified).subsystem
+    return [float(v) for v in random_j(sub, Dispersion(stiffness=TRUTH["delta"]), 7, range(10**6, 10**6 + N_J_OBSERVATIONS), BAND)]
 
 
 def summarize_delta(ds):
-    j_obs = _j_observed(json.loads(ds.attrs["parameters"])["experiment"])
+    params = json.loads(ds.attrs["parameters"])
+    j_obs = _j_observed(params["experiment"], params["simplified"])
     lik = likelihood_curve(ds.J, j_obs, ds.delta.values, "delta", n_bootstrap=200, rng=1)
-    return {"J_ref": j_obs, "delta_opt": lik.attrs["argmax"], "delta_opt_std": lik.attrs["argmax_std"]}
+    a = lik.attrs
+    return {"J_ref": j_obs, "delta_opt": a["argmax"], "delta_opt_std": a["argmax_std"],
+            "delta_opt_at_grid_edge": bool(a["argmax_at_boundary"]), "delta_likelihood_flat": bool(a["flat"]),
+            "delta_lr_interval": [a["lr_interval_low"], a["lr_interval_high"]]}
 
 
-def delta(results, *, size, delta, experiment):
+def delta(results, *, size, experiment, simplified):
     s = SIZES[size]
+    sub = _model(simplified).subsystem
     return Study(
         name="delta",
         description="J(delta) Monte Carlo of the stochastic simplified model (random K_B)",
         seed=2008,
-        axes={"delta": np.round(default_delta_grid(SUB.n, s["delta_step"]), 4), "realisation": range(s["n_j"])},
+        axes={"delta": np.round(default_delta_grid(sub.n, s["delta_step"]), 4), "realisation": range(s["n_j"])},
         chunks={"delta": 64, "realisation": 50},
         seed_axes=("realisation",),
         task=j_block,
         outputs={"J": Output(units=J_UNITS, long_name="J = integral of ||Z(w)^-1||_F^2 over the band")},
         units={"delta": "1"},
-        parameters={"size": size, "experiment": experiment},
-        model=spec_to_dict(SIMPLIFIED.spec),
+        parameters={"size": size, "experiment": experiment, "simplified": simplified},
+        model=spec_to_dict(_model(simplified).spec),
         summarize=summarize_delta,
     )
 
 
-def _delta_for(results, delta):
-    return float(delta) if delta > 0 else float(results["delta"].attrs["delta_opt"])
+def _delta_for(results, delta, simplified):
+    """δ of the later stages: imposed (``--set delta``, > 0) or δ_opt of stage ``delta``."""
+    d = float(delta) if delta > 0 else float(results["delta"].attrs["delta_opt"])
+    dmax = delta_max(_model(simplified).subsystem.n)
+    if not 0 < d < dmax:
+        raise SpecificationError("parameters.delta", d, f"must lie in (0, {dmax:.4f}), the admissible set of the "
+                                                        "simplified model's reduced B")
+    return d
 
 
 # -- stage 2: the experiment and the mean model ------------------------------------------------------
@@ -141,25 +211,37 @@ def _experiment_load(experiment):
     return coherent_forces() if experiment == "reference" else force_and_moment(TRUTH["r1"], TRUTH["r2"], x=8.0, band=BAND)
 
 
-def reference_block(block, rng, *, size, experiment):
+def _experiment_psd(block, rng, *, size, experiment, simplified, axis):
+    """PSDs of the experiment's generator: the reference model, or the synthetic truth."""
     load = _experiment_load(experiment)
     if experiment == "reference":
-        ref = _psd_block(REFERENCE, load, block, rng, size=size, dispersion=Dispersion(), axis="experiment")
-    else:
-        ref = _psd_block(SIMPLIFIED, load, block, rng, size=size, dispersion=Dispersion(stiffness=TRUTH["delta"]),
-                         load_dispersion=TRUTH["delta_F"], axis="experiment")
-    mean = _psd_block(SIMPLIFIED, load, block, rng, size=size, dispersion=Dispersion(), axis="experiment")
+        return _psd_block(REFERENCE, load, block, rng, size=size, dispersion=Dispersion(), axis=axis)
+    return _psd_block(_model(simplified), load, block, rng, size=size, dispersion=Dispersion(stiffness=TRUTH["delta"]),
+                      load_dispersion=TRUTH["delta_F"], axis=axis)
+
+
+def reference_block(block, rng, *, size, experiment, simplified):
+    ref = _experiment_psd(block, rng, size=size, experiment=experiment, simplified=simplified, axis="experiment")
+    mean = _psd_block(_model(simplified), _experiment_load(experiment), block, rng, size=size, dispersion=Dispersion(),
+                      axis="experiment")
     return {"psd_reference": ref, "psd_mean": mean}
 
 
 def summarize_reference(ds):
-    """In a synthetic experiment, the truth the later stages must recover (read by ``tubeid report``)."""
-    if json.loads(ds.attrs["parameters"])["experiment"] != "synthetic":
-        return {}
-    return {"truth_delta_opt": TRUTH["delta"], "truth_r1_opt": TRUTH["r1"], "truth_r2_opt": TRUTH["r2"], "truth_delta_F_opt": TRUTH["delta_F"]}
+    """The PSD estimator of every record of the study and, in a synthetic experiment, the truth the
+    later stages must recover (read by ``tubeid report``)."""
+    params = json.loads(ds.attrs["parameters"])
+    st = _settings(params["size"])
+    out = {"record_seconds": st.duration, "segment_seconds": st.segment_seconds,
+           "estimator": f"Welch, Hann window, {st.segment_seconds:g} s segments, 50 % overlap, two-sided per Hz; "
+                        f"records of {st.duration:g} s simulated, the first {st.discard:g} s discarded"}
+    if params["experiment"] == "synthetic":
+        out.update(truth_delta_opt=TRUTH["delta"], truth_r1_opt=TRUTH["r1"], truth_r2_opt=TRUTH["r2"],
+                   truth_delta_F_opt=TRUTH["delta_F"])
+    return out
 
 
-def reference(results, *, size, delta, experiment):
+def reference(results, *, size, experiment, simplified):
     return Study(
         name="reference",
         description=("reference model (the experiment) and mean simplified model, same 7-point load history" if experiment == "reference"
@@ -173,19 +255,45 @@ def reference(results, *, size, delta, experiment):
             "psd_mean": Output(dims=("frequency",), units="m^2/Hz", long_name="PSD at P_obs, mean simplified model (two-sided)"),
         },
         units={"frequency": "Hz"},
-        parameters={"size": size, "experiment": experiment},
-        model=spec_to_dict(REFERENCE.spec if experiment == "reference" else SIMPLIFIED.spec),
+        parameters={"size": size, "experiment": experiment, "simplified": simplified},
+        model=spec_to_dict(REFERENCE.spec if experiment == "reference" else _model(simplified).spec),
         summarize=summarize_reference,
     )
 
 
+# -- stage 2b: the calibration of the coverage -------------------------------------------------------
+def calibration_block(block, rng, *, size, experiment, simplified):
+    return {"psd": _experiment_psd(block, rng, size=size, experiment=experiment, simplified=simplified, axis="realisation")}
+
+
+def calibration(results, *, size, experiment, simplified):
+    """Independent realisations of the experiment's generator (its streams are this stage's, never the
+    record's): their 95 % region is the reference model's own, at the response stage's count and
+    estimator, so the fraction of bins where it holds the experimental record calibrates Figure 6's."""
+    return Study(
+        name="calibration",
+        description=("reference model under independent 7-point load histories (its own 95 % region)" if experiment == "reference"
+                     else "independent realisations of the synthetic experiment's generator (its own 95 % region)"),
+        seed=2008,
+        axes={"realisation": range(SIZES[size]["n_response"])},
+        chunks={"realisation": 4},
+        task=calibration_block,
+        coords={"frequency": _frequencies(size)},
+        outputs={"psd": Output(dims=("frequency",), units="m^2/Hz", long_name="PSD at P_obs of the experiment's generator (two-sided)")},
+        units={"frequency": "Hz"},
+        parameters={"size": size, "experiment": experiment, "simplified": simplified},
+        model=spec_to_dict(REFERENCE.spec if experiment == "reference" else _model(simplified).spec),
+    )
+
+
 # -- stage 3: confidence region ---------------------------------------------------------------------
-def response_block(block, rng, *, size, delta, experiment):
-    return {"psd": _psd_block(SIMPLIFIED, _experiment_load(experiment), block, rng, size=size, dispersion=Dispersion(stiffness=delta))}
+def response_block(block, rng, *, size, delta, experiment, simplified):
+    return {"psd": _psd_block(_model(simplified), _experiment_load(experiment), block, rng, size=size,
+                              dispersion=Dispersion(stiffness=delta))}
 
 
-def response(results, *, size, delta, experiment):
-    d = _delta_for(results, delta)
+def response(results, *, size, delta, experiment, simplified):
+    d = _delta_for(results, delta, simplified)
     return Study(
         name="response",
         description=f"stochastic simplified model at delta = {d:.4f} under the 7-point load",
@@ -196,24 +304,25 @@ def response(results, *, size, delta, experiment):
         coords={"frequency": _frequencies(size)},
         outputs={"psd": Output(dims=("frequency",), units="m^2/Hz", long_name="PSD at P_obs (two-sided)")},
         units={"frequency": "Hz"},
-        parameters={"size": size, "delta": d, "experiment": experiment},
-        model=spec_to_dict(SIMPLIFIED.spec),
+        parameters={"size": size, "delta": d, "experiment": experiment, "simplified": simplified},
+        model=spec_to_dict(_model(simplified).spec),
     )
 
 
 # -- stage 4: trial grid of r ------------------------------------------------------------------------
-def r_block(block, rng, *, size, delta):
+def r_block(block, rng, *, size, delta, simplified):
     out = np.empty((len(block["r1"]), len(block["r2"]), len(block["realisation"]), len(_frequencies(size))))
     for i, r1 in enumerate(block["r1"]):
         for j, r2 in enumerate(block["r2"]):
-            out[i, j] = _psd_block(SIMPLIFIED, force_and_moment(float(r1), float(r2), x=8.0, band=BAND), block, rng, size=size, dispersion=Dispersion(stiffness=delta))
+            out[i, j] = _psd_block(_model(simplified), force_and_moment(float(r1), float(r2), x=8.0, band=BAND), block, rng,
+                                   size=size, dispersion=Dispersion(stiffness=delta))
     return {"psd": out}
 
 
-def _r_study(name, r1, r2, size, d, n_per_r):
+def _r_study(name, r1, r2, size, d, n_per_r, simplified, what=""):
     return Study(
         name=name,
-        description=f"trial grid of r = (r1, r2), (T, M) load at x = 8 m, stochastic model at delta = {d:.4f}",
+        description=f"trial grid of r = (r1, r2), (T, M) load at x = 8 m, stochastic model at delta = {d:.4f}{what}",
         seed=2008,
         axes={"r1": np.round(r1, 6), "r2": np.round(r2, 6), "realisation": range(n_per_r)},
         chunks={"r1": 1, "r2": 1},
@@ -222,60 +331,58 @@ def _r_study(name, r1, r2, size, d, n_per_r):
         coords={"frequency": _frequencies(size)},
         outputs={"psd": Output(dims=("frequency",), units="m^2/Hz", long_name="PSD at P_obs (two-sided)")},
         units={"r1": "N^2/Hz", "r2": "(N m)^2/Hz", "frequency": "Hz"},
-        parameters={"size": size, "delta": d},
-        model=spec_to_dict(SIMPLIFIED.spec),
+        parameters={"size": size, "delta": d, "simplified": simplified},
+        model=spec_to_dict(_model(simplified).spec),
     )
 
 
-def load_r(results, *, size, delta):
+def load_r(results, *, size, delta, simplified):
     n = SIZES[size]["n_r"]
     grid = np.geomspace(*R_RANGE, n)
-    return _r_study("load_r", grid, grid, size, _delta_for(results, delta), SIZES[size]["n_per_r"])
+    return _r_study("load_r", grid, grid, size, _delta_for(results, delta, simplified), SIZES[size]["n_per_r"], simplified)
 
 
-def _r_opt(results, name, refine, distance):
-    """r_opt of a trial-grid stage against the experiment (``tubeid.identification.loads``).
-
-    ``distance="paper"``: the paper's D. ``distance="relative"`` (beyond the paper): D weighted by 1/S
-    of the model at the coarse grid's minimum (``relative_weight``; from the model, never from the
-    experiment, which would favour bins where S_exp is low by chance). ``distance="bands"`` (beyond
-    the paper): generalised least squares of the log 5 Hz band energies (``log_band_distance_map``).
-    Measured on the synthetic experiment at paper size (truth (18, 20)): paper (17.6 ± 2.1, 18.2 ± 4.2),
-    relative (20.6 ± 2.8, 22.0 ± 5.4), bands (18.8 ± 0.7, 20.1 ± 1.3). Against the reference model
-    the simplified model's form error (35–100 Hz, Figure 4) moves the weighted distances away (the
-    band levels' mean squared standardised residual is 576 there, 2.5 on the synthetic data): hence
-    the paper's D by default, the band levels for the synthetic proof. The report gives all three.
-    """
-    ref = results["reference"]
-    exp = ref.psd_reference.rename(experiment="record")  # several records: averaged and bootstrapped
-    band = float(ref.frequency[-1])
-    grid = results[name].psd
-    if distance == "bands":
-        dm = log_band_distance_map(grid, exp, band_hz=band, n_bootstrap=0, refine=bool(refine))
-        return dm.attrs["r_opt"] if refine else dm.attrs["r_opt_discrete"]
-    coarse = results["load_r"]
-    r1c, r2c = distance_map(coarse.psd, exp, band_hz=band, n_bootstrap=0, refine=None).attrs["r_opt_discrete"]
-    W = relative_weight(coarse.psd.sel(r1=r1c, r2=r2c).mean("realisation").load()) if distance == "relative" else None
-    dm = distance_map(grid, exp, band_hz=band, n_bootstrap=0, refine=refine, weight=W)
-    return dm.attrs["r_opt"] if refine else dm.attrs["r_opt_discrete"]
+def _experiment(results):
+    """The experimental PSD at P_obs, records on ``record`` (several records: averaged and bootstrapped)."""
+    return results["reference"].psd_reference.rename(experiment="record")
 
 
-def load_r_fine(results, *, size, delta, distance):
-    r1, r2 = _r_opt(results, "load_r", refine=None, distance=distance)
-    step = float(results["load_r"].r1[1] / results["load_r"].r1[0])
-    n = SIZES[size]["n_fine"]
-    span = np.geomspace(1 / step, step, n)  # ± one coarse step around the coarse minimum
-    return _r_study("load_r_fine", r1 * span, r2 * span, size, _delta_for(results, delta), SIZES[size]["n_per_r_fine"])
+def _band(results):
+    return float(results["reference"].frequency[-1])
+
+
+def identify_coarse(results, distance):
+    """r on the coarse grid (stage ``load_r``) by ``distance``: the centre of the fine grid and, for
+    ``relative``, the weight (the coarse grid's mean PSD at the paper D's minimum) of both passes."""
+    return identify_r(results["load_r"].psd, _experiment(results), distance=distance, band_hz=_band(results), refine=False)
+
+
+def identify_fine(results, distance, n_bootstrap=0, rng=None):
+    """r_opt on the fine grid (stage ``load_r_fine``) by ``distance``, refined, with the coarse pass's
+    weight for ``relative``: the r_opt the study passes downstream (``tubeid.identification.identify_r``)."""
+    weight = identify_coarse(results, "relative").weight_psd if distance == "relative" else None
+    return identify_r(results["load_r_fine"].psd, _experiment(results), distance=distance, band_hz=_band(results),
+                      weight_psd=weight, n_bootstrap=n_bootstrap, rng=rng)
+
+
+def load_r_fine(results, *, size, delta, distance, simplified):
+    coarse = identify_coarse(results, distance)
+    grid = fine_grid(coarse, SIZES[size]["n_fine"])  # ± one coarse step around the coarse minimum
+    r1c, r2c = coarse.attrs["r_opt_discrete"]
+    return _r_study("load_r_fine", grid["r1"], grid["r2"], size, _delta_for(results, delta, simplified),
+                    SIZES[size]["n_per_r_fine"], simplified,
+                    f", around the coarse minimum ({r1c:.6g}, {r2c:.6g}) of the {distance} distance")
 
 
 # -- stage 5: δ_F -----------------------------------------------------------------------------------
-def delta_f_block(block, rng, *, size, delta, r1, r2, J_s_exp):
+def delta_f_block(block, rng, *, size, delta, r1, r2, J_s_exp, simplified, distance, r_identification):
+    """J_s per (δ_F, realisation); ``distance`` and ``r_identification`` are provenance (what r is)."""
     load = force_and_moment(r1, r2, x=8.0, band=BAND)
     st = _settings(size)
     out = np.empty((len(block["delta_F"]), len(block["realisation"])))
     for i, dF in enumerate(block["delta_F"]):
         reals = [int(r) for r in block["realisation"]]
-        ds = simulate_responses(SIMPLIFIED, load, reals, rngs=[rng.at({"realisation": r}) for r in reals],
+        ds = simulate_responses(_model(simplified), load, reals, rngs=[rng.at({"realisation": r}) for r in reals],
                                 dispersion=Dispersion(stiffness=delta), load_dispersion=float(dF), settings=st)
         sel = ds.frequency.values <= BAND  # the stored grid of the other stages: J_s over the same bins
         f = ds.frequency.values[sel]
@@ -284,17 +391,44 @@ def delta_f_block(block, rng, *, size, delta, r1, r2, J_s_exp):
 
 
 def summarize_delta_f(ds):
-    j_exp = json.loads(ds.attrs["parameters"])["J_s_exp"]
+    params = json.loads(ds.attrs["parameters"])
+    j_exp = params["J_s_exp"]
     lik = likelihood_curve(ds.J_s, j_exp, ds.delta_F.values, "delta_F", n_bootstrap=200, rng=1)
-    return {"J_s_exp": j_exp[0] if len(j_exp) == 1 else j_exp, "delta_F_opt": lik.attrs["argmax"], "delta_F_opt_std": lik.attrs["argmax_std"]}
+    a = lik.attrs
+    return {"J_s_exp": j_exp[0] if len(j_exp) == 1 else j_exp, "delta_F_opt": a["argmax"], "delta_F_opt_std": a["argmax_std"],
+            "delta_F_opt_at_grid_edge": bool(a["argmax_at_boundary"]), "delta_F_likelihood_flat": bool(a["flat"]),
+            "r_opt": [params["r1"], params["r2"]], "r_distance": params["distance"]}
 
 
-def load_delta_f(results, *, size, delta, distance):
-    r1, r2 = (float(v) for v in _r_opt(results, "load_r_fine", refine="spectrum", distance=distance))
+def r_identification(results):
+    """r_opt of every distance (point estimates, JSON-ready): on the fine grid (placed for the study's
+    distance) and, refined, on the coarse grid (where another distance's minimum may lie)."""
+    out = {}
+    for name in DISTANCES:
+        try:
+            a = identify_fine(results, name).attrs
+            weight = identify_coarse(results, "relative").weight_psd if name == "relative" else None
+            c = identify_r(results["load_r"].psd, _experiment(results), distance=name, band_hz=_band(results),
+                           weight_psd=weight).attrs
+        except SpecificationError as exc:  # e.g. a band without energy: say so instead of failing the study
+            out[name] = {"error": str(exc)}
+            continue
+        out[name] = {"r_opt": a["r_opt"], "r_opt_discrete": a["r_opt_discrete"], "at_grid_edge": a["r_opt_at_boundary"],
+                     "D_min": a["D_min"], "D_units": a["D_units"], "weight_source": a["weight_source"],
+                     "coarse": {"r_opt": c["r_opt"], "r_opt_discrete": c["r_opt_discrete"],
+                                "at_grid_edge": c["r_opt_at_boundary"]}}
+    return out
+
+
+def load_delta_f(results, *, size, delta, distance, simplified):
+    ident = r_identification(results)
+    if "error" in ident[distance]:
+        raise SpecificationError("parameters.distance", distance, f"cannot identify r: {ident[distance]['error']}")
+    r1, r2 = (float(v) for v in ident[distance]["r_opt"])
     ref = results["reference"]
     f = ref.frequency.values
     j_exp = [float(j_s(f, rec[:, None, None], band=f[-1])) for rec in ref.psd_reference.values]  # one per record
-    d = _delta_for(results, delta)
+    d = _delta_for(results, delta, simplified)
     s = SIZES[size]
     return Study(
         name="load_delta_f",
@@ -306,8 +440,9 @@ def load_delta_f(results, *, size, delta, distance):
         task=delta_f_block,
         outputs={"J_s": Output(units="(m^2/Hz)^2 rad/s", long_name="J_s = integral of ||S_Z(w)||_F^2 over the band")},
         units={"delta_F": "1"},
-        parameters={"size": size, "delta": d, "r1": r1, "r2": r2, "J_s_exp": j_exp},
-        model=spec_to_dict(SIMPLIFIED.spec),
+        parameters={"size": size, "delta": d, "r1": r1, "r2": r2, "J_s_exp": j_exp, "simplified": simplified,
+                    "distance": distance, "r_identification": json.dumps(ident, sort_keys=True)},
+        model=spec_to_dict(_model(simplified).spec),
         summarize=summarize_delta_f,
     )
 
@@ -316,13 +451,17 @@ study = Pipeline(
     name="paper",
     seed=2008,
     description=__doc__.splitlines()[0],
-    stages=[delta, reference, response, load_r, load_r_fine, load_delta_f],
+    stages=[delta, reference, calibration, response, load_r, load_r_fine, load_delta_f],
     warmup=Warmup(warmup.MESSAGE, run=warmup.compile_solver, needed=warmup.cache_is_cold),
     parameters={
         "size": Parameter("paper", choices=("paper", "quick"), doc="sample sizes: the paper's, or a quick look"),
-        "delta": Parameter(0.0, bounds=(0.0, 0.87), doc="delta for the later stages; 0 = delta_opt of stage 'delta'"),
+        "delta": Parameter(0.0, bounds=(0.0, 1.0), doc="delta for the later stages; 0 = delta_opt of stage 'delta' "
+                                                       "(must be below the simplified model's delta_max)"),
         "experiment": Parameter("reference", choices=("reference", "synthetic"), doc="the paper's reference model, or the simplified model with known TRUTH"),
-        "distance": Parameter("paper", choices=("paper", "relative", "bands"),
-                              doc="D(r) for r_opt: the paper's, weighted by 1/S of the model, or GLS of log band energies"),
+        "distance": Parameter("paper", choices=tuple(DISTANCES),
+                              doc="D(r) for r_opt (tubeid.identification.DISTANCES): the paper's, weighted by 1/S of the model, "
+                                  "GLS of log band energies, or mean squared log10 ratio"),
+        "simplified": ModelParameter("paper-simplified", doc="the simplified model: a built-in name or a .yaml/.toml file "
+                                                             "(stored and hashed as its content)"),
     },
 )

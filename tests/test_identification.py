@@ -53,28 +53,52 @@ def test_j_monte_carlo_common_random_numbers_and_labels():
     assert scipy.stats.spearmanr(J.sel(delta=0.1), J.sel(delta=0.2)).statistic > 0.9
     np.testing.assert_array_equal(J.sel(delta=0.2).values, random_j(SUB, Dispersion(stiffness=0.2), 7, np.arange(50), 100.0))
     with pytest.raises(SpecificationError, match="dispersion.stiffness"):
-        j_monte_carlo(SUB, [0.1, 0.95], 7, np.arange(5), 100.0)  # δ_max(12) = 0.874
+        j_monte_carlo(SUB, [0.1, 0.8], 7, np.arange(5), 100.0)  # δ_max(5) = √(6/10) = 0.775
 
 
 def test_delta_identification_recovers_a_known_delta():
     """Synthetic experiments: 30 independent J observations of the simplified model at δ = 0.3.
 
-    The joint likelihood's argmax has a Monte Carlo spread of about ±0.03 here (measured with
-    independent seeds: 0.15 → 0.15, 0.3 → 0.325, 0.5 → 0.525 on a 0.025 grid), so a 0.075
-    tolerance (3 grid steps) is about 2.5 spreads.
+    The bootstrap resamples the model realisations and the observations, so its σ covers both
+    (checked against independent sets in ``test_likelihood.py``). Measured here: 0.228 ± 0.044 (the 30
+    observations happen to scatter less than J(0.3) does: 300 observations give 0.303); tolerance
+    3 σ, and σ itself below 0.08 (a bootstrap that blows up would pass anything).
     """
     true = 0.3
     observed = random_j(SUB, Dispersion(stiffness=true), 99, np.arange(10_000, 10_030), 100.0)
-    ds = identify_delta(j_reference=observed, n_realisations=300, seed=1, n_bootstrap=40)
-    assert abs(ds.attrs["delta_opt"] - true) < 0.075
-    assert ds.attrs["delta_opt_low"] <= ds.attrs["delta_opt"] <= ds.attrs["delta_opt_high"]
-    assert ds.attrs["n_observations"] == 30
+    ds = identify_delta(j_reference=observed, n_realisations=300, seed=1, n_bootstrap=200)
+    a = ds.attrs
+    assert 0 < a["delta_opt_std"] < 0.08 and abs(a["delta_opt"] - true) < 3 * a["delta_opt_std"], a
+    assert a["delta_opt_low"] <= a["delta_opt"] <= a["delta_opt_high"]
+    assert a["n_observations"] == 30 and a["flat"] == 0
 
 
 def test_model_to_model_likelihood_is_computed_and_labelled():
-    ds = identify_delta(n_realisations=60, n_bootstrap=20, deltas=np.linspace(0.05, 0.8, 16))
+    ds = identify_delta(n_realisations=60, n_bootstrap=20, deltas=np.linspace(0.05, 0.75, 15))
     assert ds.attrs["J_ref"] == pytest.approx(reference_j("paper-reference"), abs=0)
     assert set(ds.data_vars) >= {"likelihood", "log_likelihood", "likelihood_std", "J"}
     assert np.all(np.isfinite(ds.log_likelihood))
     sub = reduce(builtin_spec("paper-reference")).subsystem
     assert ds.attrs["J_ref"] == pytest.approx(float(j_functional(sub.M, sub.D, sub.K, 3, 100.0)), abs=0)
+
+
+def test_simplified_model_delta_is_interior_and_one_spring_model_sits_at_the_edge():
+    """Model to model (J_ref of paper-reference, 200 realisations per δ, the default 0.025 grid).
+
+    paper-simplified (MODEL.md §2; measured δ_opt = 0.627 ± 0.056, seeds 1 and 7: 0.626, 0.624): an
+    interior maximum, not flat (the log-likelihood falls by thousands towards δ → 0, where J(δ)
+    concentrates at J(0) = 0.549 J_ref), and checked without the KDE: J_ref lies beyond every sample
+    at the smallest δ and inside the bulk (10–90 % percentiles) of J(δ_opt).
+    paper-simplified-one-spring: J(0) is within 0.6 % of J_ref and random K_B raises J on average, so
+    the likelihood is largest at the lowest δ of the grid: the edge flag fires."""
+    ds = identify_delta("paper-simplified", n_realisations=200, seed=2008, n_bootstrap=50)
+    a = ds.attrs
+    assert a["argmax_at_boundary"] == 0 and a["flat"] == 0
+    assert 0.45 < a["delta_opt"] < 0.75 and a["lr_interval_low"] > ds.delta.values[0]
+    J, j_ref = ds.J, a["J_ref"]
+    assert float(J.isel(delta=0).max()) < j_ref
+    lo, hi = np.percentile(J.sel(delta=a["argmax_discrete"]).values, [10, 90])
+    assert lo < j_ref < hi
+    one = identify_delta("paper-simplified-one-spring", n_realisations=200, seed=2008, n_bootstrap=50)
+    assert one.attrs["argmax_at_boundary"] == 1 and one.attrs["delta_opt"] == one.delta.values[0]
+    assert float(one.J.isel(delta=0).median()) > one.attrs["J_ref"]

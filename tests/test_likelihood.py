@@ -228,3 +228,30 @@ def test_observations_far_from_the_samples_give_a_finite_bootstrap():
         ds = likelihood_curve(s, obs, grid, "theta", n_bootstrap=50, rng=1)
     assert np.all(np.isfinite(ds.likelihood_std.values)) and ds.attrs["argmax"] == pytest.approx(0.6, abs=0)
     assert float(ds.likelihood.max()) == pytest.approx(1.0, abs=0)
+
+
+def test_edge_and_flat_verdicts_fire_on_cases_built_for_them_and_not_otherwise():
+    """X(θ) = θ + 0.1 Z (common Z, N = 200) on θ = 0.1 … 1.0:
+    * x_ref = 1.5 beyond the grid: argmax on the upper edge, not flat (Λ in the hundreds);
+    * x_ref = 0.55 inside: interior, not flat; the 95 % likelihood-ratio interval is the set where
+      the KDE density N(θ, 0.1² + h²) at 0.55 stays within e^1.92 of its maximum, closed form
+      0.55 ± √3.84 · √(0.01 + h²) → the grid points 0.35 … 0.75;
+    * X(θ) = Z + 0.01 θ: the likelihood barely moves (Λ ≈ 1e-3): flat, interval = the whole grid;
+    * independent rows of 8 samples with x_ref = 2 in their tail: the log-likelihood varies by a few
+      units across the grid (above the 1.92 of the test) but no grid value's drop exceeds 1.92 + 2
+      bootstrap σ of it: Monte Carlo noise, flat."""
+    g = np.round(np.arange(0.1, 1.0001, 0.05), 3)
+    z = np.random.default_rng(3).standard_normal(200)
+    edge = likelihood_curve(g[:, None] + 0.1 * z, 1.5, g, n_bootstrap=200, rng=1).attrs
+    assert edge["argmax_at_boundary"] == 1 and edge["argmax"] == 1.0 and not edge["flat"] and edge["n_excluded"] > 10
+    inner = likelihood_curve(g[:, None] + 0.1 * z, 0.55, g, n_bootstrap=200, rng=1).attrs
+    assert inner["argmax_at_boundary"] == 0 and not inner["flat"]
+    h = 1.06 * np.std(z * 0.1, ddof=1) * 200 ** -0.2
+    half = np.sqrt(2 * 1.920729410347062) * np.sqrt(np.var(0.1 * z, ddof=1) + h ** 2)
+    assert inner["lr_interval_low"] == g[g >= 0.55 - half][0] and inner["lr_interval_high"] == g[g <= 0.55 + half][-1]
+    flat = likelihood_curve(z[None, :] + 0.01 * g[:, None], 0.0, g, n_bootstrap=200, rng=1).attrs
+    assert flat["flat"] and flat["log_likelihood_range"] < 0.01
+    assert (flat["lr_interval_low"], flat["lr_interval_high"]) == (g[0], g[-1])
+    noisy = likelihood_curve(np.random.default_rng(0).standard_normal((g.size, 8)), 2.0, g, n_bootstrap=200, rng=1).attrs
+    assert noisy["log_likelihood_range"] > 1.92 and noisy["flat"] and noisy["n_excluded"] == 0
+    assert likelihood_curve(g[:, None] + 0.1 * z, 0.55, g, n_bootstrap=0).attrs["flat"] == 0

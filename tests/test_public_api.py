@@ -33,7 +33,9 @@ PINNED = {
     ],
     "tubeid.identification": [
         "identify_delta", "reference_j", "likelihood_curve", "kde_pdf", "silverman_bandwidth",
-        "distance_map", "log_band_distance_map", "relative_weight", "refine_grid", "delta_f_likelihood",
+        "identify_r", "fine_grid", "DISTANCES",
+        "distance_map", "log_band_distance_map", "log_spectral_distance_map", "relative_weight", "refine_grid",
+        "delta_f_likelihood",
     ],
     "tubeid.measured": ["read_measurements", "write_measurements", "validate_measurements", "diagnose", "DiagnoseSettings", "Diagnosis"],
     "tubeid.runner": [

@@ -17,6 +17,13 @@ Conventions:
   Gaussian-shaped likelihood; stays within those neighbours). At a grid end, or when a neighbour
   has likelihood 0, the grid value itself is returned.
 * The pdf has the inverse unit of the samples (e.g. 1/J if the samples are values of J).
+* Flat likelihood: with d(θ) = max log p − log p(θ) the log likelihood ratio of each grid value
+  against the best and σ(θ) its bootstrap standard deviation, a grid value is *excluded* when
+  d(θ) > χ²₁(0.95)/2 + 2 σ(θ) = 1.92 + 2 σ(θ) — a 95 % likelihood-ratio test that the Monte Carlo
+  error cannot overturn. The curve is ``flat`` when no grid value is excluded: the data (at this
+  Monte Carlo size) prefer no part of the grid. The likelihood-ratio interval {θ : d(θ) ≤ 1.92}
+  is reported on the grid (``lr_interval_low``/``_high``); when it reaches an end of the grid the
+  data do not bound θ on that side.
 """
 
 from __future__ import annotations
@@ -37,6 +44,8 @@ __all__ = ["silverman_bandwidth", "kde_pdf", "likelihood_curve"]
 _SILVERMAN = 1.06
 _LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 _CHUNK_ELEMENTS = 4_000_000  # bootstrap work arrays are capped at this many float64 values
+#: Half the 95 % quantile of χ² with one degree of freedom: the log-likelihood drop of a 95 % likelihood-ratio interval.
+LR_THRESHOLD = 1.920729410347062
 
 
 def _as_samples(samples, field: str, min_n: int) -> np.ndarray:
@@ -191,8 +200,11 @@ def likelihood_curve(samples: ArrayLike | xr.DataArray, x_ref: float | ArrayLike
         On dimension ``grid_name``: ``likelihood`` (1/unit of the samples), ``log_likelihood``,
         ``bandwidth``, and bootstrap ``likelihood_std``, ``likelihood_low``, ``likelihood_high``;
         attributes ``argmax`` (parabola-refined if ``refine``), ``argmax_discrete``,
-        ``argmax_std``, ``argmax_low``, ``argmax_high``, ``argmax_at_boundary`` (0/1) and the
-        settings used.
+        ``argmax_std``, ``argmax_low``, ``argmax_high``, ``argmax_at_boundary`` (0/1), the
+        flatness verdict (module docstring) ``log_likelihood_range`` (max − min of the
+        log-likelihood over the grid), ``n_excluded`` (grid values excluded at 95 % beyond 2
+        bootstrap σ), ``flat`` (0/1: none is), ``lr_interval_low``, ``lr_interval_high`` (grid
+        values), and the settings used.
     """
     # ---- validation (all up front) ----
     if not isinstance(grid_name, str) or not grid_name:
@@ -251,9 +263,10 @@ def likelihood_curve(samples: ArrayLike | xr.DataArray, x_ref: float | ArrayLike
     nan_curve = np.full(G, np.nan)
     std = low = high = nan_curve
     a_std = a_low = a_high = math.nan
+    drop_std = np.zeros(G)
     if n_bootstrap > 0:
         chunk = max(1, _CHUNK_ELEMENTS // (G * N))
-        boot_p, boot_arg = [], []
+        boot_p, boot_arg, boot_range = [], [], []
         for start in range(0, n_bootstrap, chunk):
             b = min(chunk, n_bootstrap - start)
             idx = gen.integers(0, N, size=(b, N))
@@ -272,15 +285,28 @@ def likelihood_curve(samples: ArrayLike | xr.DataArray, x_ref: float | ArrayLike
                 boot_p.append(np.exp(lb - scale_b))
             d_b, r_b = _refine_argmax(g, lb)
             boot_arg.append(r_b if refine else d_b)
+            boot_range.append(np.max(lb, axis=-1, keepdims=True) - lb)
         bp, ba = np.concatenate(boot_p), np.concatenate(boot_arg)
         tail = 50.0 * (1.0 - float(confidence))
         std = bp.std(axis=0, ddof=1) if n_bootstrap > 1 else nan_curve
         low, high = np.percentile(bp, [tail, 100.0 - tail], axis=0)
+        drops = np.concatenate(boot_range)  # (n_bootstrap, G): each replicate's log ratio to its own best
+        if n_bootstrap > 1:
+            with np.errstate(invalid="ignore"):
+                drop_std = np.where(np.all(np.isfinite(drops), axis=0), np.std(drops, axis=0, ddof=1), np.inf)
         if np.any(np.isfinite(ba)):
             a_std = float(np.nanstd(ba, ddof=1)) if np.sum(np.isfinite(ba)) > 1 else math.nan
             a_low, a_high = (float(v) for v in np.nanpercentile(ba, [tail, 100.0 - tail]))
 
     p = np.exp(ll - log_scale)
+    top = float(np.max(ll))
+    with np.errstate(invalid="ignore"):
+        lr_range = float(top - np.min(ll)) if math.isfinite(top) else math.nan
+    with np.errstate(invalid="ignore"):
+        excluded = (top - ll) > LR_THRESHOLD + 2.0 * drop_std
+    flat = not bool(np.any(excluded))
+    inside = np.flatnonzero(ll >= top - LR_THRESHOLD) if math.isfinite(top) else np.array([], dtype=int)
+    lr_low, lr_high = (float(g[inside[0]]), float(g[inside[-1]])) if inside.size else (math.nan, math.nan)
     dims = (grid_name,)
     ds = xr.Dataset(
         {
@@ -299,6 +325,12 @@ def likelihood_curve(samples: ArrayLike | xr.DataArray, x_ref: float | ArrayLike
             "argmax_low": a_low,
             "argmax_high": a_high,
             "argmax_at_boundary": int(np.argmax(ll) in (0, G - 1)),
+            "log_likelihood_range": lr_range,
+            "n_excluded": int(np.sum(excluded)),
+            "flat": int(flat),
+            "flat_rule": f"no grid value has max log p - log p > {LR_THRESHOLD:.2f} + 2 bootstrap std of that difference",
+            "lr_interval_low": lr_low,
+            "lr_interval_high": lr_high,
             "argmax_method": ("parabola through the log-likelihood at the discrete maximum and its two neighbours"
                               if refine else "discrete grid maximum"),
             "x_ref": x_ref if xs.size == 1 else xs.tolist(),

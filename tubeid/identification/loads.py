@@ -60,7 +60,7 @@ from tubeid.identification.likelihood import likelihood_curve
 from tubeid.seeds import rng_for
 from tubeid.uncertainty.random_matrices import delta_max
 
-__all__ = ["distance_map", "log_band_distance_map", "relative_weight", "refine_grid", "delta_f_likelihood", "D_UNITS", "JS_UNITS"]
+__all__ = ["distance_map", "log_band_distance_map", "log_spectral_distance_map", "relative_weight", "refine_grid", "delta_f_likelihood", "D_UNITS", "JS_UNITS"]
 
 #: Unit of D(r) and of J_s for PSDs of displacements in m²/Hz.
 D_UNITS = "(m^2/Hz)^2 rad/s"
@@ -328,6 +328,15 @@ def _map_dataset(D, boot, refined, discrete, *, grid_dims, axes, psd_model, conf
     return ds
 
 
+def _sampling_attrs(band, N, n_exp, n_bootstrap, exp_extra, held_fixed="") -> dict:
+    """The settings every trial-grid map records: band, sample sizes and what its bootstrap resamples."""
+    return {"band_hz": band, "n_realisations": int(N), "n_experimental_records": int(max(n_exp, 1)),
+            "n_bootstrap": n_bootstrap,
+            "bootstrap": "model realisation indices resampled jointly across the grid (common random numbers kept)"
+                         + ("; experimental records resampled independently" if exp_extra else
+                            "; experimental PSD held fixed") + held_fixed}
+
+
 def _grid_inputs(psd_model, psd_exp, band_hz, n_bootstrap, rng, dim, fit, confidence, key):
     """Validate the inputs of the trial-grid maps; returns a namespace of arrays and settings."""
     # ---- validation, all up front ----
@@ -524,13 +533,7 @@ def distance_map(psd_model, psd_exp, band_hz: float = 100.0, n_bootstrap: int = 
                              None: "grid minimum"}[refine],
             "weight": "none (paper's D)" if weight is None else str(weight.attrs.get("long_name", "given")),
             "J_s_exp": js_exp,
-            "band_hz": band,
-            "n_realisations": int(N),
-            "n_experimental_records": int(max(n_exp, 1)),
-            "n_bootstrap": n_bootstrap,
-            "bootstrap": "model realisation indices resampled jointly across the grid (common random numbers kept)"
-                         + ("; experimental records resampled independently" if exp_extra else
-                            "; experimental PSD held fixed"),
+            **_sampling_attrs(band, N, n_exp, n_bootstrap, exp_extra),
         })
 
 
@@ -670,13 +673,107 @@ def log_band_distance_map(psd_model, psd_exp, band_hz: float = 100.0, band_width
             "band_width_hz": width,
             "n_bands": n_bands,
             "n_levels": int(K),
-            "band_hz": band,
-            "n_realisations": int(N),
-            "n_experimental_records": int(n_exp),
-            "n_bootstrap": n_bootstrap,
-            "bootstrap": "model realisation indices resampled jointly across the grid (common random numbers kept)"
-                         + ("; experimental records resampled independently" if exp_extra else
-                            "; experimental PSD held fixed") + "; the band variances held fixed",
+            **_sampling_attrs(band, N, n_exp, n_bootstrap, exp_extra, "; the band variances held fixed"),
+        })
+
+
+def log_spectral_distance_map(psd_model: xr.DataArray, psd_exp: xr.DataArray, band_hz: float = 100.0,
+                              n_bootstrap: int = 200, rng: np.random.Generator | int | None = None, *,
+                              dim: str = "realisation", confidence: float = 0.95, refine: bool = True) -> xr.Dataset:
+    """Trial-grid identification by the mean squared log10 ratio of the auto-spectra (beyond the paper).
+
+    D(r) = (1/K) Σ_{a, 0 < f ≤ band} (log10 S̄_aa(f, r) − log10 S_exp,aa(f))²  [decades²],
+
+    with S̄ the mean over realisations at grid point r, S_exp the mean over experimental records, a
+    the auto-spectra (sensors) and K the number of (sensor, bin) terms; the DC bin is left out. Every
+    decade of level counts alike at every frequency, so the minimiser follows the broadband level
+    rather than the resonance peaks. Inputs, bootstrap and the returned Dataset are those of
+    :func:`distance_map` (``D`` in decades², ``D_relative`` = D); the refinement is its
+    ``"spectrum"`` method applied to the log10 mean spectra, in log r. Every auto-spectrum must be
+    > 0 in every bin used.
+
+    Parameters
+    ----------
+    psd_model : xarray.DataArray
+        Model PSDs (*grid, ``dim``, "frequency"[, "sensor", "sensor_"]) [m²/Hz], as for
+        :func:`distance_map`; grid coordinates strictly increasing and positive.
+    psd_exp : xarray.DataArray
+        Experimental PSD ("frequency"[, "sensor", "sensor_"]) on the same bins and sensors; one extra
+        dimension is taken as independent records (averaged, resampled in the bootstrap).
+    band_hz : float
+        Upper end of the band [Hz].
+    n_bootstrap : int
+        Bootstrap replicates (0: none).
+    rng : numpy.random.Generator or int, optional
+        Stream or seed of the bootstrap; required when ``n_bootstrap > 0``.
+    dim : str
+        The realisation dimension of ``psd_model``.
+    confidence : float
+        Probability of the bootstrap percentile intervals, in (0, 1).
+    refine : bool
+        Refine the grid minimiser (the ``"spectrum"`` method on log10 spectra, in log r).
+
+    Returns
+    -------
+    xarray.Dataset
+        As :func:`distance_map`: ``D`` [decades²], ``D_relative`` (= D), bootstrap ``D_std``,
+        ``D_low``, ``D_high``; attributes ``r_opt``, ``r_opt_discrete``, ``r_opt_std``,
+        ``r_opt_at_boundary``, ``D_min`` and the settings.
+    """
+    if not isinstance(refine, (bool, np.bool_)):
+        raise SpecificationError("refine", refine, "must be True or False")
+    g_ = _grid_inputs(psd_model, psd_exp, band_hz, n_bootstrap, rng, dim, "log", confidence, "log_spectral_distance_map")
+    grid_dims, axes, sensor_dims, exp_extra, f, band, N, gen = (
+        g_[k] for k in ("grid_dims", "axes", "sensor_dims", "exp_extra", "f", "band", "N", "gen"))
+    n_bootstrap, confidence, P, E = g_["n_bootstrap"], g_["confidence"], g_["P"], g_["E"]
+    fb = f[g_["sl"]]
+    keep = (fb > 0) & (fb <= band * (1 + 1e-12))
+    if not np.any(keep):
+        raise SpecificationError("psd_model.frequency", _Desc(f"{f.size} bins"), f"must hold bins in (0, {band:g}] Hz")
+    if sensor_dims:
+        P, E = np.real(np.diagonal(P, axis1=-2, axis2=-1)), np.real(np.diagonal(E, axis1=-2, axis2=-1))
+    else:
+        P, E = np.real(P)[..., None], np.real(E)[..., None]
+    P, E = P[..., keep, :], E[..., keep, :]  # (*grid, N, F', m), ([n_exp,] F', m)
+    gax = len(grid_dims)
+    P = P.reshape(P.shape[:gax + 1] + (-1,))  # (*grid, N, K)
+    E = E.reshape(E.shape[:-2] + (-1,))
+    if np.any(P.mean(axis=gax) <= 0) or np.any(E <= 0):
+        raise SpecificationError("psd", _Desc("auto-spectra"), f"must be > 0 in every bin of (0, {band:g}] Hz "
+                                 "(a log distance needs positive levels)")
+    n_exp = E.shape[0] if exp_extra else 1
+    Le = np.log10(E.mean(axis=0) if exp_extra else E)
+    Lbar = np.log10(P.mean(axis=gax))
+    K = Lbar.shape[-1]
+    w = np.full(K, 1.0 / K)
+
+    def argmin(Dm, Lb, Le_):
+        return _refine_argmin(axes, Dm, True, "spectrum" if refine else None, Lb, Le_, w)
+
+    D = np.sum(w * (Lbar - Le) ** 2, axis=-1)
+    discrete, refined = argmin(D, Lbar, Le)
+    boot = None
+    if n_bootstrap > 0:
+        D_boot, r_boot = [], []
+        for _ in range(n_bootstrap):
+            idx = gen.integers(0, N, size=N)
+            with np.errstate(divide="ignore"):
+                Lb = np.log10(np.take(P, idx, axis=gax).mean(axis=gax))
+            Le_b = np.log10(E[gen.integers(0, n_exp, size=n_exp)].mean(axis=0)) if exp_extra else Le
+            Db = np.sum(w * (Lb - Le_b) ** 2, axis=-1)
+            D_boot.append(Db)
+            r_boot.append(argmin(Db, Lb, Le_b)[1])
+        boot = (np.asarray(D_boot), np.asarray(r_boot))
+    return _map_dataset(
+        D, boot, refined, discrete, grid_dims=grid_dims, axes=axes, psd_model=g_["psd_model"], confidence=confidence,
+        units="decades^2", long_name="D(r) = mean over sensors and 0 < f <= band of (log10 mean S_model(f, r) - log10 S_exp(f))^2",
+        relative=D, relative_name="D (already relative: mean squared log10 ratio)",
+        attrs={
+            "r_opt_method": ("quadratic surrogate in log r of every log10 mean spectral value on the 3^k grid points "
+                             "around the grid minimum, its distance minimised within them" if refine else "grid minimum"),
+            "weight": "log10 auto-spectra, every (sensor, bin) alike",
+            "n_levels": int(K),
+            **_sampling_attrs(band, N, n_exp, n_bootstrap, exp_extra),
         })
 
 

@@ -372,8 +372,11 @@ def run(study_path, store=None, *, workers: int | None = None, scheduler: str | 
     RunReport or PipelineReport
         What the run did (blocks computed, skipped, repaired; timings).
     """
-    overrides = dict(overrides or {})
-    study, source, key = load_definition(study_path, overrides=overrides)  # validates the definition
+    base, source, _ = load_definition(study_path)  # validates the definition as written
+    # each --set value as its parameter's check makes it (e.g. a model file read into its content, checked
+    # now, never from a cache): the workers and the study hash get that, not the raw text
+    overrides = {k: base.parameters[k].check(k, v) if k in base.parameters else v for k, v in dict(overrides or {}).items()}
+    study, source, key = load_definition(study_path, source=source, overrides=overrides)
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 0):
         raise SpecificationError("workers", workers, "must be a non-negative integer")
     if client is not None and (workers is not None or scheduler):
