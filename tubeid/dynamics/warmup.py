@@ -18,9 +18,11 @@ MESSAGE = "compiling the solver, once per machine, ~40 s"
 
 
 def _kernels():
-    from tubeid.dynamics import solver
+    from tubeid.dynamics.solver import _fastpath
 
-    return [solver._exact_kernel]  # the default method's (symplectic Euler, a baseline, compiles on first use)
+    # the default method's main loop (its callees compile with it); symplectic Euler, a baseline,
+    # compiles on first use
+    return [_fastpath.run_exact]
 
 
 def cache_is_cold() -> bool:
