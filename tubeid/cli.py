@@ -13,7 +13,7 @@ COMMAND_MODULES = [
     "tubeid.mechanics.cli",
     "tubeid.bench",
     "tubeid.runner.cli",
-    "tubeid.measured.cli",
+    "tubeid.diagnose.cli",
     "tubeid.report",
 ]
 

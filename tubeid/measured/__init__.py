@@ -1,7 +1,7 @@
-"""Measured data: readers, writers and validation of displacement records, and the diagnosis loop."""
+"""Measured data: readers, writers and validation of displacement records (the diagnosis that uses
+them is :mod:`tubeid.diagnose`)."""
 
-from tubeid.measured.diagnose import DiagnoseSettings, Diagnosis, diagnose
 from tubeid.measured.readers import read_measurements, write_measurements
 from tubeid.measured.validation import validate_measurements
 
-__all__ = ["read_measurements", "write_measurements", "validate_measurements", "diagnose", "DiagnoseSettings", "Diagnosis"]
+__all__ = ["read_measurements", "write_measurements", "validate_measurements"]
