@@ -88,7 +88,7 @@ class DiagnoseSettings:
     candidates: tuple[str, ...] | None = None
     fit_realisations: int = 2
     grid_points: int = 4
-    penalty: float = 0.1
+    penalty: float = 0.05
     discard: float = 2.0
     dt_load_max: float = 1e-3
     seed: int = 0

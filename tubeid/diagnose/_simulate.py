@@ -52,8 +52,10 @@ def _dt_load(dt: float, bound: float) -> float:
 
 def simulate_series(spec: BundleSpec, r, effects, meas: MeasuredSpectra, n_samples: int, realisations,
                     settings: DiagnoseSettings, *, delta: float = 0.0, load_dispersion: float = 0.0,
-                    rngs=None) -> np.ndarray:
-    """Records (R, n_samples, m) [m] at the data's sensors and sampling, transient discarded.
+                    rngs=None, contact: bool = False):
+    """Records (R, n_samples, m) [m] at the data's sensors and sampling, transient discarded (and,
+    with ``contact``, the fraction of time each realisation's stops are closed, mean over the
+    stops (R,); 0 without stops).
 
     ``delta``, ``load_dispersion``: dispersions of B's stiffness and of the load spectrum (0 and 0:
     the mean model). ``rngs``: one generator per realisation (the runner's; a fresh generator
@@ -72,14 +74,19 @@ def simulate_series(spec: BundleSpec, r, effects, meas: MeasuredSpectra, n_sampl
     kw = {"seed": settings.seed} if rngs is None else {"rngs": list(rngs)}
     ds = simulate_responses(model, load, realisations, dispersion=disp, load_dispersion=float(load_dispersion),
                             settings=rs, **kw)
-    return ds["displacement"].transpose("realisation", "time", "sensor").values[:, :n_samples, :]
+    y = ds["displacement"].transpose("realisation", "time", "sensor").values[:, :n_samples, :]
+    if not contact:
+        return y
+    cf = ds["contact_fraction"].values
+    return y, (cf.mean(axis=1) if cf.size else np.zeros(y.shape[0]))
 
 
 def simulate_blocks(spec: BundleSpec, r, effects, meas: MeasuredSpectra, n_blocks: int, realisations,
                     settings: DiagnoseSettings, *, delta: float = 0.0, load_dispersion: float = 0.0,
-                    rngs=None) -> tuple[np.ndarray, np.ndarray]:
+                    rngs=None, contact: bool = False):
     """Model records cut like the data: auto-PSD per realisation (R, F, m) [m²/Hz] averaged over
-    ``n_blocks`` blocks of the data's block length, and time statistics (R, m, 3).
+    ``n_blocks`` blocks of the data's block length, and time statistics (R, m, 3) (and, with
+    ``contact``, the stops' contact fraction (R,), see :func:`simulate_series`).
 
     The mean model (``delta`` = ``load_dispersion`` = 0) has one structure and one load spectrum:
     its R "realisations" are then consecutive stretches of one record of the first realisation's
@@ -91,11 +98,12 @@ def simulate_blocks(spec: BundleSpec, r, effects, meas: MeasuredSpectra, n_block
     if mean_model:
         n_blocks, realisations = n_blocks * R, realisations[:1]
         rngs = None if rngs is None else list(rngs)[:1]
-    y = simulate_series(spec, r, effects, meas, n_blocks * meas.block_samples, realisations, settings, delta=delta,
-                        load_dispersion=load_dispersion, rngs=rngs)
+    y, cf = simulate_series(spec, r, effects, meas, n_blocks * meas.block_samples, realisations, settings, delta=delta,
+                            load_dispersion=load_dispersion, rngs=rngs, contact=True)
     if mean_model:
         n_blocks //= R
         y = y.reshape(R, n_blocks * meas.block_samples, y.shape[2])
+        cf = np.repeat(cf, R)
     blocks = y.reshape(y.shape[0], n_blocks, meas.block_samples, y.shape[2])
     _, P = auto_psd(blocks, meas.dt, settings.segment_seconds)
-    return P.mean(axis=1), time_statistics(y)
+    return (P.mean(axis=1), time_statistics(y)) + ((cf,) if contact else ())

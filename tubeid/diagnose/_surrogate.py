@@ -7,8 +7,9 @@ its spring). The surrogate's response PSD at the sensors is their blend
     S(f) = (1 − c) · H_open S_F H_openᴴ + c · H_closed S_F H_closedᴴ,   H = C (K − ω²M + iωD)⁻¹ B,
 
 averaged over ``sub`` frequencies across each Welch bin (the lightly damped peaks are narrower
-than a bin), on the load's band (zero above it). The weight c ∈ [0, 1] is fitted once to the
-declared model's own band (log distance, free level).
+than a bin), on the load's band (zero above it). The weight c ∈ [0, 1] is the fraction of time
+the stops are closed in the model's own simulations (measured: the power pattern of a tone over
+the sensors then agrees with the record's to 10 %, where either regime alone can mislead).
 
 Perturbations are applied in the Craig–Bampton basis of the model as given (a Rayleigh–Ritz
 approximation for subsystem B, exact for A whose modes are all kept): an added mass on a tube adds
@@ -133,20 +134,6 @@ class LinearSurrogate:
         above the load's band."""
         o, c = self._parts(effects, springs)
         return (1 - self.contact) * o + self.contact * c
-
-    def fit_contact(self, log_mean, sel, grid=np.linspace(0.0, 1.0, 11)) -> float:
-        """Fit c to a band's mean log10 PSD (F, m) over the bins ``sel`` (free level; only bins in
-        the load's band count); sets and returns it."""
-        o, c_ = self._parts()
-        sel = np.asarray(sel) & self._inband
-        best = (np.inf, 0.5)
-        for c in grid:
-            d = (np.asarray(log_mean) - np.log10(np.maximum((1 - c) * o + c * c_, 1e-300)))[sel]
-            e = float(np.mean((d - d.mean()) ** 2))
-            if e < best[0]:
-                best = (e, float(c))
-        self.contact = best[1]
-        return self.contact
 
     def tone_pattern(self, f0: float, candidates) -> np.ndarray:
         """|H|² (blended) at ``f0`` [Hz] from a unit force at each candidate (tube, x) to every

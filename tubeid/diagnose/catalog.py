@@ -77,16 +77,27 @@ class Evidence:
         """d = log10 S_fit − μ (F, m) [decades]."""
         return log10(self.fit) - self.mu
 
-    def removed(self, shift=None, mu=None, sel=None) -> float:
+    def removed(self, shift=None, mu=None, sel=None, scaled: bool = False) -> float:
         """Fraction of Σz² (over ``sel``, default all analysis bins) removed when the model's mean
-        log PSD becomes ``mu`` or μ + ``shift`` (level refitted), in [0, 1]."""
+        log PSD becomes ``mu`` or μ + ``shift`` (level refitted), in [0, 1]. ``scaled``: μ + β
+        ``shift`` with the best β in [0, 1] (the surrogate's resonances are sharper than the
+        non-linear model's, so it overstates how far a shifted peak moves the spectrum)."""
         sel = self.sel if sel is None else sel
         d0 = self.residual()[sel]
         w = 1.0 / self.sigma[sel] ** 2
         total = _level_free_ss(d0, w)
+        if total <= 0:
+            return 0.0
+        if scaled and shift is not None:
+            dc = d0 - np.sum(w * d0) / np.sum(w)
+            sh = np.asarray(shift)[sel]
+            sc = sh - np.sum(w * sh) / np.sum(w)
+            den = float(np.sum(w * sc * sc))
+            beta = 0.0 if den <= 0 else float(np.clip(np.sum(w * dc * sc) / den, 0.0, 1.0))
+            return max(0.0, 1.0 - float(np.sum(w * (dc - beta * sc) ** 2)) / total)
         m = (self.mu if mu is None else mu) + (0.0 if shift is None else shift)
         d = (log10(self.fit) - m)[sel]
-        return 0.0 if total <= 0 else max(0.0, 1.0 - _level_free_ss(d, w) / total)
+        return max(0.0, 1.0 - _level_free_ss(d, w) / total)
 
     def surrogate_shift(self, effects=(), springs=()) -> np.ndarray:
         """log10 S_surrogate(with ``effects`` and grounded ``springs``) − log10 S_surrogate(as is)
@@ -144,10 +155,17 @@ class Candidate:
         """The trial effects around ``estimate``."""
         raise NotImplementedError
 
-    def refine(self, effect, spec: BundleSpec) -> dict:
+    def refine(self, effect, spec: BundleSpec, surrogate=None) -> dict:
         """{parameter: (values, log, [effects])}: lines of 3 effects around ``effect``, one per
-        fitted continuous parameter (the middle one is ``effect``)."""
+        fitted continuous parameter (the middle one is ``effect``); ``surrogate``: the
+        :class:`~tubeid.diagnose._surrogate.LinearSurrogate` at the current point."""
         raise NotImplementedError
+
+    def combine(self, effect, best: dict, spec: BundleSpec, surrogate=None):
+        """The effect at the lines' minimisers ``best`` ({parameter: value})."""
+        for par, value in best.items():
+            effect = self.with_value(effect, par, value)
+        return effect
 
     def with_value(self, effect, parameter: str, value: float):
         """``effect`` with one parameter changed."""
@@ -165,6 +183,11 @@ class Candidate:
         taken away), when that is exact (``exact_from_baseline``)."""
         raise NotImplementedError(f"{self.name} trials are simulated")
 
+    def variants(self, effect, psd, baseline_psd, frequency) -> list:
+        """Trials derived from a simulated one without simulation: [(effect, psd (F, m))]. Default
+        none."""
+        return []
+
     def assumptions(self, spec: BundleSpec) -> list[str]:
         return []
 
@@ -179,8 +202,9 @@ class ToneCandidate(Candidate):
     """A harmonic force: frequency from the record's scan peak, position from the sensors'
     amplitude pattern at that frequency (the line's amplitude per sensor against the surrogate's
     |H| from every tube at half-element steps, by the cosine of their angle), amplitude from the
-    line's power (|H|² A²/4 per side). Trials: the position and its neighbours one element away ×
-    ``points`` amplitudes over ±0.45 decades."""
+    line's power (|H|² A²/4 per side). Trials: the four best positions at least an element apart
+    (a few sensors leave the pattern ambiguous), each simulated at its estimated amplitude and
+    profiled over ±0.5 decades of amplitude without simulation (:meth:`variants`)."""
 
     name = "tone"
     effect_type = Tone
@@ -208,26 +232,66 @@ class ToneCandidate(Candidate):
         a = np.sqrt(power)
         h = np.sqrt(H2)
         cos2 = (h @ a) ** 2 / np.maximum(np.sum(h**2, axis=1) * np.sum(a**2), 1e-300)
-        i = int(np.argmax(cos2))
-        tube, x = cands[i]
-        amp = float(2.0 * (h[i] @ a) / max(float(np.sum(h[i] ** 2)), 1e-300))
-        return {"score": score, "estimate": {"frequency_hz": f0, "tube": tube, "x": float(x), "amplitude": amp}}
+        amps = 2.0 * (h @ a) / np.maximum(np.sum(h**2, axis=1), 1e-300)
+        positions, seen = [], []
+        for i in np.argsort(-cos2, kind="stable"):
+            tube, x = cands[i]
+            le = ev.spec.tube(tube).length / ev.spec.tube(tube).n_elements
+            if any(abs(cos2[i] - c) <= 1e-9 * c for c in seen) or any(t == tube and abs(x - x2) <= le for t, x2, _, _ in positions):
+                continue  # an identical tube seen alike, or within an element of a better position
+            positions.append((tube, float(x), float(amps[i]), float(cos2[i])))
+            seen.append(cos2[i])
+            if len(positions) == 4:
+                break
+        tube, x, amp, _ = positions[0]
+        return {"score": score, "estimate": {"frequency_hz": f0, "tube": tube, "x": x, "amplitude": amp,
+                                             "positions": [list(q) for q in positions]}}
+
+    #: amplitude factors of the derived trials (:meth:`variants`)
+    profile = tuple(10.0 ** np.linspace(-0.5, 0.5, 21))
 
     def trials(self, estimate, spec, points, *, rms=None) -> list:
-        t = spec.tube(estimate["tube"])
-        le = t.length / t.n_elements
-        xs = [x for x in (estimate["x"] - le, estimate["x"], estimate["x"] + le) if 0 < x < t.length]
-        amps = estimate["amplitude"] * 10.0 ** np.linspace(-0.45, 0.45, points)
-        return [Tone(frequency_hz=float(estimate["frequency_hz"]), amplitude=float(a), tube=t.name, x=float(x))
-                for x in xs for a in amps]
+        return [Tone(frequency_hz=float(estimate["frequency_hz"]), amplitude=float(amp), tube=tube, x=float(x))
+                for tube, x, amp, _ in estimate["positions"]]
 
-    def refine(self, effect, spec) -> dict:
+    def variants(self, effect, psd, baseline_psd, frequency) -> list:
+        """The line scaled to other amplitudes A·k: within ±2 bins of f0 the trial's excess over the
+        baseline (the same model without the tone, the same random streams) times k² (a line's
+        power is ∝ A²); elsewhere the trial as simulated."""
+        f = np.asarray(frequency)
+        win = np.abs(f - effect.frequency_hz) <= 2.0 * (f[1] - f[0]) + 1e-9
+        excess = np.where(win[:, None], np.clip(np.asarray(psd) - np.asarray(baseline_psd), 0.0, None), 0.0)
+        return [(self.with_value(effect, "amplitude", float(effect.amplitude * k)), np.asarray(psd) + (k * k - 1.0) * excess)
+                for k in self.profile if k != 1.0]
+
+    @staticmethod
+    def _compensation(effect, xs, surrogate) -> np.ndarray:
+        """Amplitude factors keeping the line's total power at the sensors when the tone moves to
+        ``xs`` (the surrogate's Σ|H|² at f0): position and amplitude are otherwise tied."""
+        if surrogate is None:
+            return np.ones(len(xs))
+        H2 = surrogate.tone_pattern(effect.frequency_hz, [(effect.tube, effect.x)] + [(effect.tube, x) for x in xs]).sum(axis=1)
+        return np.sqrt(H2[0] / np.maximum(H2[1:], 1e-300))
+
+    def refine(self, effect, spec, surrogate=None) -> dict:
         t = spec.tube(effect.tube)
         half = 0.5 * t.length / t.n_elements
         lines = {"amplitude": _line(effect, self, "amplitude", (10**-0.15, 1.0, 10**0.15))}
-        if effect.x - half > 0 and effect.x + half < t.length:
-            lines["x"] = _line(effect, self, "x", (-half, 0.0, half), log=False)
+        xs = [effect.x - half, effect.x, effect.x + half]
+        if xs[0] > 0 and xs[2] < t.length:
+            comp = self._compensation(effect, xs, surrogate)
+            lines["x"] = (xs, False, [effect if x == effect.x else
+                                      Tone(effect.frequency_hz, float(effect.amplitude * g), effect.tube, float(x))
+                                      for x, g in zip(xs, comp)])
         return lines
+
+    def combine(self, effect, best, spec, surrogate=None):
+        """The amplitude line's minimiser at the old position, compensated for the move to the x
+        line's minimiser (the x line's trials were compensated the same way)."""
+        amp = best.get("amplitude", effect.amplitude)
+        if "x" in best:
+            amp *= float(self._compensation(effect, [best["x"]], surrogate)[0])
+        return Tone(effect.frequency_hz, float(amp), effect.tube, float(best.get("x", effect.x)))
 
     def assumptions(self, spec) -> list[str]:
         return ["tone: one sinusoidal transverse force (not a moment) with a random phase; its frequency is the "
@@ -273,7 +337,7 @@ class StopCandidate(Candidate):
         k = self._stiffness(spec)
         return [ExtraStop(tube=estimate["tube"], x=x, gap=float(g), stiffness=k) for x in xs for g in gaps]
 
-    def refine(self, effect, spec) -> dict:
+    def refine(self, effect, spec, surrogate=None) -> dict:
         return {"gap": _line(effect, self, "gap", (0.5, 1.0, 2.0))}
 
     def assumptions(self, spec) -> list[str]:
@@ -304,47 +368,56 @@ class _TubeFactor(Candidate):
         for t in ev.spec.tubes:
             best = (0.0, None)
             for v in self._scan_values(ev.spec, t.name):
-                s = ev.removed(shift=ev.surrogate_shift([self._effect(t.name, v)]), sel=ev.sel_band)
+                s = ev.removed(shift=ev.surrogate_shift([self._effect(t.name, v)]), sel=ev.sel_band, scaled=True)
                 if best[1] is None or s > best[0]:
                     best = (s, float(v))
             scores[t.name] = best
         order = sorted(scores, key=lambda n: -scores[n][0])
         top = order[0]
         est = {"tube": top, self.value_name: scores[top][1]}
-        if len(order) > 1 and scores[order[1]][0] >= 0.8 * scores[top][0] > 0:
-            est["second"] = {"tube": order[1], self.value_name: scores[order[1]][1]}
+        # the runner-up: the best tube that is not a twin of the first (identical tubes seen alike)
+        twins = [n for n in order[1:] if abs(scores[n][0] - scores[top][0]) > 1e-9 * max(scores[top][0], 1e-300)]
+        if twins:
+            est["second"] = {"tube": twins[0], self.value_name: scores[twins[0]][1]}
         return {"score": scores[top][0], "estimate": est}
+
+    def _trial_values(self, value, points) -> np.ndarray:
+        return value * np.geomspace(1 / self.spread, self.spread, points)
 
     def trials(self, estimate, spec, points, *, rms=None) -> list:
         out = []
         for e in (estimate, estimate.get("second")):
             if e:
-                out += [self._effect(e["tube"], v) for v in e[self.value_name] * np.geomspace(1 / self.spread, self.spread, points)]
+                out += [self._effect(e["tube"], v) for v in self._trial_values(e[self.value_name], points)]
         return out
 
-    def refine(self, effect, spec) -> dict:
+    def refine(self, effect, spec, surrogate=None) -> dict:
         return {self.value_name: _line(effect, self, self.value_name, (1 / 1.4, 1.0, 1.4))}
 
 
 class AddedMassCandidate(_TubeFactor):
-    """Added mass on one tube: mass per length × (1 + factor). Tube and first factor from the
-    surrogate (factors 0.03–1 on every tube); trials: ``points`` factors over ×/÷ 2 (and the
-    second tube when it scores within 20 % of the first)."""
+    """Added mass on one tube: mass per length × (1 + factor). The two best tubes by the
+    surrogate's fit of the residual (factors 0.03–1, amplitude of the shift free: the surrogate's
+    sharper resonances overstate a shift); trials on each: ``points`` factors from 0.05 to 1.35
+    (log-spaced: the surrogate does not size a shift of resonances)."""
 
     name = "added_mass"
     effect_type = AddedMass
     parameters = {"tube": ("", True), "factor": ("1", True)}
     value_name = "factor"
     scan = tuple(np.geomspace(0.03, 1.0, 5))
-    spread = 2.0
+
+    def _trial_values(self, value, points) -> np.ndarray:
+        return np.geomspace(0.05, 1.35, points)
 
     def assumptions(self, spec) -> list[str]:
         return ["added_mass: uniform along one tube (its mass per length × (1 + factor)); stiffness unchanged"]
 
 
 class DampingCandidate(_TubeFactor):
-    """Modal damping of one tube: the ratio of all its own modes. Tube and first ratio from the
-    surrogate (the declared ratio × 0.1 … 10 on every tube, 6 values); trials: ``points`` ratios over ×/÷ 1.7."""
+    """Modal damping of one tube: the ratio of all its own modes. The two best tubes and their
+    ratios from the surrogate (the declared ratio × 0.1 … 10, 6 values); trials on each:
+    ``points`` ratios over ×/÷ 1.7."""
 
     name = "damping"
     effect_type = Damping
@@ -387,7 +460,7 @@ class SensorNoiseCandidate(Candidate):
     def trials(self, estimate, spec, points, *, rms=None) -> list:
         return [SensorNoise(level=float(estimate["level"] * 4.0**u)) for u in np.linspace(-1, 1, points)]
 
-    def refine(self, effect, spec) -> dict:
+    def refine(self, effect, spec, surrogate=None) -> dict:
         return {"level": _line(effect, self, "level", (0.5, 1.0, 2.0))}
 
     exact_from_baseline = True

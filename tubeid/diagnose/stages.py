@@ -285,17 +285,18 @@ def band_block(block, rng, *, data, data_sha256, model, settings, r, effects, de
     reals = [int(k) for k in block["realisation"]]
     P = np.empty((len(reals), meas.frequency.size, len(meas.sensors)))
     stats = np.empty((len(reals), len(meas.sensors), 3))
+    cf = np.empty(len(reals))
     mean = [i for i, k in enumerate(reals) if k == MEAN_MODEL]
     rest = [i for i, k in enumerate(reals) if k != MEAN_MODEL]
     for i in mean:  # the mean model's prediction, fitting layout, fit_realisations records
-        Pm, sm = simulate_blocks(ctx.spec, r, eff, meas, meas.n_fit_blocks, range(s.fit_realisations), s,
-                                 rngs=[rng(s.seed, realisation=MEAN_MODEL)])
-        P[i], stats[i] = Pm.mean(axis=0), sm.mean(axis=0)
+        Pm, sm, cm = simulate_blocks(ctx.spec, r, eff, meas, meas.n_fit_blocks, range(s.fit_realisations), s,
+                                     rngs=[rng(s.seed, realisation=MEAN_MODEL)], contact=True)
+        P[i], stats[i], cf[i] = Pm.mean(axis=0), sm.mean(axis=0), cm.mean()
     if rest:
-        P[rest], stats[rest] = simulate_blocks(ctx.spec, r, eff, meas, meas.n_held_out_blocks, [reals[i] for i in rest], s,
-                                               delta=delta, load_dispersion=load_dispersion,
-                                               rngs=[rng(s.seed, realisation=reals[i]) for i in rest])
-    return {"psd": P, "stats": stats}
+        P[rest], stats[rest], cf[rest] = simulate_blocks(
+            ctx.spec, r, eff, meas, meas.n_held_out_blocks, [reals[i] for i in rest], s, delta=delta,
+            load_dispersion=load_dispersion, rngs=[rng(s.seed, realisation=reals[i]) for i in rest], contact=True)
+    return {"psd": P, "stats": stats, "contact": cf}
 
 
 def band_samples(ds) -> tuple[np.ndarray, np.ndarray]:
@@ -324,7 +325,7 @@ def evidence(ctx, ds) -> Evidence:
     sur = LinearSurrogate(spec, load_spectrum(spec, p["r"], ctx.settings), ctx.meas.frequency)
     ev = Evidence(frequency=ctx.meas.frequency, fit=ctx.meas.fit, mu=mu, sigma=np.maximum(sd, 1e-6), z_stats=z,
                   rms=ctx.meas.fit_stats[:, 0], spec=spec, surrogate=sur, band_hz=ctx.spec.band_hz)
-    sur.fit_contact(mu, ev.sel_band)
+    sur.contact = float(np.mean(ds["contact"].sel(realisation=ds["realisation"].values >= 0).values))
     return ev
 
 
@@ -356,7 +357,8 @@ def _band_study(name, base, ctx, r, effects, delta, dF, step, what) -> Study:
         chunks={"realisation": _realisation_chunk(delta, s.realisations + 1)}, task=band_block, coords={**_spectral_coords(ctx), "statistic": STATISTICS},
         outputs={"psd": _psd_output("stochastic model, averaged over the held-out layout's blocks (realisation -1: the "
                                     "mean model's prediction, fitting layout)"),
-                 "stats": Output(dims=("sensor", "statistic"), units="m | 1 | 1", long_name="RMS [m], skewness, excess kurtosis")},
+                 "stats": Output(dims=("sensor", "statistic"), units="m | 1 | 1", long_name="RMS [m], skewness, excess kurtosis"),
+                 "contact": Output(units="1", long_name="fraction of time the stops are closed (mean over the stops)")},
         units={"frequency": "Hz"},
         parameters={**base, "r": [float(v) for v in r], "effects": effects, "delta": float(delta),
                     "load_dispersion": float(dF), "step": int(step)},
@@ -473,6 +475,14 @@ def selection(ctx, results, k: int) -> dict:
     trials = json.loads(_params(ds)["trials"])
     psd = _trial_psds(ds, trials)
     sigma = _sigma(results)
+    # derived trials (a tone's amplitude profile): appended, with their effect
+    trials, psd = list(trials), list(psd)
+    for i in range(1, len(trials)):
+        t = trials[i]
+        effect = effect_from_dict(t["effects"][-1])
+        for e, q in CATALOG[t["candidate"]].variants(effect, psd[i], psd[0], ctx.meas.frequency):
+            trials.append({**t, "effects": t["effects"][:-1] + [effect_to_dict(e)], "derived": i})
+            psd.append(q)
     errs = [_errors(ctx, p, sigma) for p in psd]
     current = errs[0][2]
     scored, info = [], []
@@ -492,6 +502,18 @@ def selection(ctx, results, k: int) -> dict:
         out["effects"] = json.dumps(trials[best["trial"]]["effects"], sort_keys=True)
         out["r"] = list(scaled_r(trials[0]["r"], best["offset"]))
     return out
+
+
+def _surrogate(ctx, results, effects, r, band_stage):
+    """The linear surrogate of the declared model with ``effects`` at ``r``, its contact weight
+    from the band stage ``band_stage``."""
+    from tubeid.diagnose._surrogate import LinearSurrogate
+
+    spec = apply_effects(ctx.spec, effects)
+    sur = LinearSurrogate(spec, load_spectrum(spec, r, ctx.settings), ctx.meas.frequency)
+    ds = results[band_stage]
+    sur.contact = float(np.mean(ds["contact"].sel(realisation=ds["realisation"].values >= 0).values))
+    return sur
 
 
 def _refit(k, results, base):
@@ -518,9 +540,10 @@ def _refit(k, results, base):
             trials.append({"effects": centre["effects"], "r": rr})
             idx.append(len(trials) - 1)
         lines.append({"what": "r", "index": j, "parameter": R_DIMS[j], "log": True, "values": values, "trials": idx})
+    sur = _surrogate(ctx, results, effects, r, "band" if k == 1 else f"step{k - 1}_band")
     for i, e in enumerate(effects):
         cand = CATALOG[e.name]
-        for par, (values, log, variants) in cand.refine(e, ctx.spec).items():
+        for par, (values, log, variants) in cand.refine(e, ctx.spec, sur).items():
             idx = []
             for v, ev in zip(values, variants):
                 if ev == e:
@@ -548,7 +571,7 @@ def refit_result(ctx, results, k: int) -> dict:
     fit_err = [prediction_error(ctx.meas.fit, q, sigma, f) for q in psd]
     effects = [effect_from_dict(e) for e in trials[0]["effects"]]
     r = list(trials[0]["r"])
-    report = []
+    report, best_of = [], {}
     for ln in lines:
         errs = [fit_err[i] for i in ln["trials"]]
         best = line_minimum(ln["values"], errs, ln["log"])
@@ -556,8 +579,10 @@ def refit_result(ctx, results, k: int) -> dict:
         if ln["what"] == "r":
             r[ln["index"]] = best
         else:
-            e = effects[ln["index"]]
-            effects[ln["index"]] = CATALOG[e.name].with_value(e, ln["parameter"], best)
+            best_of.setdefault(ln["index"], {})[ln["parameter"]] = best
+    sur = _surrogate(ctx, results, effects, trials[0]["r"], "band" if k == 1 else f"step{k - 1}_band")
+    for i, best in best_of.items():
+        effects[i] = CATALOG[effects[i].name].combine(effects[i], best, ctx.spec, sur)
     return {"effects": method.effects_to_json(effects), "r": [float(v) for v in r], "lines": report,
             "centre_fit_error": fit_err[0]}
 
