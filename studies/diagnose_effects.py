@@ -72,12 +72,15 @@ OUTPUTS = {
     "p_gof": Output(units="1", long_name="p-value of the goodness-of-fit of log band energies"),
     "p_sharpness": Output(units="1", long_name="p-value of the sharpness statistic"),
     "named": Output(dtype="int64", units="1", long_name="bit k set: catalog entry k named"),
-    "right": Output(units="1", long_name="1 if exactly the true effects are named (test-only stages: NaN)"),
-    "x_error": Output(units="m", long_name="|fitted - true| position of the located effect (NaN: none)"),
+    "right": Output(units="1", long_name="1 if exactly the true effects are named (test-only stages: NaN)",
+                    finite=False),
+    "x_error": Output(units="m", long_name="|fitted - true| position of the located effect (NaN: none)",
+                      finite=False),
     "error_before": Output(units="1", long_name="held-out error before"),
     "error_after": Output(units="1", long_name="held-out error after"),
     "explained_after": Output(units="1", long_name="1 if the test no longer detects anything after the selection"),
-    "tone_db": Output(units="dB", long_name="the tone's line above the broadband level in its 1 Hz band (NaN: no tone)"),
+    "tone_db": Output(units="dB", long_name="the tone's line above the broadband level in its 1 Hz band (NaN: no tone)",
+                      finite=False),
     "seconds": Output(units="s", long_name="wall time of the diagnosis (this task's process)"),
 }
 
