@@ -52,6 +52,7 @@ import numbers
 
 import numpy as np
 import xarray as xr
+from numpy.typing import ArrayLike
 
 from tubeid.dynamics.spectra import distance, j_s
 from tubeid._validation import integer, open_unit
@@ -412,9 +413,10 @@ def _grid_inputs(psd_model, psd_exp, band_hz, n_bootstrap, rng, dim, fit, confid
                 f=f, band=band, n_bootstrap=n_bootstrap, confidence=confidence, N=N, gen=gen, sl=sl, P=P, E=E)
 
 
-def distance_map(psd_model, psd_exp, band_hz: float = 100.0, n_bootstrap: int = 200, rng=None, *,
-                 dim: str = "realisation", confidence: float = 0.95, fit: str = "log",
-                 refine: str | None = "spectrum", weight=None) -> xr.Dataset:
+def distance_map(psd_model: xr.DataArray, psd_exp: xr.DataArray, band_hz: float = 100.0, n_bootstrap: int = 200,
+                 rng: np.random.Generator | int | None = None, *, dim: str = "realisation",
+                 confidence: float = 0.95, fit: str = "log", refine: str | None = "spectrum",
+                 weight: xr.DataArray | None = None) -> xr.Dataset:
     """D(r) = ∫_B ‖S̄(ω, r) − S_exp(ω)‖²_F dω on a parameter grid, its minimiser and their bootstrap.
 
     ``psd_model``: DataArray with dims (*grid, ``dim``, "frequency"[, "sensor", "sensor_"]) in any
@@ -440,6 +442,36 @@ def distance_map(psd_model, psd_exp, band_hz: float = 100.0, n_bootstrap: int = 
     per-axis copies ``<dim>_opt`` and ``<dim>_opt_std``, ``D_min``, ``J_s_exp`` and the settings.
     The bootstrap covers the Monte Carlo error of the model realisations and, when given as
     records, of the experimental PSD.
+
+    Parameters
+    ----------
+    psd_model : xarray.DataArray
+        Model PSDs (*grid, ``dim``, "frequency"[, "sensor", "sensor_"]) [m²/Hz], as above.
+    psd_exp : xarray.DataArray
+        Experimental PSD ("frequency"[, "sensor", "sensor_"]) [m²/Hz], optionally with one records
+        dimension.
+    band_hz : float
+        B = 2π[−band, band] rad/s [Hz].
+    n_bootstrap : int
+        Bootstrap replicates (0: none).
+    rng : numpy.random.Generator or int, optional
+        Stream or seed of the bootstrap; required when ``n_bootstrap > 0``.
+    dim : str
+        The realisation dimension of ``psd_model``.
+    confidence : float
+        Probability of the bootstrap percentile intervals, in (0, 1).
+    fit : str
+        Axis scale of the refinement (module docstring).
+    refine : str or None
+        Refinement method of the minimiser (module docstring); None: the grid minimiser.
+    weight : xarray.DataArray, optional
+        A fixed W over ("frequency"[, "sensor", "sensor_"]), e.g. :func:`relative_weight`.
+
+    Returns
+    -------
+    xarray.Dataset
+        ``D``, ``D_std``, ``D_low``, ``D_high``, ``D_relative`` on the grid and the attributes
+        listed above.
     """
     # ---- validation, all up front ----
     if refine not in _REFINE:
@@ -537,12 +569,23 @@ def distance_map(psd_model, psd_exp, band_hz: float = 100.0, n_bootstrap: int = 
         })
 
 
-def relative_weight(psd) -> xr.DataArray:
-    """W_ab(f) = 1/√(S_aa(f) S_bb(f)) from a reference PSD ("frequency"[, "sensor", "sensor_"]) [1/(m²/Hz)].
+def relative_weight(psd: xr.DataArray) -> xr.DataArray:
+    """W_ab(f) = 1/√(S_aa(f) S_bb(f)) from a reference PSD [1/(m²/Hz)].
 
     With it, D_W compares the spectra relative to their own level (cross-spectra as coherencies).
     Use a *model* PSD from realisations independent of the grid's (e.g. a separate run of the mean
-    model at the grid centre), not the experimental one (module docstring). W = 0 where an auto-spectrum is not positive. Attribute ``distance_units`` = "rad/s".
+    model at the grid centre), not the experimental one (module docstring).
+
+    Parameters
+    ----------
+    psd : xarray.DataArray
+        The reference PSD ("frequency"[, "sensor", "sensor_"]) [m²/Hz], finite.
+
+    Returns
+    -------
+    xarray.DataArray
+        W on the same dims; 0 where an auto-spectrum is not positive; attribute
+        ``distance_units`` = "rad/s" (the units of D_W).
     """
     psd = _as_psd(psd, "psd")
     extra = [d for d in psd.dims if d not in ("frequency",) + _SENSOR_DIMS]
@@ -576,8 +619,9 @@ def _log_band_energies(P: np.ndarray, f: np.ndarray, edges: np.ndarray) -> np.nd
         return np.log(e.reshape(e.shape[:-2] + (-1,)))
 
 
-def log_band_distance_map(psd_model, psd_exp, band_hz: float = 100.0, band_width_hz: float = 5.0,
-                          n_bootstrap: int = 200, rng=None, *, dim: str = "realisation",
+def log_band_distance_map(psd_model: xr.DataArray, psd_exp: xr.DataArray, band_hz: float = 100.0,
+                          band_width_hz: float = 5.0, n_bootstrap: int = 200,
+                          rng: np.random.Generator | int | None = None, *, dim: str = "realisation",
                           confidence: float = 0.95, refine: bool = True) -> xr.Dataset:
     """Trial-grid identification by a weighted least-squares distance of log band energies (beyond the paper).
 
@@ -601,6 +645,34 @@ def log_band_distance_map(psd_model, psd_exp, band_hz: float = 100.0, band_width
     the refinement is its ``"spectrum"`` method applied to the log band energies, in log r. The
     comparison assumes each record is estimated like one model realisation (same record length and
     PSD estimator), so that both have the same log-level variance.
+
+    Parameters
+    ----------
+    psd_model : xarray.DataArray
+        Model PSDs (*grid, ``dim``, "frequency"[, "sensor", "sensor_"]) [m²/Hz], as for
+        :func:`distance_map`; grid coordinates positive.
+    psd_exp : xarray.DataArray
+        Experimental PSD ("frequency"[, "sensor", "sensor_"]), optionally with a records dimension.
+    band_hz : float
+        Upper end of the band [Hz].
+    band_width_hz : float
+        Width w of the bands [Hz].
+    n_bootstrap : int
+        Bootstrap replicates (0: none).
+    rng : numpy.random.Generator or int, optional
+        Stream or seed of the bootstrap; required when ``n_bootstrap > 0``.
+    dim : str
+        The realisation dimension of ``psd_model``.
+    confidence : float
+        Probability of the bootstrap percentile intervals, in (0, 1).
+    refine : bool
+        Refine the grid minimiser (``"spectrum"`` method on the log band energies, in log r).
+
+    Returns
+    -------
+    xarray.Dataset
+        As :func:`distance_map` (``D`` dimensionless, ``D_relative`` the mean squared standardised
+        residual).
     """
     if not isinstance(refine, (bool, np.bool_)):
         raise SpecificationError("refine", refine, "must be True or False")
@@ -777,13 +849,27 @@ def log_spectral_distance_map(psd_model: xr.DataArray, psd_exp: xr.DataArray, ba
         })
 
 
-def refine_grid(r_opt, factor: float, n: int):
+def refine_grid(r_opt: dict[str, float] | ArrayLike, factor: float,
+                n: int) -> dict[str, np.ndarray] | tuple[np.ndarray, ...]:
     """A finer ratio grid around ``r_opt`` for a second trial pass.
 
     For each component r: ``n`` values geometrically spaced from r/factor to r·factor (so r itself
-    is a grid point when n is odd). ``r_opt``: a mapping {dim: value} (returns {dim: array}) or a
-    sequence of values (returns a tuple of arrays); values > 0. ``factor`` > 1, ``n`` >= 2. Choose
-    ``factor`` a little wider than the bootstrap spread of r_opt (e.g. exp(3·std/r)).
+    is a grid point when n is odd).
+
+    Parameters
+    ----------
+    r_opt : dict of str to float, or array_like
+        The centre: a mapping {dim: value} or a sequence of values; values > 0.
+    factor : float
+        > 1: the half-width as a ratio. Choose it a little wider than the bootstrap spread of
+        r_opt (e.g. exp(3·std/r)).
+    n : int
+        Values per component, ≥ 2.
+
+    Returns
+    -------
+    dict of str to numpy.ndarray, or tuple of numpy.ndarray
+        {dim: values} for a mapping, else one array per component.
     """
     try:
         fac = float(factor)
@@ -808,7 +894,9 @@ def refine_grid(r_opt, factor: float, n: int):
     return {k: a for k, a in out} if as_map else tuple(a for _, a in out)
 
 
-def delta_f_likelihood(j_s_samples, j_s_exp, grid=None, *, n_bootstrap: int = 200, rng=None,
+def delta_f_likelihood(j_s_samples: xr.DataArray | ArrayLike, j_s_exp: float | ArrayLike,
+                       grid: ArrayLike | None = None, *, n_bootstrap: int = 200,
+                       rng: np.random.Generator | int | None = None,
                        confidence: float = 0.95, m: int = 2, grid_name: str = "delta_F",
                        units: str = JS_UNITS) -> xr.Dataset:
     """δ_F ↦ p̂_Js(J_s,exp; δ_F) and δ_F,opt (paper Eq. 5) from Monte Carlo samples of J_s.
@@ -821,6 +909,33 @@ def delta_f_likelihood(j_s_samples, j_s_exp, grid=None, *, n_bootstrap: int = 20
     KDE, Silverman bandwidth, bootstrap over realisations jointly across the grid) and adds
     ``delta_F_opt``, ``delta_F_opt_std``, ``delta_F_opt_low``, ``delta_F_opt_high``, ``J_s_exp``,
     ``J_s_units``, and the samples as ``J_s``.
+
+    Parameters
+    ----------
+    j_s_samples : xarray.DataArray or array_like
+        (delta_F, realisation) Monte Carlo values of J_s [``units``].
+    j_s_exp : float or array_like
+        The observed J_s, or several independent observations.
+    grid : array_like, optional
+        The δ_F grid (required unless ``j_s_samples`` carries it as a coordinate).
+    n_bootstrap : int
+        Bootstrap replicates (0: none).
+    rng : numpy.random.Generator or int, optional
+        Stream or seed of the bootstrap; required when ``n_bootstrap > 0``.
+    confidence : float
+        Probability of the bootstrap percentile intervals, in (0, 1).
+    m : int
+        Number of loads (the size of the SG+ matrix whose δ_max bounds the grid).
+    grid_name : str
+        Name of the grid dimension.
+    units : str
+        Units of J_s.
+
+    Returns
+    -------
+    xarray.Dataset
+        :func:`~tubeid.identification.likelihood_curve`'s Dataset plus the attributes and ``J_s``
+        listed above.
     """
     m = integer("m", m, minimum=1)
     if isinstance(j_s_samples, xr.DataArray):

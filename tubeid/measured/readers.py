@@ -63,6 +63,7 @@ import math
 import os
 import re
 import warnings
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -540,8 +541,8 @@ def _as_path(path, what: str) -> Path:
         raise SpecificationError(what, path, "must be a file path") from None
 
 
-def read_measurements(path, *, format: str | None = None, min_resolution_hz: float | None = None,
-                      tubes=None) -> xr.Dataset:
+def read_measurements(path: str | os.PathLike, *, format: str | None = None, min_resolution_hz: float | None = None,
+                      tubes: Mapping[str, float] | None = None) -> xr.Dataset:
     """Read a measured record (NetCDF, Zarr, CSV + sidecar or UFF 58) into the canonical Dataset.
 
     Parameters
@@ -655,13 +656,28 @@ def _write_uff(lay: dict, path: Path) -> None:
         pyuff.UFF(str(path)).write_sets(sets, mode="add")
 
 
-def write_measurements(ds: xr.Dataset, path, *, format: str | None = None, validate: bool = True) -> Path:
-    """Write ``ds`` as NetCDF-4, NetCDF-3, Zarr, CSV + sidecar or UFF 58 (see module docstring).
+def write_measurements(ds: xr.Dataset, path: str | os.PathLike, *, format: str | None = None,
+                       validate: bool = True) -> Path:
+    """Write a measured record as NetCDF-4, NetCDF-3, Zarr, CSV + sidecar or UFF 58 (module docstring).
 
-    With ``validate`` (default) ``ds`` is first validated and written in canonical form (m, s), so
-    ``read_measurements`` gives it back. ``validate=False`` writes ``ds`` as it is (units included),
-    e.g. to make test files; the structure must still be readable. Existing files are replaced.
-    Returns the path written.
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        The record: ``displacement`` (time, sensor) with ``x`` and ``tube`` on ``sensor``.
+    path : str or path-like
+        Where to write (a directory for Zarr). An existing file is replaced; an existing directory
+        that is not a Zarr store is refused.
+    format : str, optional
+        One of :data:`FORMATS` (default: from the extension, :data:`EXTENSIONS`).
+    validate : bool
+        If True (default) ``ds`` is first validated and written in canonical form (m, s), so
+        ``read_measurements`` gives it back; False writes ``ds`` as it is (units included), e.g. to
+        make test files; the structure must still be readable.
+
+    Returns
+    -------
+    pathlib.Path
+        The path written.
     """
     path = _as_path(path, "path")
     fmt = _resolve_format(path, format)

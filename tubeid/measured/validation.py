@@ -285,10 +285,31 @@ def validate_measurements(ds: xr.Dataset, *, min_resolution_hz: float | None = N
                           format: str | None = None) -> xr.Dataset:
     """Check a measurement Dataset against the rules of this module; return its canonical form.
 
-    ``source`` names the record in messages and in ``attrs["source"]`` (default: ``ds.attrs["source"]``
-    or ``"<memory>"``); ``format`` goes to ``attrs["format"]`` (default: ``ds.attrs["format"]`` or
-    ``"memory"``). ``tubes`` maps tube name -> length (m). Displacement, x and time are converted to
-    m, m and s. The input is not modified.
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        The record: ``displacement`` (time, sensor) with ``x`` and ``tube`` on ``sensor`` (units
+        stated; converted to m, m and s). Not modified.
+    min_resolution_hz : float, optional
+        Refuse records shorter than 1 / min_resolution_hz [s].
+    tubes : mapping of str to float, optional
+        ``{tube name: length [m]}``; refuse sensors on unknown tubes or off them.
+    source : str, optional
+        Names the record in messages and in ``attrs["source"]`` (default: ``ds.attrs["source"]``
+        or ``"<memory>"``).
+    format : str, optional
+        Goes to ``attrs["format"]`` (default: ``ds.attrs["format"]`` or ``"memory"``).
+
+    Returns
+    -------
+    xarray.Dataset
+        The canonical form: ``displacement`` (time, sensor) [m] float64, ``x`` [m] and ``tube`` on
+        ``sensor``, ``time`` [s].
+
+    Raises
+    ------
+    SpecificationError
+        Naming the record, the sensor or field, the value and the rule.
     """
     tube_lengths = check_options(min_resolution_hz, tubes)
     if source is None:

@@ -21,6 +21,8 @@ import pathlib
 import sys
 import time
 
+from typing import TYPE_CHECKING
+
 from tubeid import config
 from tubeid.errors import SpecificationError
 from tubeid.runner.integrity import repair_structure, verify
@@ -31,13 +33,37 @@ from tubeid.runner.store import (append_history, block_flags, check_blocks, chec
                                  set_flags, tubeid_version, update_attrs, write_block)
 from tubeid.runner.study import _plain, load_definition, load_study
 
+if TYPE_CHECKING:
+    import distributed
+
 __all__ = ["run", "run_block", "run_stage_block", "stage_study", "RunReport", "PipelineReport", "default_store",
            "scheduler_address"]
 
 
 @dataclasses.dataclass
 class RunReport:
-    """What a run did. Times in seconds (wall clock of this process; compute/write summed over tasks)."""
+    """What a run did. Times in seconds (wall clock of this process; compute/write summed over tasks).
+
+    Parameters
+    ----------
+    store : pathlib.Path
+        The store written.
+    total, computed, skipped : int
+        Blocks of the study; computed by this run; found done (and verified) and not recomputed.
+    workers : int
+        Worker processes used (0: in this process).
+    startup, prepare, tasks, finalise : float
+        Cluster start or connection; store creation and checks; first submit to last result;
+        provenance update [s].
+    compute, write : float
+        Sums over tasks of the study task itself and of its region and flag writes [s].
+    warmup : float
+        The once-per-machine warm-up (e.g. compiling), 0 if none was needed [s].
+    repaired : int
+        Finished blocks found damaged by verification (recomputed).
+    dashboard : str
+        The dask dashboard's address ('' if none).
+    """
 
     store: pathlib.Path
     total: int
@@ -62,8 +88,24 @@ class RunReport:
 
 @dataclasses.dataclass
 class PipelineReport:
-    """What a pipeline run did: one ``RunReport`` per stage run or skipped (``prepare`` includes
-    building the stage from the earlier results), plus cluster start-up and root bookkeeping."""
+    """What a pipeline run did: one ``RunReport`` per stage, plus cluster start-up and root bookkeeping.
+
+    Parameters
+    ----------
+    store : pathlib.Path
+        The pipeline store written.
+    stages : dict of str to RunReport
+        Per stage run or skipped (its ``prepare`` includes building the stage from the earlier
+        results).
+    workers : int
+        Worker processes used (0: in this process).
+    startup, prepare, finalise : float
+        Cluster start or connection; root store creation and checks; root provenance update [s].
+    warmup : float
+        The pipeline's once-per-machine warm-up [s].
+    dashboard : str
+        The dask dashboard's address ('' if none).
+    """
 
     store: pathlib.Path
     stages: dict = dataclasses.field(default_factory=dict)
@@ -335,7 +377,8 @@ def _verify_and_repair(study, path, group, quiet, where) -> int:
     return len(bad)
 
 
-def run(study_path, store=None, *, workers: int | None = None, scheduler: str | None = None, client=None,
+def run(study_path: str | os.PathLike, store: str | os.PathLike | None = None, *, workers: int | None = None,
+        scheduler: str | None = None, client: distributed.Client | None = None,
         overrides: dict | None = None, new_store: bool = False, overwrite: bool = False, verify_blocks: bool = True,
         progress: bool | None = None, quiet: bool = False) -> RunReport | PipelineReport:
     """Run (or resume) the study in ``study_path`` into the Zarr ``store``; see ``tubeid run --help``.

@@ -34,13 +34,25 @@ __all__ = ["Pipeline", "stage_hash"]
 class Pipeline(Parameterised):
     """Stages run in order into one Zarr store (one group per stage); see the module docstring.
 
-    name: identifier (store file name); seed: non-negative int, the seed of every stage;
-    stages: sequence of ``Study`` or ``stage(results, **parameters) -> Study`` functions;
-    parameters: {name: plain value or Parameter} passed to the stage functions that name them
-    (``tubeid run --set name=value`` overrides one); description: one line for the provenance
-    (the store's CF ``title``); references: the store's CF ``references`` (default: the method's
-    paper), inherited by stages that give none; warmup: a :class:`~tubeid.runner.study.Warmup` done
-    once per machine before the first stage that has blocks to compute.
+    Parameters
+    ----------
+    name : str
+        Identifier (the store's file name).
+    seed : int
+        Non-negative; the seed of every stage.
+    stages : sequence of Study or callable
+        ``Study`` objects or ``stage(results, **parameters) -> Study`` functions; ``results`` maps
+        each earlier stage's name to its Dataset.
+    parameters : mapping of str to object
+        ``{name: plain value or Parameter}`` passed to the stage functions that name them
+        (``tubeid run --set name=value`` overrides one).
+    description : str
+        One line for the provenance (the store's CF ``title``).
+    references : str
+        The store's CF ``references`` (default: the method's paper), inherited by stages that give
+        none.
+    warmup : Warmup, optional
+        Work done once per machine before the first stage that has blocks to compute.
     """
 
     name: str
@@ -122,7 +134,20 @@ class Pipeline(Parameterised):
         return [st.name if isinstance(st, Study) else st.__name__ for st in self.stages]
 
     def stage(self, name: str, results: Mapping[str, Any]) -> Study:
-        """The ``Study`` of stage ``name`` given the earlier stages' results (its streams keyed by ``name``)."""
+        """The ``Study`` of one stage given the earlier stages' results.
+
+        Parameters
+        ----------
+        name : str
+            The stage's name.
+        results : mapping of str to xarray.Dataset
+            The results of every earlier stage, by name.
+
+        Returns
+        -------
+        Study
+            The stage's study, its random streams keyed by ``name``.
+        """
         names = self.stage_names
         if name not in names:
             raise SpecificationError("stage", name, f"is not a stage of pipeline {self.name!r} (stages: {names})")

@@ -542,7 +542,7 @@ def write_block(path, study, block, outputs, group=None) -> None:
     g[f"{BOOKKEEPING}/{FLAG}"][tuple(block.index)] = block_checksum(outputs)
 
 
-def store_status(path, group=None) -> dict:
+def store_status(path: str | os.PathLike, group: str | None = None) -> dict:
     """How complete a study store (or one stage of a pipeline store) is; readable while a run writes it.
 
     Parameters
@@ -604,9 +604,21 @@ def store_status(path, group=None) -> dict:
             "unreadable_flags": bad, "damaged": damaged}
 
 
-def pipeline_status(path) -> dict:
-    """Per-stage status of a pipeline store: ``{"attrs", "lock", "stages": {name: {"started", "done", "total",
-    "complete"}}, "done", "total", "complete"}`` (blocks summed over the stages started so far)."""
+def pipeline_status(path: str | os.PathLike) -> dict:
+    """Per-stage status of a pipeline store; readable while a run writes it.
+
+    Parameters
+    ----------
+    path : path-like
+        The pipeline store directory.
+
+    Returns
+    -------
+    dict
+        ``{"attrs", "lock", "stages": {name: {"started", "done", "total", "complete"[, "damaged"]}},
+        "done", "total", "complete"}``: the root provenance, the lock's holder (or None), and blocks
+        per stage and summed over the stages started so far.
+    """
     from tubeid.runner.lock import LOCK_NAME, read_lock
 
     p = pathlib.Path(path)
@@ -625,7 +637,8 @@ def pipeline_status(path) -> dict:
             "complete": all(s["complete"] for s in stages.values())}
 
 
-def open_results(path, group: str | None = None, *, flags: bool = False, chunks="auto") -> xr.Dataset:
+def open_results(path: str | os.PathLike, group: str | None = None, *, flags: bool = False,
+                 chunks: str | int | dict | None = "auto") -> xr.Dataset:
     """The study results as a labelled ``xarray.Dataset`` (lazy, dask-backed; ``chunks=None``: lazy
     without dask, as ``xarray.open_zarr``).
 
@@ -667,7 +680,7 @@ def open_results(path, group: str | None = None, *, flags: bool = False, chunks=
     return ds
 
 
-def open_pipeline(path) -> dict[str, xr.Dataset]:
+def open_pipeline(path: str | os.PathLike) -> dict[str, xr.Dataset]:
     """Every stage of a pipeline store started so far.
 
     Parameters

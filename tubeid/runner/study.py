@@ -23,10 +23,11 @@ import math
 import pathlib
 import sys
 import types
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from tubeid.errors import Described, SpecificationError
 from tubeid.seeds import rng_for
@@ -96,11 +97,22 @@ def _type_of(value) -> type | None:
 class Parameter:
     """A study parameter: its value and what is admissible.
 
-    value: the default (a plain value: bool, int, float, str, None or a list of them);
-    choices: admissible values; bounds: inclusive ``(low, high)`` (``None``: open end);
-    type: one of ``bool, int, float, str, list``; default: the type of ``value`` (an int value
-    admits integers only, a float value any real number, converted to float; a ``None`` value
-    admits any plain value); units, doc: for the reader.
+    Parameters
+    ----------
+    value : object
+        The default: a plain value (bool, int, float, str, None or a list of them).
+    choices : sequence, optional
+        The admissible values.
+    bounds : tuple of (float or None, float or None), optional
+        Inclusive ``(low, high)``; ``None`` leaves that end open.
+    units : str
+        Units, for the reader (e.g. ``"N^2/Hz"``).
+    doc : str
+        What the parameter does, for the reader (``tubeid run --help``, ``show``).
+    type : type, optional
+        One of ``bool, int, float, str, list``; default: the type of ``value`` (an int value
+        admits integers only, a float value any real number, converted to float; a ``None`` value
+        admits any plain value).
     """
 
     value: Any
@@ -114,8 +126,26 @@ class Parameter:
         if self.type is not None and self.type not in _TYPES:
             raise SpecificationError("parameter type", self.type, f"must be one of {[t.__name__ for t in _TYPES]}")
 
-    def check(self, name: str, value) -> Any:
-        """Return ``value`` (made plain) if admissible, else raise ``SpecificationError``."""
+    def check(self, name: str, value: Any) -> Any:
+        """``value`` made plain, if admissible.
+
+        Parameters
+        ----------
+        name : str
+            The parameter's name (for the message: ``parameters.NAME``).
+        value : object
+            The proposed value (e.g. from ``--set NAME=VALUE``, already parsed).
+
+        Returns
+        -------
+        object
+            The value as the study receives it (an int admitted by a float parameter becomes a float).
+
+        Raises
+        ------
+        SpecificationError
+            Wrong type, not among the choices or outside the bounds.
+        """
         field = f"parameters.{name}"
         value = _plain(value, field)
         want = self.type if self.type is not None else _type_of(self.value)
@@ -145,11 +175,21 @@ class Parameter:
 class Output:
     """A result variable of a study.
 
-    dims: extra dims beyond the study axes (their coordinates in ``Study.coords``); dtype: a numeric
-    numpy dtype (the task's values are cast to it: integer dtypes refuse values outside their
-    range or not whole, instead of wrapping); units, long_name: CF attributes; finite: if True
-    (default) every value a block returns must be finite (NaN or infinity fails the block, which
-    is then not marked done); False stores NaN/inf as given (e.g. "not defined here").
+    Parameters
+    ----------
+    dims : tuple of str
+        Extra dimensions beyond the study axes (their coordinates in ``Study.coords``).
+    dtype : str
+        A numeric numpy dtype; the task's values are cast to it (integer dtypes refuse values
+        outside their range or not whole, instead of wrapping).
+    units : str
+        CF ``units`` attribute.
+    long_name : str
+        CF ``long_name`` attribute.
+    finite : bool
+        If True (default) every value a block returns must be finite (NaN or infinity fails the
+        block, which is then not marked done); False stores NaN/inf as given (e.g. "not defined
+        here").
     """
 
     dims: tuple[str, ...] = ()
@@ -169,12 +209,29 @@ class Output:
         if not isinstance(self.finite, bool):
             raise SpecificationError("output.finite", self.finite, "must be True or False")
 
-    def cast(self, name: str, values, block_index) -> np.ndarray:
+    def cast(self, name: str, values: ArrayLike, block_index: Sequence[int]) -> np.ndarray:
         """``values`` as this output's dtype, refusing what the cast would silently change.
 
-        Raises ``SpecificationError`` naming the output, the block and the rule: a non-finite value
-        (unless ``finite=False``); for an integer dtype, a value outside its range, not whole or
-        not finite; for a bool dtype, a value other than 0/1.
+        Parameters
+        ----------
+        name : str
+            The output's name (for the message: ``outputs.NAME``).
+        values : array_like
+            What a block's task returned for this output.
+        block_index : sequence of int
+            The block's index per axis (for the message).
+
+        Returns
+        -------
+        numpy.ndarray
+            ``values`` in this output's dtype.
+
+        Raises
+        ------
+        SpecificationError
+            Naming the output, the block and the rule: a non-finite value (unless
+            ``finite=False``); for an integer dtype, a value outside its range, not whole or not
+            finite; for a bool dtype, a value other than 0/1.
         """
         arr = np.asarray(values)
         dt = np.dtype(self.dtype)
@@ -290,15 +347,47 @@ class Parameterised:
 class Study(Parameterised):
     """A parameter sweep run as one dask task per block (see the module docstring).
 
-    name: identifier (store file name); seed: non-negative int study seed;
-    axes: ordered {dim: coordinate values}; chunks: {dim: points per block} (missing dims use the
-    ``tubeid.runner.default-chunk`` configuration value); task: ``task(block, rng, **parameters)``;
-    outputs: {name: Output}; coords: coordinates of the outputs' extra dims; units: {dim: units} for
-    coordinates; seed_axes: axes whose coordinates key the random streams (default: all axes;
-    ``("realisation",)`` gives common random numbers across the other axes); parameters:
-    {name: plain value or Parameter}, passed to ``task`` as keywords; model: the model specification
-    (stored as text in the provenance); check: optional ``check(study)`` raising SpecificationError
-    for rules that involve several fields (e.g. an axis range that depends on a parameter).
+    Parameters
+    ----------
+    name : str
+        Identifier (the store's file name).
+    seed : int
+        Non-negative study seed; every random draw derives from it and the point's coordinates.
+    axes : mapping of str to array_like
+        Ordered ``{dim: coordinate values}`` of the sweep.
+    task : callable
+        ``task(block, rng, **parameters) -> {output: array}``: ``block`` maps each axis to the
+        block's coordinates, ``rng`` is a :class:`RngFactory`; see :func:`pointwise`.
+    outputs : mapping of str to Output
+        ``{name: Output}``: the result variables.
+    chunks : mapping of str to int
+        ``{dim: points per block}``; missing dims use ``tubeid.runner.default-chunk``.
+    coords : mapping of str to array_like
+        Coordinates of the outputs' extra dims.
+    units : mapping of str to str
+        ``{dim: units}`` of the coordinates.
+    seed_axes : tuple of str, optional
+        Axes whose coordinates key the random streams (default: all axes; ``("realisation",)``
+        gives common random numbers across the other axes).
+    parameters : mapping of str to object
+        ``{name: plain value or Parameter}``, passed to ``task`` as keywords.
+    model : object, optional
+        The model specification, stored as text in the provenance.
+    check : callable, optional
+        ``check(study)`` raising ``SpecificationError`` for rules that involve several fields
+        (e.g. an axis range that depends on a parameter).
+    description : str
+        One line for ``show`` and the store's ``title``.
+    summarize : callable, optional
+        ``summarize(dataset) -> str``: a short text ``tubeid show`` prints.
+    stream_key : tuple of str
+        Prefix of every random stream key (a pipeline sets its stage name).
+    long_names : mapping of str to str
+        ``{dim: long_name}`` of the coordinates (CF).
+    references : str
+        CF ``references`` attribute (e.g. the paper).
+    warmup : Warmup, optional
+        Work needed once per machine before the first block.
     """
 
     name: str
@@ -420,7 +509,18 @@ class Study(Parameterised):
                 raise SpecificationError(f"parameters.{name}", None, "required by the task but not given")
 
     def coordinate_attrs(self, dim: str) -> dict[str, str]:
-        """CF attributes of coordinate ``dim``: ``long_name`` always, ``units`` unless it is a label (strings)."""
+        """CF attributes of a coordinate.
+
+        Parameters
+        ----------
+        dim : str
+            An axis or an extra dimension of the outputs.
+
+        Returns
+        -------
+        dict of str to str
+            ``long_name`` always, ``units`` unless the coordinate is a label (strings).
+        """
         values = self.axes[dim] if dim in self.axes else self.coords[dim]
         d_units, d_long = COORDINATE_DEFAULTS.get(dim, (None, dim))
         units = self.units.get(dim, d_units)
@@ -444,6 +544,18 @@ class Study(Parameterised):
         return math.prod(self.block_grid)
 
     def block(self, index: Sequence[int]) -> Block:
+        """One block of the sweep.
+
+        Parameters
+        ----------
+        index : sequence of int
+            The block's index along each axis (within :attr:`block_grid`).
+
+        Returns
+        -------
+        Block
+            Its index, slices and coordinates per axis.
+        """
         slices, coords = {}, {}
         for (dim, values), i in zip(self.axes.items(), index):
             c = self.chunks[dim]
@@ -451,8 +563,14 @@ class Study(Parameterised):
             coords[dim] = values[slices[dim]]
         return Block(tuple(int(i) for i in index), slices, coords)
 
-    def blocks(self):
-        """All blocks, in C order of their indices."""
+    def blocks(self) -> Iterator[Block]:
+        """All blocks, in C order of their indices.
+
+        Yields
+        ------
+        Block
+            Each block of the sweep.
+        """
         for index in itertools.product(*(range(n) for n in self.block_grid)):
             yield self.block(index)
 
@@ -463,7 +581,18 @@ class Study(Parameterised):
         return RngFactory(int(self.seed), self.seed_axes, self.stream_key)
 
     def compute_block(self, block: Block) -> dict[str, np.ndarray]:
-        """Run the task on one block; check and cast its outputs."""
+        """Run the task on one block; check and cast its outputs.
+
+        Parameters
+        ----------
+        block : Block
+            The block (from :meth:`block`).
+
+        Returns
+        -------
+        dict of str to numpy.ndarray
+            Each output's values, shape ``block.shape`` + its extra dims, in its dtype.
+        """
         result = self.task(block.coords, self.rng, **self.values)
         if not isinstance(result, Mapping):
             if len(self.outputs) != 1:
@@ -481,7 +610,14 @@ class Study(Parameterised):
         return out
 
     def describe_model(self) -> str:
-        """The model specification as text ('' if none)."""
+        """The model specification as text.
+
+        Returns
+        -------
+        str
+            ``to_yaml``/``to_text``/``to_json`` of the model, JSON of a dataclass or mapping, or
+            ``''`` if the study has none.
+        """
         m = self.model
         if m is None:
             return ""
@@ -500,6 +636,11 @@ class Study(Parameterised):
         Equal fingerprints in two processes mean the same sweep; a pipeline hashes it into the
         stage hash, so any value a stage was built from (e.g. an identified delta_opt passed as a
         parameter or used in an axis) is part of the stage's identity.
+
+        Returns
+        -------
+        str
+            The JSON text (keys sorted).
         """
         return json.dumps({
             "name": self.name, "seed": int(self.seed), "stream_key": list(self.stream_key),
@@ -519,10 +660,20 @@ def _short(values, n=6):
 
 
 def pointwise(fn: Callable) -> Callable:
-    """Make a block task from a per-point function ``fn(point, rng, **parameters) -> {output: array}``.
+    """Make a block task from a per-point function.
 
-    ``point`` maps each axis to its scalar coordinate; ``rng`` is that point's generator (keyed by the
-    seed axes). The per-point outputs are stacked over the block.
+    Parameters
+    ----------
+    fn : callable
+        ``fn(point, rng, **parameters) -> {output: array}`` (or one array for a single output):
+        ``point`` maps each axis to its scalar coordinate; ``rng`` is that point's generator (keyed
+        by the seed axes).
+
+    Returns
+    -------
+    callable
+        ``task(block, rng, **parameters)`` for :class:`Study`: the per-point outputs stacked over
+        the block; it keeps ``fn``'s signature (its keyword parameters are checked by the study).
     """
     sig = inspect.signature(fn)
 
@@ -551,12 +702,19 @@ def pointwise(fn: Callable) -> Callable:
 class RngFactory:
     """Generators keyed by (study seed, prefix, a point's coordinates on the seed axes, optional stream names).
 
-    The prefix is the study's ``stream_key`` (in a pipeline: the stage name, so stages draw
-    independent streams while keeping common random numbers across a stage's non-seed axes).
-
     ``rng(realisation=3)`` (exactly the seed axes as keywords) or ``rng.at(point)`` (a full point;
     coordinates on other axes are ignored). ``rng("loads", realisation=3)`` gives an independent
     named stream at the same point. Never keyed by block or worker.
+
+    Parameters
+    ----------
+    seed : int
+        The study seed.
+    seed_axes : tuple of str
+        The axes whose coordinates key the streams.
+    prefix : tuple of str
+        The study's ``stream_key`` (in a pipeline: the stage name, so stages draw independent
+        streams while keeping common random numbers across a stage's non-seed axes).
     """
 
     seed: int
@@ -568,7 +726,21 @@ class RngFactory:
             raise SpecificationError("rng coordinates", sorted(coords), f"must be exactly the seed axes {list(self.seed_axes)}")
         return rng_for(self.seed, *self.prefix, *(_scalar(coords[d]) for d in self.seed_axes), *stream)
 
-    def at(self, point: Mapping[str, Any], *stream) -> np.random.Generator:
+    def at(self, point: Mapping[str, Any], *stream: str | int) -> np.random.Generator:
+        """The generator of one point.
+
+        Parameters
+        ----------
+        point : mapping of str to object
+            The point's coordinate on every axis (those off the seed axes are ignored).
+        *stream : str or int
+            Optional names of an independent stream at the same point.
+
+        Returns
+        -------
+        numpy.random.Generator
+            ``rng_for(seed, *prefix, *seed-axis coordinates, *stream)``.
+        """
         return self(*stream, **{d: point[d] for d in self.seed_axes})
 
 
@@ -621,7 +793,22 @@ def load_definition(path: str | pathlib.Path | None = None, *, source: str | Non
 
 def load_study(path: str | pathlib.Path | None = None, *, source: str | None = None,
                overrides: Mapping[str, Any] | None = None) -> tuple[Study, str, str]:
-    """Like ``load_definition`` but the file must define a single ``Study``."""
+    """Execute a study file that defines a single :class:`Study`.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path, optional
+        The study file (a ``studies/*.py``), unless ``source`` is given.
+    source : str, optional
+        The file's text instead of a path.
+    overrides : mapping of str to object, optional
+        Parameter values replacing the defaults (``--set``), each checked by its :class:`Parameter`.
+
+    Returns
+    -------
+    tuple of (Study, str, str)
+        The study, its source text and the hash of (source, overrides).
+    """
     study, source, key = load_definition(path, source=source, overrides=overrides)
     if not isinstance(study, Study):
         raise SpecificationError("study", str(path or "<study>"), "must define a `Study` (this file defines a Pipeline)")
