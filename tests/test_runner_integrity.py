@@ -56,6 +56,8 @@ def _rewrite_values(store: pathlib.Path) -> None:
 DAMAGE = {
     "deleted data chunk": (lambda s: (s / "x/c/0/3/0").unlink(), "block (0, 3): checksum mismatch: chunk x/c/0/3/0 missing", 1, 1),
     "garbage data chunk": (lambda s: _garbage(s / "count/c/1/1"), "block (1, 1): chunk count/c/1/1 undecodable", 1, 1),
+    # an integer chunk deleted reads as the fill value 0, not NaN
+    "deleted integer chunk": (lambda s: (s / "count/c/1/2").unlink(), "block (1, 2): checksum mismatch: chunk count/c/1/2 missing", 1, 1),
     "changed values": (_rewrite_values, "block (1, 2): checksum mismatch: values differ from what the block wrote", 1, 1),
     "deleted array": (lambda s: shutil.rmtree(s / "x"), "array x missing", 8, 8),
     "garbage flag chunk": (lambda s: _garbage(s / BOOKKEEPING / FLAG / "c/0/1"), "block (0, 1): flag chunk undecodable", 1, 1),
@@ -82,6 +84,12 @@ def test_damage_is_named_and_exactly_the_damaged_blocks_are_recomputed(reference
     out = capsys.readouterr().out
     if damage == "garbage data chunk":
         assert "count [1]: DAMAGED" in out and "count/c/1/1" in out
+    # ... and names a deleted chunk or array (read as NaN, or 0 for integers), beside the statistics
+    shown = {"deleted data chunk": "DAMAGED: block (0, 3): checksum mismatch: chunk x/c/0/3/0 missing",
+             "deleted integer chunk": "DAMAGED: block (1, 2): checksum mismatch: chunk count/c/1/2 missing",
+             "deleted array": "DAMAGED: block (0, 0): array x missing"}
+    if damage in shown:
+        assert shown[damage] in out, out
     # a plain run (no --overwrite) repairs: exactly the damaged blocks are recomputed
     report = run(study, store, workers=0, quiet=True)
     assert (report.computed, report.repaired) == (computed, repaired)
@@ -173,7 +181,7 @@ def test_bad_block_values_are_refused_naming_output_block_and_rule(values, dtype
     assert err.value.field == "outputs.y" and rule in err.value.rule and "block (2,)" in str(err.value)
 
 
-def test_a_refused_block_is_not_marked_done_and_declared_nonfinite_values_are_stored(tmp_path):
+def test_a_refused_block_is_not_marked_done_and_declared_nonfinite_values_are_stored(tmp_path, capsys):
     src = tmp_path / "bad.py"
     src.write_text('''
 import numpy as np
@@ -194,6 +202,7 @@ study = Study(name="bad", seed=0, axes={"r": range(6)}, chunks={"r": 2}, task=ta
     y = open_results(tmp_path / "ok.zarr").y.values
     assert np.isnan(y[3]) and np.array_equal(y[[0, 1, 2, 4, 5]], [0, 1, 2, 4, 5])
     assert cli(["status", str(tmp_path / "ok.zarr"), "--verify"]) == 0  # NaN is a value, checksummed like any
+    assert cli(["show", str(tmp_path / "ok.zarr")]) == 0 and "DAMAGED" not in capsys.readouterr().out
 
 
 # -- what a plain xarray user sees -------------------------------------------------------------------------------
