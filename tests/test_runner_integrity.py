@@ -309,6 +309,27 @@ def test_a_store_without_manifest_is_not_deleted(reference, tmp_path):
     assert store_digest(store) == before
 
 
+@pytest.mark.parametrize("entry", ["../victim.zarr/data", "absolute", "symlink"])
+def test_a_manifest_naming_files_outside_the_store_deletes_nothing(reference, tmp_path, entry):
+    """An edited manifest is no proof: a node outside the store (``..``, absolute, through a symlink) is refused."""
+    victim = tmp_path / "victim.zarr"  # a user's Zarr store beside the tubeid store
+    zarr.open_group(str(victim), mode="w").create_array("data", data=np.arange(10.0), chunks=(5,))
+    before = store_digest(victim)
+    store = _copy(reference, tmp_path)
+    manifest = json.loads((store / MANIFEST_NAME).read_text())
+    if entry == "absolute":
+        entry = str(victim / "data")
+    elif entry == "symlink":
+        (store / "mine").symlink_to(victim / "data", target_is_directory=True)
+        entry = "mine"
+    manifest["nodes"][entry] = "array"
+    (store / MANIFEST_NAME).write_text(json.dumps(manifest))
+    kept = store_digest(store)
+    with pytest.raises(SpecificationError, match="outside the store"):
+        run(reference[0], store, workers=0, quiet=True, overwrite=True)
+    assert store_digest(victim) == before and (victim / "zarr.json").is_file() and store_digest(store) == kept
+
+
 # -- parameters are typed --------------------------------------------------------------------------------------------
 def test_parameter_values_must_have_the_declared_or_default_type(tmp_path, capsys):
     def task(block, rng, *, n, scale, label, flag, items, anything):
