@@ -172,6 +172,8 @@ def _values_study(values, dtype="float64", finite=True):
     ([1.5, 2.0], "int32", "must be whole numbers"),
     ([np.nan, 1.0], "int64", "cannot hold NaN"),
     ([2, 0], "bool", "must be 0 or 1"),
+    ([2.0**63, 0.0], "int64", "must lie in [-9223372036854775808, 9223372036854775807]"),  # max rounds up to 2**63
+    ([2.0**64, 1.0], "uint64", "must lie in [0, 18446744073709551615]"),
 ])
 def test_bad_block_values_are_refused_naming_output_block_and_rule(values, dtype, rule):
     s = _values_study(values, dtype)
