@@ -60,6 +60,11 @@ def test_a_lock_of_a_dead_process_is_taken_over(tmp_path):
     # a PID now used by another process (here: this one) with another start time is dead too
     _write_record(store, pid_start=12345.0)
     assert lockmod.holder_state(read_lock(store / LOCK_NAME), store / LOCK_NAME)[0] == "dead"
+    # a PID reused a second later (the usual case) is told apart too; the holder's own start time is alive
+    mine = lockmod._process_start(os.getpid())
+    for start, state in ((mine - 1.0, "dead"), (mine + 1.0, "dead"), (mine, "alive")):
+        _write_record(store, pid_start=start)
+        assert lockmod.holder_state(read_lock(store / LOCK_NAME), store / LOCK_NAME)[0] == state, start
     # another boot id under this host's name: rebooted, or another machine of the same name (cloned VMs)
     # whose runner is alive: judged by the heartbeat, never by this host's PIDs
     _write_record(store, boot="another-boot", pid=os.getpid())
