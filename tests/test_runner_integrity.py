@@ -332,6 +332,25 @@ def test_a_manifest_naming_files_outside_the_store_deletes_nothing(reference, tm
     assert store_digest(victim) == before and (victim / "zarr.json").is_file() and store_digest(store) == kept
 
 
+@pytest.mark.parametrize("damage, rule", [
+    ("root metadata deleted", "is not a tubeid study store"), ("root metadata garbage", "is not a readable Zarr store"),
+    ("garbage lock file", "unreadable lock file"), ("empty lock file", "unreadable lock file")])
+def test_damage_a_runner_cannot_repair_is_refused_and_nothing_is_deleted(reference, tmp_path, damage, rule):
+    """Without the root's provenance the store cannot be proven to be this study's; a lock file nobody can read
+    cannot be proven stale: both are refused by name, every file left as it was."""
+    from tubeid.runner.lock import LOCK_NAME
+
+    store = _copy(reference, tmp_path)
+    {"root metadata deleted": lambda: (store / "zarr.json").unlink(),
+     "root metadata garbage": lambda: (store / "zarr.json").write_text("{garbage"),
+     "garbage lock file": lambda: (store / LOCK_NAME).write_text("{garbage"),
+     "empty lock file": lambda: (store / LOCK_NAME).write_text("")}[damage]()
+    before = {f: f.read_bytes() for f in store.rglob("*") if f.is_file()}
+    with pytest.raises(SpecificationError, match=rule):
+        run(reference[0], store, workers=0, quiet=True)
+    assert {f: f.read_bytes() for f in store.rglob("*") if f.is_file()} == before
+
+
 # -- parameters are typed --------------------------------------------------------------------------------------------
 def test_parameter_values_must_have_the_declared_or_default_type(tmp_path, capsys):
     def task(block, rng, *, n, scale, label, flag, items, anything):
