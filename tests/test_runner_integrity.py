@@ -52,6 +52,12 @@ def _rewrite_values(store: pathlib.Path) -> None:
     arr[1:2, 4:6] = 2.0 * arr[1:2, 4:6]
 
 
+def _nan_values(store: pathlib.Path) -> None:
+    """Valid chunk bytes of block (0, 2) of x holding NaN (what a careless edit or a failed copy may leave)."""
+    arr = zarr.open_group(str(store), mode="r+", use_consolidated=False)["x"]
+    arr[0:1, 4:5] = np.nan  # half the block: the chunk stays (a chunk of fill values only would be removed)
+
+
 # damage -> (what verification names, blocks the repairing run computes, of which found damaged by verification)
 DAMAGE = {
     "deleted data chunk": (lambda s: (s / "x/c/0/3/0").unlink(), "block (0, 3): checksum mismatch: chunk x/c/0/3/0 missing", 1, 1),
@@ -59,6 +65,7 @@ DAMAGE = {
     # an integer chunk deleted reads as the fill value 0, not NaN
     "deleted integer chunk": (lambda s: (s / "count/c/1/2").unlink(), "block (1, 2): checksum mismatch: chunk count/c/1/2 missing", 1, 1),
     "changed values": (_rewrite_values, "block (1, 2): checksum mismatch: values differ from what the block wrote", 1, 1),
+    "values overwritten with NaN": (_nan_values, "block (0, 2): checksum mismatch: values differ from what the block wrote", 1, 1),
     "deleted array": (lambda s: shutil.rmtree(s / "x"), "array x missing", 8, 8),
     "garbage flag chunk": (lambda s: _garbage(s / BOOKKEEPING / FLAG / "c/0/1"), "block (0, 1): flag chunk undecodable", 1, 1),
     # unproven blocks are recomputed (none is "damaged": there is no flag to check them against)
@@ -87,7 +94,8 @@ def test_damage_is_named_and_exactly_the_damaged_blocks_are_recomputed(reference
     # ... and names a deleted chunk or array (read as NaN, or 0 for integers), beside the statistics
     shown = {"deleted data chunk": "DAMAGED: block (0, 3): checksum mismatch: chunk x/c/0/3/0 missing",
              "deleted integer chunk": "DAMAGED: block (1, 2): checksum mismatch: chunk count/c/1/2 missing",
-             "deleted array": "DAMAGED: block (0, 0): array x missing"}
+             "deleted array": "DAMAGED: block (0, 0): array x missing",
+             "values overwritten with NaN": "DAMAGED: block (0, 2): checksum mismatch: values differ"}
     if damage in shown:
         assert shown[damage] in out, out
     # a plain run (no --overwrite) repairs: exactly the damaged blocks are recomputed

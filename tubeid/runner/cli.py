@@ -186,8 +186,11 @@ def _print_dataset(ds, store, group=None) -> None:
             from tubeid.runner.integrity import verify
 
             damage = verify(store, group)
+        # a damaged block of this output: its chunk or array named, or changed values (verification cannot
+        # tell which output of the block changed)
         bad = [f"block {i}: {r}" for i, r in sorted(damage.damaged.items())
-               if f"{node(name)}/c/" in r or f"array {node(name)} " in r] if suspect else []
+               if f"{node(name)}/c/" in r or f"array {node(name)} " in r or not ("/c/" in r or "array " in r)
+               ] if suspect else []
         if name in unreadable:
             print(f"  {name} [{var.attrs.get('units', '')}]: DAMAGED, cannot be read ({type(unreadable[name]).__name__}); "
                   + ("; ".join(bad[:5]) or "see `tubeid status --verify`")
@@ -221,7 +224,6 @@ def _looks_damaged(store, node: str, var, finished) -> bool:
     import pathlib
 
     import numpy as np
-    import xarray as xr
 
     from tubeid.runner.integrity import chunk_key
 
@@ -232,10 +234,12 @@ def _looks_damaged(store, node: str, var, finished) -> bool:
         return True
     if var.dtype.kind not in "fc":
         return False
-    for k, c in enumerate(chunks):
+    for k, c in enumerate(chunks):  # block grid -> values (numpy only: a new xarray object would import dask.array)
         done = np.repeat(done, c, axis=k)
-    mask = xr.DataArray(done, dims=axes).isel({d: slice(0, var.sizes[d]) for d in axes})
-    return not bool((xr.DataArray(np.isfinite(var.values), dims=var.dims) | ~mask).all())
+    order = [d for d in var.dims if d in axes]
+    done = np.transpose(done, [axes.index(d) for d in order])[tuple(slice(0, var.sizes[d]) for d in order)]
+    mask = np.broadcast_to(done.reshape([var.sizes[d] if d in axes else 1 for d in var.dims]), var.shape)
+    return not bool(np.isfinite(np.asarray(var.values)[mask]).all())
 
 
 def _show(args) -> int:
