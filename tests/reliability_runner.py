@@ -89,6 +89,11 @@ def _rewrite_values(store: Path) -> None:
     arr[1:2, 4:6] = 2.0 * arr[1:2, 4:6]
 
 
+def _nan_values(store: Path) -> None:
+    arr = zarr.open_group(str(store), mode="r+", use_consolidated=False)["x"]
+    arr[0:1, 4:5] = np.nan  # half of block (0, 2): its chunk stays
+
+
 DAMAGE = {
     "deleted data chunk": lambda s: (s / "x/c/0/3/0").unlink(),
     "deleted integer chunk (reads as 0)": lambda s: (s / "count/c/1/2").unlink(),
@@ -96,6 +101,7 @@ DAMAGE = {
     "emptied data chunk": lambda s: (s / "x/c/1/0/0").write_bytes(b""),
     "truncated data chunk": lambda s: (s / "x/c/0/0/0").write_bytes((s / "x/c/0/0/0").read_bytes()[:20]),
     "changed values (valid chunk)": _rewrite_values,
+    "values overwritten with NaN (valid chunk)": _nan_values,
     "deleted array": lambda s: shutil.rmtree(s / "x"),
     "garbage array metadata": lambda s: (s / "count/zarr.json").write_text("{not json"),
     "garbage flag chunk": lambda s: _garbage(s / BOOKKEEPING / FLAG / "c/0/1"),
@@ -108,7 +114,7 @@ DAMAGE = {
 
 # damage that `tubeid show` must name (what it reads back is missing or undecodable), beyond not failing
 SHOW_NAMES = {"deleted data chunk", "deleted integer chunk (reads as 0)", "garbage data chunk", "emptied data chunk",
-              "truncated data chunk", "deleted array"}
+              "truncated data chunk", "deleted array", "values overwritten with NaN (valid chunk)"}
 
 
 def damaged_stores(tmp: Path, study: Path, ref: Path) -> dict:
