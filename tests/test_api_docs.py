@@ -31,8 +31,7 @@ EXEMPT = {
     "tubeid.runner.PipelineReport", "tubeid.runner.open_pipeline", "tubeid.runner.pipeline_status",
     # tubeid/measured/*
     "tubeid.read_measurements", "tubeid.measured.read_measurements", "tubeid.measured.write_measurements",
-    "tubeid.measured.validate_measurements", "tubeid.measured.diagnose", "tubeid.measured.DiagnoseSettings",
-    "tubeid.measured.Diagnosis",
+    "tubeid.measured.validate_measurements",
     # tubeid/identification/loads.py
     "tubeid.identification.distance_map", "tubeid.identification.log_band_distance_map",
     "tubeid.identification.relative_weight", "tubeid.identification.refine_grid",

@@ -177,12 +177,20 @@ def test_unknown_attribute_and_submodule_access():
     assert set(tubeid.__all__) <= set(namespace)
 
 
-def test_a_name_shared_with_a_submodule_stays_the_exported_object():
-    """``tubeid.measured.diagnose`` is a function and a module: importing the module first must not
-    rebind the package attribute to the module (it would, with a purely lazy binding)."""
-    code = ("import sys\nimport tubeid.measured.diagnose\nimport tubeid.measured as pkg\n"
-            "assert pkg.diagnose is sys.modules['tubeid.measured.diagnose'].diagnose, pkg.diagnose")
-    subprocess.run([sys.executable, "-c", code], check=True)
+def test_a_name_shared_with_a_submodule_stays_the_exported_object(tmp_path):
+    """A package exporting ``thing`` from its sub-module ``thing`` (a function and a module of the same
+    name): importing the module first must not rebind the package attribute to the module (it
+    would, with a purely lazy binding)."""
+    pkg = tmp_path / "lazypkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text(
+        "from typing import TYPE_CHECKING\nfrom tubeid._lazy import attach\n"
+        "if TYPE_CHECKING:\n    from lazypkg.thing import thing\n"
+        "__all__ = ['thing']\n__getattr__, __dir__ = attach(__name__, __file__)\n")
+    (pkg / "thing.py").write_text("def thing():\n    return 42\n")
+    code = ("import sys\nimport lazypkg.thing\nimport lazypkg as pkg\n"
+            "assert pkg.thing is sys.modules['lazypkg.thing'].thing and pkg.thing() == 42, pkg.thing")
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=tmp_path)
 
 
 def test_an_export_imports_only_what_it_needs():

@@ -1,21 +1,14 @@
-"""The measured-data loop (issue 6): residual → missing effect → augmented model → error before/after.
+"""tubeid.diagnose: the calibrated test, the catalog, the selection and the loop on independent records.
 
-Synthetic "measurements": tubeid's reference model (``paper-reference``, the paper's 7 coherent
-forces, sensors on the centre tube at x = 2, 6, 10 m, no model or load dispersion) with one catalog
-effect switched on, diagnosed with the same reference model that does *not* declare the effect.
-The default run uses small sizes (48 s records, 12 band realisations, δ = 0, δ_F imposed at the
-paper's 0.04 except in the control and δ_F tests); ``-m slow`` repeats every case at larger sizes
-(128 s, 64 realisations, δ = 0.2, δ_F identified) with other seeds.
+Test records never come from the diagnosis's own code path: :func:`tubeid.diagnose.testing.make_record`
+writes each effect into the specification by hand (a second ``stops`` entry, a changed density or
+damping ratio), adds tones as explicit force columns and noise with numpy, and calls the solver
+directly (one case with its ``symplectic-euler`` integrator). Effects sit away from the sensors and
+from x = 8 m, and the trial method of r starts away from the truth (r0 = 4 N²/Hz, truth 1.3).
 
-Why the declared model is ``paper-reference`` and the load model ``distributed``: with
-``paper-simplified`` (or with the force-and-moment load at 8 m) the model-to-model mismatch alone
-puts 60–80 % of the bins of sensors at 2, 6 and 10 m outside the δ = 0.2 band (error ≈ 0.6 decades
-against a null of ≈ 0.08), which would hide every effect; that is the model uncertainty the
-paper's δ covers, not a missing effect.
-
-Every diagnosis runs as a runner pipeline; ``workers=0`` (in-process) everywhere but in one test,
-which resumes a partial store on a real 2-worker LocalCluster and checks that the store and
-report equal the uninterrupted in-process run's.
+Default sizes: 3 sensors (c02, c06, c10), 48 s records, δ = 0 (the declared model generates the
+data but for the effect), 19 band realisations (a test of exact size 1/20 = 5 %). ``-m slow``: the
+issue's 220 s × 7-sensor cases.
 """
 
 import json
@@ -25,69 +18,370 @@ import sys
 
 import numpy as np
 import pytest
+import scipy.linalg
 import scipy.stats
-import xarray as xr
 import zarr
 
 from tubeid.cli import main
-from tubeid.dynamics.response import ResponseSettings, simulate_responses
+from tubeid.diagnose import CATALOG, DiagnoseSettings, detection_test, diagnose
+from tubeid.diagnose._selection import Scored, choose, line_minimum, prediction_error
+from tubeid.diagnose._spectra import measured_spectra, time_statistics
+from tubeid.diagnose._surrogate import LinearSurrogate
+from tubeid.diagnose.catalog import Evidence
+from tubeid.diagnose.method import data_hash, load_context
+from tubeid.diagnose.testing import HandEffects, make_record, sensors
 from tubeid.errors import SpecificationError
 from tubeid.measured import read_measurements, validate_measurements, write_measurements
-from tubeid.measured.diagnose import (
-    DiagnoseSettings, band_residual, data_hash, delta_f_identification, diagnose, grid_minimum, held_out_error,
-    load_context, measured_spectra, r_coarse_grid, r_fine_grid, time_statistics)
-from tubeid.measured.effects_fit import signature_scores
-from tubeid.mechanics import builtin_spec, reduce
-from tubeid.mechanics.effects import AddedMass, Damping, ExtraStop, SensorNoise, Tone, apply_effects
-from tubeid.mechanics.spec import SensorSpec, spec_to_dict
+from tubeid.mechanics import builtin_spec
+from tubeid.mechanics.assembly import assemble
+from tubeid.mechanics.effects import AddedMass, Damping, ExtraStop, SensorNoise, Tone
+from tubeid.mechanics.spec import LoadPoint, spec_to_dict
 from tubeid.runner.store import store_status, update_attrs
 from tubeid.runner.testing import clear_flag, store_digest
-from tubeid.uncertainty import coherent_forces, force_and_moment
+from tubeid.uncertainty import coherent_forces
 
 XS = (2.0, 6.0, 10.0)
-# Small sizes: δ = 0 (the declared model is the generating one but for the effect) makes every
-# band realisation share one set of solver tables (with δ > 0 each realisation's random K_B costs
-# ~0.8 s of table building for the reference model); the band then comes from δ_F and the
-# estimator scatter. δ_F is imposed (the paper's 0.04): with 2 fitting blocks J_s has only 2
-# observations and a small Monte Carlo, so its likelihood says little (its identification is
-# tested on data made for it, below). The coarse grid of r is the start alone (its level offset
-# places the fine grid; the control runs the 3-point coarse grid). The slow full-size runs keep
-# δ = 0.2 and identify δ_F.
-SMALL = DiagnoseSettings(realisations=12, fit_realisations=2, grid_points=3, delta=0.0, load_dispersion=0.04,
-                         r_points=1, r_fine_points=3)
-# 64 band realisations: the `none` threshold is the 95 % quantile of the realisations' own
-# leave-one-out errors; from 32 it scattered between 0.06 and 0.10 decades across seeds (measured on
-# the damping case, whose error before is ≈ 0.09–0.11), from 64 it is steadier.
-FULL = DiagnoseSettings(realisations=64, fit_realisations=4, grid_points=4, seed=1)
-# The control runs the default path (δ_F identified) at small sizes, through the command line.
-CONTROL_SET = {"realisations": 12, "delta": 0.0, "fit_realisations": 2, "r_fine_points": 3,
-               "delta_f_realisations": 8, "delta_f_grid": (0.05, 0.15, 0.3, 0.5)}
-CASES = {
-    "tone": [Tone(frequency_hz=37.0, amplitude=100.0)],
-    "sensor_noise": [SensorNoise(level=1e-16)],
-    "added_mass": [AddedMass(tube="centre", factor=0.3)],
-    "damping": [Damping(tube="centre", ratio=0.005)],
-    "stop": [ExtraStop(tube="centre", x=10.0, gap=3e-6, stiffness=1e8)],
-}
+SEVEN = (2.0, 4.0, 6.0, 8.0, 10.0, 12.0, 14.0)
+SMALL = DiagnoseSettings(realisations=19, delta=0.0, fit_realisations=2, grid_points=4, r0=(4.0,), r_points=1,
+                         r_fine_points=3, max_effects=2)
 
 
-def _sensors():
-    return tuple(SensorSpec(f"c{int(x)}", "centre", x) for x in XS)
+def record(effects=HandEffects(), duration=48.0, seed=11, **kw):
+    return make_record(effects=effects, xs=XS, duration=duration, seed=seed, **kw)
 
 
-def _record(y, dt=3e-3):
-    raw = xr.Dataset({"displacement": (("time", "sensor"), y, {"units": "m"})},
-                     coords={"time": np.arange(y.shape[0]) * dt, "sensor": [f"c{int(x)}" for x in XS],
-                             "x": ("sensor", list(XS)), "tube": ("sensor", ["centre"] * len(XS))})
-    return validate_measurements(raw)
+# ------------------------------------------------------------------------------------ the test
 
 
-def make_data(effects=(), duration=48.0, seed=11):
-    """One record of the reference model with ``effects`` on, as a validated measurement Dataset."""
-    spec = apply_effects(builtin_spec("paper-reference").replace(sensors=_sensors()), effects)
-    ds = simulate_responses(reduce(spec), coherent_forces(), [0], seed=seed,
-                            settings=ResponseSettings(duration=duration + 2.0, discard=2.0, segment_seconds=2.0, keep="series"))
-    return _record(ds.displacement.isel(realisation=0).values)
+def _spectra(rng, N, F=120, m=3, line=None, shift=0.0, sharp=1.0):
+    """N synthetic Welch-like spectra (N, F, m): resonances at random positions (as a random
+    stiffness moves them), a random level, chi-square estimator scatter; optionally a line at bin
+    ``line``, a broad tilt ``shift`` [decades per band edge] or resonances ``sharp`` × sharper."""
+    f = np.linspace(0.0, 166.0, F)
+    out = np.empty((N, F, m))
+    for i in range(N):
+        f0 = np.array([20.0, 55.0, 90.0]) * (1 + 0.03 * rng.standard_normal(3))
+        peaks = sum(1.0 / (1 + ((f - c) / (1.5 / sharp)) ** 2) for c in f0)
+        base = 1e-15 * (1 + 30 * peaks)[:, None] * np.exp(-f / 40.0)[:, None] * np.array([1.0, 0.6, 0.3])
+        base *= 10 ** (0.1 * rng.standard_normal() + shift * (f / 166.0)[:, None])
+        out[i] = base * rng.chisquare(60, size=(F, m)) / 60
+        if line is not None:
+            out[i, line] *= 20.0
+    return f, out
+
+
+def test_the_test_is_exact_on_exchangeable_samples():
+    """The record and the realisations drawn from one law (random resonances, levels, scatter): over
+    400 independent draws the test rejects at 5 % within the binomial tolerance (exact size 1/20:
+    expected 20 rejections, sd 4.4; the 3-sd interval is 7–33). Each statistic's p-value is uniform
+    (Kolmogorov–Smirnov at 1 %)."""
+    rng = np.random.default_rng(1)
+    rejected, ps = 0, {k: [] for k in ("scan", "gof", "sharpness")}
+    for _ in range(400):
+        f, P = _spectra(rng, 20)
+        d = detection_test(P[0], P[1:], f, false_alarm=0.05)
+        assert d.size == 0.05 and d.n_realisations == 19
+        rejected += d.detected
+        for k in ps:
+            ps[k].append(d.p_values[k])
+    assert 7 <= rejected <= 33, rejected
+    for k, v in ps.items():  # discrete uniform on {1/20, ..., 1}: jitter within a step before the KS test
+        u = np.asarray(v) - rng.uniform(0, 1 / 20, len(v))
+        assert scipy.stats.kstest(u, "uniform").pvalue > 0.01, k
+
+
+@pytest.mark.parametrize("what", ["line", "shift", "sharp"])
+def test_the_test_sees_a_line_a_broad_shift_and_sharper_resonances(what):
+    """Each departure, applied to the record only, is detected at the smallest p-value (1/20) by
+    the statistic built for it; the line's frequency is where the scan peaks."""
+    rng = np.random.default_rng(2)
+    f, P = _spectra(rng, 19)
+    kw = {"line": {"line": 29}, "shift": {"shift": 0.5}, "sharp": {"sharp": 3.0}}[what]
+    _, rec = _spectra(rng, 1, **kw)
+    d = detection_test(rec[0], P, f)
+    stat = {"line": "scan", "shift": "gof", "sharp": "sharpness"}[what]
+    assert d.detected and d.p_value == 0.05 and d.p_values[stat] == 0.05, d
+    if what == "line":
+        assert d.scan_frequency_hz == pytest.approx(f[29], abs=0)
+
+
+def test_the_test_refuses_what_it_cannot_calibrate():
+    f, P = _spectra(np.random.default_rng(3), 12)
+    with pytest.raises(SpecificationError, match="samples"):
+        detection_test(P[0], P[1:5], f)  # 4 realisations
+    with pytest.raises(SpecificationError, match="samples"):
+        detection_test(P[0, :, :2], P[1:], f)
+    with pytest.raises(SpecificationError, match="false_alarm"):
+        detection_test(P[0], P[1:], f, false_alarm=1.5)
+    with pytest.raises(SpecificationError, match="settings.false_alarm"):
+        DiagnoseSettings(realisations=9, false_alarm=0.05)  # smallest p-value 1/10 > 5 %
+
+
+# ------------------------------------------------------------------------------- the selection
+
+
+def test_the_choice_is_the_best_penalised_held_out_error_not_the_first_improvement():
+    """Two candidates both improve on the current error (1.0); the second is better once penalised,
+    so it is chosen: taking the first improving candidate fails here. A better raw error with more
+    parameters can lose to the penalty; nothing below the current error: no choice."""
+    a, b = Scored("tone", 3, 0.5, 0.70), Scored("damping", 1, 0.6, 0.72)
+    assert choose([a, b], current=1.0, penalty=0.1).name == "damping"   # 0.70/0.729 = 0.960 > 0.72/0.9 = 0.8
+    assert choose([a, b], current=1.0, penalty=0.0).name == "tone"
+    c = Scored("stop", 2, 0.5, 0.5)
+    assert choose([a, b, c], current=1.0, penalty=0.1).name == "stop"    # 0.617, the lowest
+    assert choose([a, b], current=0.75, penalty=0.1) is None
+    assert choose([Scored("tone", 1, 1.0, np.nan)], current=1.0, penalty=0.1) is None
+
+
+def test_line_minimum_is_the_parabola_vertex_in_log_and_keeps_an_end():
+    x = np.array([0.5, 1.0, 2.0])
+    y = (np.log10(x) - np.log10(1.3)) ** 2
+    assert line_minimum(x, y, log=True) == pytest.approx(1.3, rel=1e-12, abs=0)
+    assert line_minimum([4.0, 5.0, 6.0], [(v - 5.4) ** 2 for v in (4.0, 5.0, 6.0)], log=False) == pytest.approx(5.4, rel=1e-12, abs=0)
+    assert line_minimum(x, [0.0, 1.0, 2.0], log=True) == 0.5
+
+
+def test_prediction_error_is_the_mean_squared_standardised_log_residual():
+    f = np.arange(6.0)
+    meas = np.full((6, 1), 1e-14)
+    model = meas * 10.0 ** np.array([0, 0.1, -0.2, 0.0, 0.3, 5.0])[:, None]
+    sigma = np.full((6, 1), 0.1)
+    # bins 1..4 only: z = -1, 2, 0, -3 -> mean z² = 14/4
+    assert prediction_error(meas, model, sigma, f) == pytest.approx(3.5, rel=1e-12, abs=0)
+
+
+# -------------------------------------------------------------------------- surrogate, catalog
+
+
+def _direct_pattern(spec, f0, tube, x):
+    """|u_sensors|² per unit force at (tube, x), f0 [Hz]: the full FE model solved directly, stops open."""
+    fe = assemble(spec)
+    w = 2 * np.pi * f0
+    u = scipy.linalg.solve(fe.K - w**2 * fe.M + 1j * w * fe.D, fe.load_matrix((LoadPoint("t", tube, x),)))
+    return np.abs(fe.sensor_matrix() @ u).ravel() ** 2
+
+
+def test_surrogate_transfer_matches_direct_solves():
+    """Stops open (c = 0). (1) The modal first-order form against a direct solve of the same reduced
+    matrices: 1e-8 relative (algebra). (2) Against the full FE model (no reduction) solved
+    directly: a force on the centre tube (subsystem A, every mode kept) within 1e-4; a force on
+    outer1 (inside B, whose fixed-interface modes above 300 Hz are dropped) within 2 %, the size of
+    that truncation at 37 Hz ((37/300)² ≈ 1.5 %)."""
+    from tubeid.mechanics import reduce
+
+    spec = builtin_spec("paper-reference").replace(sensors=sensors((2.0, 4.0, 6.0, 8.0, 10.0, 12.0, 14.0)))
+    sur = LinearSurrogate(spec, coherent_forces(), np.arange(334) / 2.0)
+    sur.contact = 0.0
+    m = reduce(spec)
+    M, D, K = m.mean_matrices
+    w = 2 * np.pi * 37.0
+    for (tube, x), rtol in ((("centre", 5.0), 1e-4), (("outer1", 9.0), 2e-2)):
+        pattern = sur.tone_pattern(37.0, [(tube, x)])[0]
+        q = np.linalg.solve(K - w**2 * M + 1j * w * D, m.load_matrix((LoadPoint("t", tube, x),)))
+        np.testing.assert_allclose(pattern, np.abs(m.sensor_matrix() @ q).ravel() ** 2, rtol=1e-8)
+        np.testing.assert_allclose(pattern, _direct_pattern(spec, 37.0, tube, x), rtol=rtol)
+
+
+def _evidence(spec, fit, mu, sigma=0.05):
+    f = np.arange(fit.shape[0]) / 2.0
+    sur = LinearSurrogate(spec, coherent_forces(), f)
+    sur.contact = 0.0
+    return Evidence(frequency=f, fit=fit, mu=mu, sigma=np.full(mu.shape, sigma), z_stats=np.zeros((mu.shape[1], 3)),
+                    rms=np.full(mu.shape[1], 2e-6), spec=spec, surrogate=sur, band_hz=100.0)
+
+
+def test_tone_signature_finds_frequency_position_and_amplitude_of_a_line_computed_directly():
+    """The record's fitting PSD = a smooth band + a line of a 30 N force at (outer1, 9 m), 37 Hz,
+    computed by the full FE model solved directly (|H|² A²/4 over one bin of 0.5 Hz): the signature
+    names 37 Hz, outer1 or another outer tube (identical, and seen alike from the centre tube's
+    sensors), x within half an element of 9 m, and the amplitude within 10 %."""
+    spec = builtin_spec("paper-reference").replace(sensors=sensors(XS)).replace(stops=())
+    F = 334
+    mu = np.full((F, 3), -14.0)
+    fit = 10.0**mu
+    k = 74  # 37 Hz
+    fit[k] += _direct_pattern(spec, 37.0, "outer1", 9.0) * 30.0**2 / 4 / 0.5
+    est = CATALOG["tone"].signature(_evidence(spec, fit, mu))["estimate"]
+    assert est["frequency_hz"] == pytest.approx(37.0, abs=0.05)
+    assert est["tube"].startswith("outer") and abs(est["x"] - 9.0) <= 1.0, est
+    assert est["amplitude"] == pytest.approx(30.0, rel=0.1, abs=0)
+
+
+def test_noise_signature_and_exact_trials():
+    spec = builtin_spec("paper-reference").replace(sensors=sensors(XS))
+    F = 334
+    mu = np.log10(1e-14 * np.exp(-np.arange(F) / 30.0))[:, None] * np.ones(3)
+    fit = 10.0**mu + 3e-18
+    est = CATALOG["sensor_noise"].signature(_evidence(spec, fit, mu))["estimate"]
+    assert 3e-18 / 1.6 <= est["level"] <= 3e-18 * 1.6  # the scan's step is 10^0.2 = 1.58
+    e = SensorNoise(level=2e-18)
+    np.testing.assert_array_equal(CATALOG["sensor_noise"].from_baseline(e, fit), fit + 2e-18)
+    np.testing.assert_allclose(CATALOG["sensor_noise"].from_baseline(e, fit + 2e-18, remove=True), fit, rtol=1e-12)
+
+
+def test_tone_variants_scale_the_line_power_with_the_amplitude_squared():
+    """Derived tone trials: within ±2 bins of f0 the excess over the baseline × k² (power ∝ A²),
+    the rest of the spectrum as simulated."""
+    f = np.arange(100) / 2.0
+    base = np.full((100, 2), 1e-15)
+    psd = base * (1 + 0.1 * np.random.default_rng(0).random((100, 2)))
+    psd[58:61] += 4e-14                                  # the line around 29.5 Hz
+    tone = Tone(29.5, 10.0, "centre", 5.0)
+    for e, q in CATALOG["tone"].variants(tone, psd, base, f):
+        k = e.amplitude / 10.0
+        win = np.abs(f - 29.5) <= 1.0
+        np.testing.assert_allclose(q[win], psd[win] + (k * k - 1) * (psd - base)[win], rtol=1e-12)
+        np.testing.assert_array_equal(q[~win], psd[~win])
+    amps = sorted(e.amplitude for e, _ in CATALOG["tone"].variants(tone, psd, base, f))
+    assert amps[0] == pytest.approx(10 * 10**-0.5, rel=1e-12, abs=0) and len(amps) == 20
+
+
+def test_catalog_entries_declare_parameters_grids_and_refinement_lines():
+    spec = builtin_spec("paper-reference").replace(sensors=sensors(XS))
+    counts = {n: c.n_parameters(spec) for n, c in CATALOG.items()}
+    assert counts == {"tone": 3, "stop": 2, "added_mass": 2, "damping": 2, "sensor_noise": 1}
+    one_tube = spec.replace(tubes=spec.tubes[:1], links=())
+    assert CATALOG["damping"].n_parameters(one_tube) == 1
+    grid = CATALOG["stop"].trials({"tube": "centre", "x": 9.0, "rms_nearest": 2e-6}, spec, 4)
+    assert sorted({e.x for e in grid}) == [6.0, 8.0, 10.0] and len(grid) == 12  # nodes around the estimate × gaps
+    assert all(isinstance(e, ExtraStop) and e.stiffness == 1e8 for e in grid)
+    tone = Tone(37.0, 20.0, "centre", 5.0)
+    lines = CATALOG["tone"].refine(tone, spec)
+    assert set(lines) == {"amplitude", "x"} and lines["x"][0] == [4.0, 5.0, 6.0] and lines["x"][2][1] == tone
+    for name in CATALOG:
+        assert CATALOG[name].assumptions(spec), name
+
+
+def test_effects_are_validated():
+    for make, field in ((lambda: ExtraStop("centre", 5.0, -1e-6, 1e8), "stop.gap"),
+                        (lambda: ExtraStop("centre", 5.0, 1e-6, 0.0), "stop.stiffness"),
+                        (lambda: Tone(37.0, 1.0, "centre", "5"), "tone.x"),
+                        (lambda: Damping("centre", 1.0), "damping.ratio"),
+                        (lambda: AddedMass("", 0.3), "added_mass.tube")):
+        with pytest.raises(SpecificationError, match=field):
+            make()
+
+
+# -------------------------------------------------------------------------------- spectra, input
+
+
+def test_measured_spectra_of_white_noise_match_the_two_sided_level():
+    """White noise of variance σ² sampled at dt has two-sided PSD σ² dt. 4 blocks of 100 s, 2 s
+    segments: each half averages ~200 segments × 332 bins; the mean over bins has a relative
+    standard error < 0.5 %; tolerance 3 %."""
+    dt, sigma = 3e-3, 2e-6
+    n = int(400 / dt)
+    y = sigma * np.random.default_rng(5).standard_normal((n, 2))
+    raw = validate_measurements(_raw(y, dt, ["a", "b"], [2.0, 6.0]))
+    m = measured_spectra(raw, 4, 2.0)
+    for P in (m.fit, m.held_out):
+        np.testing.assert_allclose(P[1:-1].mean(axis=0), sigma**2 * dt, rtol=0.03)
+    assert m.n_fit_blocks == m.n_held_out_blocks == 2
+    np.testing.assert_allclose(m.stats[:, 0], sigma, rtol=0.02)
+
+
+def _raw(y, dt, names, xs):
+    import xarray as xr
+
+    return xr.Dataset({"displacement": (("time", "sensor"), y, {"units": "m"})},
+                      coords={"time": np.arange(y.shape[0]) * dt, "sensor": names, "x": ("sensor", xs),
+                              "tube": ("sensor", ["centre"] * len(names))})
+
+
+def test_time_statistics_match_scipy():
+    y = np.random.default_rng(2).gamma(2.0, size=(5000, 2))
+    st = time_statistics(y)
+    np.testing.assert_allclose(st[:, 0], y.std(axis=0), rtol=1e-12)
+    np.testing.assert_allclose(st[:, 1], scipy.stats.skew(y, axis=0), rtol=1e-10)
+    np.testing.assert_allclose(st[:, 2], scipy.stats.kurtosis(y, axis=0), rtol=1e-10)
+
+
+def test_bad_input_is_refused(tmp_path, capsys):
+    with pytest.raises(SpecificationError, match="settings.blocks"):
+        DiagnoseSettings(blocks=1)
+    with pytest.raises(SpecificationError, match="settings.load"):
+        DiagnoseSettings(load="wind")
+    with pytest.raises(SpecificationError, match="settings.r0"):
+        DiagnoseSettings(r0=(1.0, 2.0))
+    with pytest.raises(SpecificationError, match="settings.candidates"):
+        DiagnoseSettings(candidates=("tone", "gremlin"))
+    with pytest.raises(SpecificationError, match="settings.max_effects"):
+        DiagnoseSettings(max_effects=4)
+    with pytest.raises(SpecificationError, match="settings.delta_reference"):
+        DiagnoseSettings(delta_reference="")
+    data = record(duration=6.0)
+    with pytest.raises(SpecificationError, match="too short"):
+        diagnose(data, "paper-reference", SMALL)
+    bad = data.assign_coords(tube=("sensor", ["centre", "centre", "nowhere"]))
+    with pytest.raises(SpecificationError, match="unknown tube"):
+        diagnose(bad, "paper-reference", SMALL)
+    data = record(duration=16.0)
+    with pytest.raises(SpecificationError, match="settings.load_dispersion"):  # SG+ of size m = 7: δ_max = 0.816
+        diagnose(data, "paper-reference", DiagnoseSettings(load_dispersion=0.9))
+    with pytest.raises(SpecificationError, match="settings.delta"):  # reduced B of the reference: δ_max = 0.953
+        diagnose(data, "paper-reference", DiagnoseSettings(delta=0.97))
+    with pytest.raises(SpecificationError):
+        diagnose(data, "paper-reference", DiagnoseSettings(delta_reference="no-such-model"))
+    assert main(["diagnose", "nowhere.nc", "--set", "nonsense=1"]) == 2  # refused before reading anything
+    assert "--set nonsense" in capsys.readouterr().err
+
+
+def test_context_reads_the_record_and_refuses_a_changed_one(tmp_path):
+    data = record(duration=12.0)
+    path = write_measurements(data, tmp_path / "d.nc")
+    h = data_hash(data)
+    assert data_hash(read_measurements(path)) == h  # the hash survives a NetCDF round trip
+    model = json.dumps(spec_to_dict(builtin_spec("paper-reference")), sort_keys=True)
+    settings = DiagnoseSettings(blocks=2).to_json()
+    ctx = load_context(str(path), h, model, settings)
+    assert ctx.m == 7 and ctx.j_s_observed.shape == (1,) and not ctx.identify_delta_f
+    write_measurements(record(duration=12.0, seed=12), path)
+    with pytest.raises(SpecificationError, match="content changed"):
+        load_context(str(path), h, model, settings.replace('"blocks": 2', '"blocks": 2 '))  # not cached: read again
+
+
+# ------------------------------------------------------------------------------- the loop
+
+
+def _cli(*args):
+    """``tubeid ARGS`` in a new process: its stdout."""
+    res = subprocess.run([sys.executable, "-m", "tubeid", *map(str, args)], capture_output=True, text=True, timeout=900)
+    assert res.returncode == 0, res.stderr[-3000:]
+    return res.stdout
+
+
+def _set_args(settings: dict) -> list[str]:
+    return [a for k, v in settings.items() for a in ("--set", f"{k}={v!r}")]
+
+
+CONTROL_SET = {"realisations": 19, "delta": 0.0, "fit_realisations": 1, "r0": (4.0,), "r_fine_points": 3}
+
+
+@pytest.fixture(scope="module")
+def control(tmp_path_factory):
+    """The control record (no effect) diagnosed through the command line in a new process
+    (``--workers 0``), from an output directory that already holds the user's files: the input
+    record itself (named like tubeid's copies, ``data-site1.nc``) and a backup
+    (``data-site2-backup.nc``).
+
+    Numba: a solver compiled in a process and the same solver loaded from numba's cache can differ
+    in the last bits (amplified by the chaotic stop), so blocks from a process that compiled it
+    cannot be compared bit for bit with blocks from processes that loaded it. A first, small
+    diagnosis in its own process writes the cache; the reference and the cluster's workers (test
+    below) both load it."""
+    tmp = tmp_path_factory.mktemp("control")
+    warm = write_measurements(record(duration=16.0), tmp / "warm.nc")
+    _cli("diagnose", warm, "--model", "paper-reference", "--out", tmp / "warm", "--workers", 0, "--no-progress",
+         *_set_args({**CONTROL_SET, "realisations": 9, "false_alarm": 0.1}))
+    out = tmp / "diag"
+    out.mkdir()
+    path = write_measurements(record(), out / "data-site1.nc")
+    shutil.copy(path, out / "data-site2-backup.nc")
+    user = {p.name: p.read_bytes() for p in out.iterdir()}
+    stdout = _cli("diagnose", path, "--model", "paper-reference", "--out", out, "--workers", 0, "--no-progress",
+                  *_set_args(CONTROL_SET))
+    return {"path": path, "out": out, "report": json.loads((out / "report.json").read_text()), "stdout": stdout,
+            "chunks": _chunks(out / "diagnose.zarr"), "user": user}
 
 
 def _chunks(store):
@@ -102,392 +396,190 @@ def _same_report(a, b):
     assert json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
 
 
-# ------------------------------------------------------------------------------------ units
-
-
-def test_band_residual_is_zero_inside_and_log_distance_outside():
-    lo, hi = np.full(4, 1.0), np.full(4, 10.0)
-    P = np.array([0.01, 1.0, 5.0, 1000.0])
-    np.testing.assert_allclose(band_residual(P, lo, hi), [-2.0, 0.0, 0.0, 2.0], atol=1e-12)
-    f = np.arange(6.0)
-    # DC and Nyquist bins are not compared: only bins 1..4 count -> sqrt((0 + 0 + 4 + 0)/4) = 1
-    P6 = np.array([1e6, 5.0, 5.0, 1000.0, 5.0, 1e-6])
-    assert held_out_error(P6, np.full(6, 1.0), np.full(6, 10.0), f) == pytest.approx(1.0, rel=1e-12, abs=0)
-
-
-def test_measured_spectra_of_white_noise_match_the_two_sided_level():
-    """White noise of variance σ² sampled at dt has two-sided PSD σ² dt. 4 blocks of 100 s, 2 s
-    segments: each half averages ~200 segments × 332 bins, the mean over bins has a relative
-    standard error < 0.5 %; tolerance 3 %."""
-    dt, sigma = 3e-3, 2e-6
-    rng = np.random.default_rng(5)
-    n = int(400 / dt)
-    raw = xr.Dataset({"displacement": (("time", "sensor"), sigma * rng.standard_normal((n, 2)), {"units": "m"})},
-                     coords={"time": np.arange(n) * dt, "sensor": ["a", "b"], "x": ("sensor", [2.0, 6.0]),
-                             "tube": ("sensor", ["centre", "centre"])})
-    m = measured_spectra(validate_measurements(raw), SMALL)
-    inner = slice(1, -1)
-    for P in (m.fit, m.held_out):
-        np.testing.assert_allclose(P[inner].mean(axis=0), sigma**2 * dt, rtol=0.03)
-    assert m.n_fit_blocks == m.n_held_out_blocks == 2
-    st = m.stats  # RMS, skewness, excess kurtosis of Gaussian samples (n = 66 666: SE 0.3 %, 0.01, 0.02)
-    np.testing.assert_allclose(st[:, 0], sigma, rtol=0.02)
-    np.testing.assert_allclose(st[:, 1:], 0.0, atol=0.1)
-
-
-def test_time_statistics_match_scipy():
-    y = np.random.default_rng(2).gamma(2.0, size=(5000, 2))
-    st = time_statistics(y)
-    np.testing.assert_allclose(st[:, 0], y.std(axis=0), rtol=1e-12)
-    np.testing.assert_allclose(st[:, 1], scipy.stats.skew(y, axis=0), rtol=1e-10)
-    np.testing.assert_allclose(st[:, 2], scipy.stats.kurtosis(y, axis=0), rtol=1e-10)
-
-
-def _synthetic_band(F=200, m=3):
-    f = np.linspace(0.0, 166.0, F)
-    peaks = sum(1.0 / (1 + ((f - f0) / 1.5) ** 2) for f0 in (20.0, 55.0, 90.0))
-    med = 1e-15 * (1 + 30 * peaks[:, None]) * np.exp(-f / 30.0)[:, None] * np.ones(m)
-    return f, med, med / 3.0, med * 3.0
-
-
-@pytest.mark.parametrize("kind", ["tone", "sensor_noise", "added_mass"])
-def test_signatures_rank_the_effect_that_made_a_synthetic_residual_first(kind):
-    """Synthetic bands and 'measurements' built from the band median by the effect's own action."""
-    f, med, lo, hi = _synthetic_band()
-    sel = np.ones(f.size, bool)
-    sel[[0, -1]] = False
-    meas = med.copy()
-    if kind == "tone":
-        k = int(np.argmin(abs(f - 70.0)))
-        meas[k - 1: k + 2] *= 1e3
-    elif kind == "sensor_noise":
-        meas = meas + 1e-17
-    else:  # resonances 20 % lower
-        meas = np.stack([np.interp(f * 1.2, f, med[:, j]) for j in range(3)], axis=1)
-    sig = signature_scores(f, meas, lo, hi, med, np.zeros((3, 3)), sel, np.array(XS), 0.02)
-    assert max(sig, key=lambda n: sig[n]["score"]) == kind, {n: round(s["score"], 3) for n, s in sig.items()}
-    if kind == "tone":
-        assert sig["tone"]["estimate"]["frequency_hz"] == pytest.approx(70.0, abs=1.0)
-    if kind == "added_mass":
-        assert sig["added_mass"]["estimate"]["factor"] == pytest.approx(1.2**2 - 1, abs=0.06)
-
-
-def test_stop_signature_follows_low_rms_and_kurtosis_at_one_sensor():
-    f, med, lo, hi = _synthetic_band()
-    sel = np.ones(f.size, bool)
-    z = np.zeros((3, 3))
-    z[2] = [-8.0, 0.0, -5.0]
-    sig = signature_scores(f, med, lo, hi, med, z, sel, np.array(XS), 0.02)
-    assert sig["stop"]["score"] == pytest.approx(0.5, abs=0)
-    assert sig["stop"]["estimate"]["x"] == 10.0
-
-
-def test_r_grids_and_the_parabola_vertex():
-    """The coarse grid is centred on the start, the fine one spans ± span decades; on a distance
-    that is exactly quadratic in log10 r the parabola through the minimum and its neighbours gives
-    the vertex exactly (to round-off), on each axis of a separable 2-D grid."""
-    (g,) = r_coarse_grid((1.3,), 3, 0.5)
-    np.testing.assert_allclose(g, 1.3 * 10.0 ** np.array([-0.5, 0.0, 0.5]), rtol=1e-6)
-    (f1, f2) = r_fine_grid((2.0, 30.0), 5, 0.25)
-    np.testing.assert_allclose(np.log10(f2 / 30.0), np.linspace(-0.25, 0.25, 5), atol=1e-6)
-    a, b = r_coarse_grid((10.0, 10.0), 7, 0.3)
-    d = (np.log10(a)[:, None] - np.log10(17.0)) ** 2 + 2.0 * (np.log10(b)[None, :] - np.log10(6.0)) ** 2
-    r, idx, boundary = grid_minimum(d, [a, b])
-    np.testing.assert_allclose(r, (17.0, 6.0), rtol=1e-9)
-    assert not boundary
-    r, idx, boundary = grid_minimum(d[:2], [a[:2], b])  # minimum on the edge of a: kept, flagged
-    assert boundary and r[0] == a[1]
-
-
-def _lognormal_samples(sigma_of, grid, n=200, seed=3):
-    z = np.random.default_rng(seed).standard_normal(n)  # the same germs at every grid value (CRN)
-    return xr.DataArray(np.exp(np.outer([sigma_of(g) for g in grid], z)), dims=("delta_F", "realisation"),
-                        coords={"delta_F": list(grid)})
-
-
-def test_delta_f_identification_recovers_a_spread_and_says_when_it_is_flat():
-    """Synthetic J_s: log J ~ N(0, σ²) with σ² = 0.2² + δ_F² (an estimator scatter plus a spread
-    growing with δ_F). 60 observations from δ_F = 0.3 → the argmax lies within 3 combined bootstrap
-    std (Monte Carlo and observations) of 0.3, both grid ends are excluded; a J_s that does not
-    depend on δ_F gives a flat likelihood (factor < e² over the grid) and is said to be flat; then,
-    and when the maximum is at the grid's upper end, the band's δ_F is the fallback."""
-    grid = (0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
-    s = DiagnoseSettings(n_bootstrap=100)
-    obs = np.exp(np.hypot(0.2, 0.3) * np.random.default_rng(9).standard_normal(60))
-    res = delta_f_identification(_lognormal_samples(lambda g: np.hypot(0.2, g), grid), obs, 2, s)
-    tol = 3.0 * np.hypot(res["delta_F_std"], res["delta_F_std_observations"])
-    assert abs(res["delta_F"] - 0.3) <= tol, res
-    assert tol < 0.25 and res["identified"] and not res["flat"], res
-    assert res["delta_F_used"] == res["delta_F"] and res["used_reason"] == ""
-    flat = delta_f_identification(_lognormal_samples(lambda g: 0.4, grid), obs[:3], 2, s)
-    assert flat["flat"] and not flat["identified"] and "flat" in flat["note"]
-    assert flat["delta_F_used"] == s.delta_f_fallback  # the band falls back to the paper's 0.04
-    # J_s far above every simulated one (e.g. a missing effect's peaks): largest at the upper end,
-    # which is not an estimate: the band falls back too, and says why
-    high = delta_f_identification(_lognormal_samples(lambda g: np.hypot(0.2, g), grid), obs * 4.0, 2, s)
-    assert high["delta_F"] == grid[-1] and high["delta_F_used"] == s.delta_f_fallback
-    assert "upper end" in high["used_reason"]
-    with pytest.raises(SpecificationError, match="admissible"):  # SG+ of size 2: δ_F < √(3/7) = 0.655
-        delta_f_identification(_lognormal_samples(lambda g: 0.4, (0.1, 0.5, 0.7)), obs, 2, s)
-
-
-def test_context_reads_the_record_and_refuses_a_changed_one(tmp_path):
-    data = make_data(duration=12.0)
-    path = write_measurements(data, tmp_path / "d.nc")
-    h = data_hash(data)
-    assert data_hash(read_measurements(path)) == h  # the hash survives a NetCDF round trip
-    model = json.dumps(spec_to_dict(builtin_spec("paper-reference")), sort_keys=True)
-    settings = DiagnoseSettings(blocks=2, load_dispersion=0.04).to_json()
-    ctx = load_context(str(path), h, model, settings)
-    assert ctx.m == 7 and ctx.j_s_observed.shape == (1,) and ctx.settings.load_dispersion == 0.04
-    write_measurements(make_data(duration=12.0, seed=12), path)
-    with pytest.raises(SpecificationError, match="content changed"):
-        load_context(str(path), h, model, settings.replace("0.04", "0.040"))  # not cached: read again
-
-
-def test_bad_input_is_refused(capsys):
-    with pytest.raises(SpecificationError, match="settings.blocks"):
-        DiagnoseSettings(blocks=1)
-    with pytest.raises(SpecificationError, match="settings.load"):
-        DiagnoseSettings(load="wind")
-    with pytest.raises(SpecificationError, match="settings.r0"):
-        DiagnoseSettings(r0=(1.0, 2.0))
-    with pytest.raises(SpecificationError, match="settings.delta_f_grid"):
-        DiagnoseSettings(delta_f_grid=(0.1, 0.05, 0.2))
-    with pytest.raises(SpecificationError, match="settings.r_fine_points"):
-        DiagnoseSettings(r_fine_points=2)
-    data = make_data(duration=6.0)
-    with pytest.raises(SpecificationError, match="too short"):
-        diagnose(data, "paper-reference", SMALL)
-    bad = data.assign_coords(tube=("sensor", ["centre", "centre", "nowhere"]))
-    with pytest.raises(SpecificationError, match="unknown tube"):
-        diagnose(bad, "paper-reference", SMALL)
-    data = make_data(duration=16.0)
-    # δ_F in SG+ of size m: the distributed load of the paper's model has m = 7, δ_max = √(8/12)
-    with pytest.raises(SpecificationError, match="settings.load_dispersion"):
-        diagnose(data, "paper-reference", DiagnoseSettings(load_dispersion=0.9))
-    assert main(["diagnose", "nowhere.nc", "--set", "nonsense=1"]) == 2  # refused before reading anything
-    assert main(["diagnose", "nowhere.nc", "--set", "delta_f_grid=(0.3, 0.1, 0.2)"]) == 2
-    with pytest.raises(SpecificationError, match="settings.delta_f_grid"):  # force and moment: m = 2, δ_max = 0.655
-        diagnose(data, "paper-reference", DiagnoseSettings(load="force_and_moment", delta_f_grid=(0.1, 0.4, 0.7)))
-    err = capsys.readouterr().err
-    assert "--set nonsense" in err and "settings.delta_f_grid" in err
-
-
-# ------------------------------------------------------------------------------- the loop
-
-
-def _set_args(settings: dict) -> list[str]:
-    return [a for k, v in settings.items() for a in ("--set", f"{k}={v!r}")]
-
-
-def _cli(*args):
-    """``tubeid ARGS`` in a new process: its stdout."""
-    res = subprocess.run([sys.executable, "-m", "tubeid", *map(str, args)], capture_output=True, text=True, timeout=900)
-    assert res.returncode == 0, res.stderr[-3000:]
-    return res.stdout
-
-
-@pytest.fixture(scope="module")
-def control(tmp_path_factory):
-    """The control record (no extra effect) diagnosed through the command line in a new process
-    (``--workers 0``), with the default path: δ_F identified (small Monte Carlo).
-
-    Numba: the solver compiled in a process and the same solver loaded from numba's on-disk cache
-    can differ in the last bits (measured: 1.7e-9 relative after 4 s, which the chaotic stop then
-    amplifies), so blocks computed by a process that compiled it cannot be compared bit for bit
-    with blocks from processes that loaded it. A first, small diagnosis in its own process writes
-    the cache; the reference and the cluster's workers (test below) both load it."""
-    tmp = tmp_path_factory.mktemp("control")
-    warm = write_measurements(make_data(duration=16.0), tmp / "warm.nc")
-    _cli("diagnose", warm, "--model", "paper-reference", "--out", tmp / "warm", "--workers", 0, "--no-progress",
-         *_set_args({**CONTROL_SET, "realisations": 4, "delta_f_realisations": 5}))
-    path = write_measurements(make_data(), tmp / "control.nc")
-    out = tmp / "diag"
-    stdout = _cli("diagnose", path, "--model", "paper-reference", "--out", out, "--workers", 0, "--no-progress",
-                  *_set_args(CONTROL_SET))
-    return {"path": path, "out": out, "report": json.loads((out / "report.json").read_text()), "stdout": stdout,
-            "chunks": _chunks(out / "diagnose.zarr")}
-
-
 def test_control_is_none_through_the_command_line(control):
-    """No extra effect: the error before is within the null of the model's own realisations and the
-    answer is ``none``; the CLI writes the files with the report keys of issue 6, δ_F identified
-    (with its likelihood curve and a verdict on its precision)."""
+    """No effect: the test does not detect anything (p > 5 %), the answer is ``none`` and no step
+    runs; report.json holds the p-values, report.md the assumptions; the user's files are intact."""
     rep, out = control["report"], control["out"]
-    assert rep["effect"] == "none", rep
-    assert rep["explained_before"] is True
-    assert rep["error_after"] == rep["error_before"] <= rep["null_threshold"]
-    for key in ("effect", "parameters", "error_before", "error_after", "metric", "candidates"):
-        assert key in rep
-    assert {c["name"] for c in rep["candidates"]} == set(CASES)
-    assert all("signature_score" in c and "score" in c for c in rep["candidates"])
-    load = rep["load"]
-    assert load["delta_F_given"] is False
-    # the band's δ_F: the argmax, or the fallback (0.04) when the likelihood does not identify it
-    assert load["load_dispersion"] in (load["delta_F"], 0.04) and load["load_dispersion_reason"]
-    assert load["delta_F_likelihood"]["grid"] == list(CONTROL_SET["delta_f_grid"])
-    assert min(CONTROL_SET["delta_f_grid"]) <= load["delta_F"] <= max(CONTROL_SET["delta_f_grid"])
-    assert len(load["J_s_observed"]) == 2 and max(load["delta_F_likelihood"]["likelihood"]) == 1.0
-    assert isinstance(load["delta_F_flat"], bool) and isinstance(load["delta_F_identified"], bool)
-    stages = rep["runner"]["stages"]
-    # δ = 0: the realisations are cut into 2 tasks (one solver table each): 8 and 12 realisations by 4 and 6
-    assert stages["load_delta_f"]["computed"] == 2 and stages["band"]["computed"] == 2
-    assert stages["load_r"]["computed"] == 3 and stages["load_r_fine"]["computed"] == 3
-    for name in ("residual.png", "delta_f.png"):
-        assert (out / name).stat().st_size > 10_000
+    assert rep["effect"] == "none" and rep["effects"] == [] and rep["steps"] == [], rep
+    det = rep["detection"]
+    assert not det["detected"] and det["p_value"] > 0.05 and set(det["p_values"]) == {"scan", "gof", "sharpness"}
+    assert det["size"] == 0.05 and det["n_realisations"] == 19
+    assert rep["explained_before"] and rep["explained_after"] and rep["error_after"] == rep["error_before"]
+    assert rep["load"]["delta_F_given"] and "fitting blocks" in rep["load"]["delta_F_source"]
+    assert 1.0 <= rep["load"]["r_before"][0] <= 1.7  # started at 4.0; truth 1.3
+    assert rep["stop_reason"] == "nothing detected"
     md = (out / "report.md").read_text()
-    assert "none" in md and "δ_F" in md
-    assert "effect: none" in control["stdout"] and "delta_F:" in control["stdout"]
+    assert "none" in md and "p = " in md and "stop: symmetric" in md
+    assert (out / "residual.png").stat().st_size > 10_000
+    assert "effect: none" in control["stdout"] and "nothing detected" in control["stdout"]
+    for name, content in control["user"].items():
+        assert (out / name).read_bytes() == content, name
+
+
+def test_user_files_survive_every_command_and_overwrite_removes_only_the_manifest(control, tmp_path):
+    """``--overwrite`` in a directory holding the input record and a backup named like tubeid's
+    copies: both survive byte for byte; the files it wrote are replaced; a user's ``report.md``
+    (not in the manifest) makes the run refuse before any work and is left as it was."""
+    out = tmp_path / "d"
+    shutil.copytree(control["out"], out)
+    src = out / "data-site1.nc"
+    settings = DiagnoseSettings(**{**CONTROL_SET, "seed": 3})
+    with pytest.raises(SpecificationError, match="other data, model or settings"):
+        diagnose(src, "paper-reference", settings, out=out)
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.name.startswith("data-site")}
+    diagnose(src, "paper-reference", settings, out=out, overwrite=True)
+    for name, content in before.items():
+        assert (out / name).read_bytes() == content, name
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["settings"]["seed"] == 3
+    fresh = tmp_path / "fresh"
+    fresh.mkdir()
+    (fresh / "report.md").write_text("my notes\n")
+    with pytest.raises(SpecificationError, match="report.md"):
+        diagnose(src, "paper-reference", settings, out=fresh)
+    assert (fresh / "report.md").read_text() == "my notes\n"
+    assert not (fresh / "diagnose.zarr").exists()
 
 
 def test_a_partial_store_resumes_on_two_workers_to_the_uninterrupted_result(control, tmp_path):
-    """The control's store made partial as a run killed during the δ_F Monte Carlo leaves it (its
-    second task's block unwritten and unflagged, the later stages never started), the same
-    diagnosis resumes it, here on a real embedded LocalCluster of 2 worker processes (each rebuilds
-    the stages from the pipeline source and reads the record from the output directory): only the
-    missing tasks are computed, the stored results are byte-identical to the uninterrupted
-    in-process run's and the report is equal. The same record from another path reuses the store
-    (nothing computed); a changed record, other settings or another model are refused before any
-    work, leaving the store as it was."""
+    """The control's store made partial as a run killed during the band leaves it (its second task
+    unwritten, later stages never started); the same diagnosis resumes it on a real LocalCluster of
+    2 worker processes: only the missing tasks run, the stored results are byte-identical to the
+    uninterrupted in-process run's and the report is equal. A changed record, other settings or
+    another model are refused before any work, leaving the store as it was."""
     out = control["out"]
     store = out / "diagnose.zarr"
-    for stage in ("band", "probe", "candidates", "candidate_bands", "load_r_after", "band_after"):
+    for stage in [f"step{k}_{s}" for k in (1, 2, 3) for s in ("trials", "refit", "band")]:
         shutil.rmtree(store / stage)
-    g = zarr.open_group(str(store), mode="r+", path="load_delta_f")
-    g["J_s"][:, 4:] = np.nan  # realisations 4-7: the second task
-    clear_flag(store, (0, 1), "load_delta_f")
-    update_attrs(store, "load_delta_f", finished="")
+    g = zarr.open_group(str(store), mode="r+", path="band")
+    g["psd"][11:] = np.nan  # realisations 10-18: the second task
+    clear_flag(store, (1,), "band")
+    update_attrs(store, "band", finished="")
     assert store_status(store)["complete"] is False
-
     settings = DiagnoseSettings(**CONTROL_SET)
     d = diagnose(control["path"], "paper-reference", settings, out=out, workers=2)
     assert d.report["runner"]["workers"] == 2
     st = d.report["runner"]["stages"]
     assert (st["load_r"]["computed"], st["load_r"]["reused"]) == (0, 3)
-    assert (st["load_delta_f"]["computed"], st["load_delta_f"]["reused"]) == (1, 1)
-    assert (st["band"]["computed"], st["band"]["reused"]) == (2, 0)
+    assert (st["band"]["computed"], st["band"]["reused"]) == (1, 1)
     assert _chunks(store) == control["chunks"]
     _same_report(d.report, control["report"])
     before = store_digest(store)
-
-    path = shutil.copy(control["path"], tmp_path / "same.nc")
-    again = diagnose(path, "paper-reference", settings, out=out)  # same content, another path: reused
-    assert again.report["runner"]["tasks_computed"] == 0
-    write_measurements(make_data(seed=12), path)
+    changed = write_measurements(record(seed=12), tmp_path / "other.nc")
     with pytest.raises(SpecificationError, match="other data, model or settings"):
-        diagnose(path, "paper-reference", settings, out=out)
-    with pytest.raises(SpecificationError, match="other data, model or settings"):
-        diagnose(control["path"], "paper-reference", DiagnoseSettings(**{**CONTROL_SET, "seed": 1}), out=out)
+        diagnose(changed, "paper-reference", settings, out=out)
     with pytest.raises(SpecificationError, match="other data, model or settings"):
         diagnose(control["path"], "paper-simplified", settings, out=out)
     assert store_digest(store) == before
 
 
-def _check(rep, kind):
-    assert rep["effect"] == kind, json.dumps(rep["candidates"], indent=1, default=str)
-    assert rep["explained_before"] is False
-    # the chosen effect must cut the held-out error by more than its parameter penalty
-    assert rep["error_after"] < 0.6 * rep["error_before"], (rep["error_before"], rep["error_after"])
+def _check_named(rep, names):
+    assert sorted(e["name"] for e in rep["effects"]) == sorted(names), json.dumps(rep["steps"], indent=1, default=str)[:4000]
+    assert rep["detection"]["detected"] and rep["error_after"] < rep["error_before"]
 
 
-def _check_parameters(rep, kind):
-    p = {k: v["value"] for k, v in rep["parameters"].items()}
-    # Tolerances: grids are coarse (3–4 points per decade or per factor 16) and the mean model has
-    # few realisations; each bound is about one grid step.
-    if kind == "tone":
-        assert p["frequency_hz"] == pytest.approx(37.0, abs=0.3)
-        assert 100.0 / 4 <= p["amplitude"] <= 100.0 * 4
-    elif kind == "sensor_noise":
-        assert 1e-16 / 4 <= p["level"] <= 1e-16 * 4
-    elif kind == "added_mass":
-        assert 0.3 / 2 <= p["factor"] <= 0.3 * 2
-    elif kind == "damping":
-        assert 0.005 / 3 <= p["ratio"] <= 0.005 * 3
-    elif kind == "stop":
-        assert p["x"] == 10.0 and 3e-6 / 4 <= p["gap"] <= 3e-6 * 4
+@pytest.fixture(scope="module")
+def tone_between():
+    """A 100 N tone at 29 Hz on the centre tube at x = 4.6 m (between nodes and sensors, away from
+    8 m), written as a force column, seen by 7 sensors (with 3 the amplitude pattern of a 48 s
+    record leaves the position ambiguous): the diagnosis's report."""
+    data = make_record(effects=HandEffects(tones=(("centre", 4.6, 29.0, 100.0),)), xs=SEVEN, duration=48.0, seed=11)
+    return diagnose(data, "paper-reference", SMALL).report
 
 
-@pytest.mark.parametrize("kind", list(CASES))
-def test_effect_is_named_and_error_drops_small(kind):
-    rep = diagnose(make_data(CASES[kind]), "paper-reference", SMALL).report
-    _check(rep, kind)
-    _check_parameters(rep, kind)
-    st = rep["runner"]["stages"]
-    assert st["candidates"]["computed"] >= SMALL.grid_points and st["band_after"]["computed"] == 2
+def test_a_tone_between_sensors_is_named_and_located(tone_between):
+    """Named ``tone``, its frequency within one bin (0.5 Hz), its position within one element (2 m),
+    its amplitude."""
+    rep = tone_between
+    _check_named(rep, ["tone"])
+    p = {k: v["value"] for k, v in rep["effects"][0]["parameters"].items()}
+    assert abs(p["frequency_hz"] - 29.0) <= 0.5 and p["tube"] == "centre" and abs(p["x"] - 4.6) <= 2.0, p
+    # the amplitude, tied to the position (|H(x)| A is what the sensors see): within 30 % once the
+    # position is within 0.5 m (measured: 4.52 m, 89 N)
+    assert abs(p["x"] - 4.6) > 0.5 or abs(p["amplitude"] / 100.0 - 1) <= 0.3, p
 
 
-# ------------------------------------------------------------------------------------- δ_F
+@pytest.mark.xfail(strict=True, reason="known limit (issue 11): the fitted tone (89 N at 4.52 m for 100 N at 4.6 m) "
+                   "leaves the line's residual above the test's null (scan 21.7 against a null median of 9.6, p = 0.05 "
+                   "with 19 realisations), so the record is not explained after the selection")
+def test_a_tone_between_sensors_is_explained_after_the_selection(tone_between):
+    """After the tone is fitted, the calibrated test no longer detects anything."""
+    assert tone_between["explained_after"], tone_between["detection_after"]
 
 
-def damped_linear_spec():
-    """The declared model of the δ_F tests: the reference bundle with modal damping 0.5 on every
-    tube, without the stop (why: see :func:`test_delta_f_is_recovered_on_data_made_with_it`)."""
-    spec = builtin_spec("paper-reference").replace(sensors=_sensors(), stops=())
-    return apply_effects(spec, [Damping(t.name, 0.5) for t in spec.tubes])
+def test_sensor_noise_is_chosen_over_a_first_improving_candidate_and_the_load_refitted():
+    """White noise of 3e-17 m²/Hz added with numpy: the tone (first in the catalog) also lowers the
+    held-out error a little, so the choice must be the best one, ``sensor_noise``; with the noise
+    re-fitted jointly with r, r stays near the truth (1.3 N²/Hz, not inflated by the floor) and
+    the level within a factor 2."""
+    rep = diagnose(record(HandEffects(noise=3e-17)), "paper-reference", SMALL).report
+    _check_named(rep, ["sensor_noise"])
+    step = rep["steps"][0]
+    improving = [c["name"] for c in step["candidates"] if c["held_out_error"] < step["error_current"]]
+    assert improving[0] != "sensor_noise", improving  # a first-improving rule would not choose it
+    level = rep["effects"][0]["parameters"]["level"]["value"]
+    assert 3e-17 / 2 <= level <= 3e-17 * 2
+    assert 1.3 / 1.25 <= rep["load"]["r_after"][0] <= 1.3 * 1.25
 
 
-def make_delta_f_data(spec, n_blocks, block_seconds, delta_f, seed):
-    """``n_blocks`` independent realisations of the declared model under the force-and-moment load
-    r = (18, 20) with load dispersion ``delta_f``, each ``block_seconds`` long, end to end: the
-    diagnosis's blocks are these realisations (independent load states, as its J_s likelihood assumes)."""
-    L = int(round(block_seconds / 3e-3))
-    ds = simulate_responses(reduce(spec), force_and_moment(18.0, 20.0, x=8.0, band=100.0), range(n_blocks), seed=seed,
-                            load_dispersion=delta_f,
-                            settings=ResponseSettings(duration=block_seconds + 2.1, discard=2.0, segment_seconds=2.0, keep="series"))
-    y = ds.displacement.transpose("realisation", "time", "sensor").values[:, :L, :]
-    return _record(y.reshape(n_blocks * L, len(XS)))
+def test_two_effects_at_once_are_both_named():
+    """A second stop at x = 4 m (a node between the sensors at 2 and 6 m; gap 3 µm) and sensor noise
+    at once, both written by hand: both named, the stop within one element of 4 m."""
+    rep = diagnose(record(HandEffects(stops=(("centre", 4.0, 3e-6, 1e8),), noise=3e-17)), "paper-reference", SMALL).report
+    _check_named(rep, ["stop", "sensor_noise"])
+    stop = next(e for e in rep["effects"] if e["name"] == "stop")
+    assert abs(stop["parameters"]["x"]["value"] - 4.0) <= 2.0
+    assert len(rep["steps"]) >= 2 and [s["chosen"] for s in rep["steps"][:2]] != [None, None]
 
 
-def _delta_f_case(n_blocks, realisations, seed, spec=None):
-    spec = spec or damped_linear_spec()
-    data = make_delta_f_data(spec, n_blocks, 12.0, 0.2, seed)
-    settings = DiagnoseSettings(blocks=n_blocks, realisations=6, fit_realisations=1, delta=0.0, load="force_and_moment",
-                                r0=(18.0, 20.0), r_points=1, r_fine_points=3, delta_f_realisations=realisations,
-                                delta_f_grid=(0.02, 0.1, 0.2, 0.3, 0.45, 0.6), n_fit=1, grid_points=2, seed=seed)
-    return diagnose(data, spec, settings).report["load"]
+def test_added_mass_on_another_tube_from_a_symplectic_euler_record():
+    """The density of outer1 written into the specification (× 1.5: factor 0.5, between the trial
+    grid's 0.45 and 1.35) and the record integrated by the solver's symplectic Euler at its
+    default step (a second integrator): named ``added_mass`` on an outer tube (the four are
+    identical and seen alike from the centre tube's sensors), factor within 30 %, the record
+    explained after. Damping competes (it also lowers the held-out error): the held-out choice
+    between the two decides."""
+    data = record(HandEffects(density={"outer1": 1.5}), duration=36.0, method="symplectic-euler")
+    rep = diagnose(data, "paper-reference", SMALL.replace(candidates=("added_mass", "damping", "sensor_noise"),
+                                                           max_effects=1)).report
+    _check_named(rep, ["added_mass"])
+    p = rep["effects"][0]["parameters"]
+    assert p["tube"]["value"].startswith("outer") and abs(p["factor"]["value"] - 0.5) <= 0.15, p
+    damping = next(c for c in rep["steps"][0]["candidates"] if c["name"] == "damping")
+    assert damping["held_out_error"] < rep["steps"][0]["error_current"]
+    assert rep["explained_after"]
 
 
-def _check_delta_f(load, truth=0.2):
-    # The tolerance is what the likelihood itself says: 2.5 × the bootstrap std combining the
-    # Monte Carlo (realisations resampled) and the observations (fitting blocks resampled).
-    tol = 2.5 * np.hypot(load["delta_F_std"], load["delta_F_std_observations"])
-    assert abs(load["delta_F"] - truth) <= tol, load
-    # ... and the test can fail: both grid ends (0.02 and 0.6) must be excluded by a likelihood
-    # ratio of e² at least, and the tolerance must be narrower than the grid's span.
-    assert load["delta_F_identified"] and not load["delta_F_flat"], load
-    assert tol < 0.3, tol
+def test_delta_identified_by_maximum_likelihood_against_a_reference():
+    """``delta_reference``: δ of the declared simplified model (MODEL.md §2's equivalent-beam model)
+    by the paper's maximum likelihood of J against ``paper-reference``: interior, as MODEL.md
+    measures (0.627 ± 0.056 with 200 realisations; here 60 → within 3 × 0.1), and the test then
+    runs at that δ."""
+    model = "/work/shared/models/paper-simplified.toml"
+    import os
+
+    if not os.path.exists(model):
+        model = "paper-simplified"
+    data = record(duration=24.0)
+    rep = diagnose(data, model, SMALL.replace(delta_reference="paper-reference", delta_realisations=60, max_effects=0,
+                                              realisations=9, false_alarm=0.1, n_bootstrap=20)).report
+    d = rep["delta"]
+    assert "maximum likelihood" in d["delta_source"] and not d["delta_at_grid_edge"]
+    assert abs(d["delta"] - 0.627) <= 0.3, d
 
 
-def test_delta_f_is_recovered_on_data_made_with_it():
-    """δ_F = 0.2 recovered from 32 fitting blocks, each an independent 12 s realisation of the
-    declared model (δ = 0, force-and-moment load: m = 2).
-
-    Why this setting: δ_F acts through the spread of J_s across load states, against the scatter
-    of J_s's own estimator. At the paper's modal damping (0.02) a 12 s block's J_s is dominated by
-    the first resonance, whose power has few degrees of freedom: the estimator alone scatters
-    log J_s by ≈ 0.55 (measured), more than δ_F = 0.2 adds, and the argmax fell on the grid's lower
-    end in 3 of 4 record sets. With damping 0.5 the response is broadband: that scatter drops to
-    ≈ 0.16 and δ_F dominates. δ = 0 keeps the stiffness's randomness out of J_s; m = 2 (the paper's
-    identification load) gives the largest spread per unit δ_F; without the stop the model is
-    linear and 4× faster to simulate (the slow variant keeps it)."""
-    _check_delta_f(_delta_f_case(64, 40, seed=4))
+# ------------------------------------------------------------------------------------- slow
 
 
 @pytest.mark.slow
-def test_delta_f_is_recovered_with_the_stop_and_more_data():
-    """As above with the stop kept (non-linear, chaotic), 64 fitting blocks and 100 realisations."""
-    spec = apply_effects(builtin_spec("paper-reference").replace(sensors=_sensors()),
-                         [Damping(t, 0.5) for t in ("centre", "outer1", "outer2", "outer3", "outer4")])
-    _check_delta_f(_delta_f_case(128, 100, seed=5, spec=spec))
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("kind", ["none", *CASES])
-def test_full_size(kind):
-    rep = diagnose(make_data(CASES.get(kind, ()), duration=128.0, seed=23), "paper-reference", FULL).report
-    if kind == "none":
-        assert rep["effect"] == "none", rep["candidates"]
-    else:
-        _check(rep, kind)
-        _check_parameters(rep, kind)
+@pytest.mark.parametrize("case", ["control", "tone", "damping_x3", "stop_and_noise", "mass_and_tone"])
+def test_full_size(case):
+    """The issue's setting: 220 s, 7 sensors c02–c14, default settings, ``paper-reference`` declared."""
+    eff = {"control": HandEffects(), "tone": HandEffects(tones=(("centre", 5.0, 37.0, 21.0),)),
+           "damping_x3": HandEffects(damping={"centre": 0.06}),
+           "stop_and_noise": HandEffects(stops=(("centre", 10.0, 3e-6, 1e8),), noise=1e-16),
+           "mass_and_tone": HandEffects(density={"outer1": 1.3}, tones=(("centre", 5.0, 37.0, 21.0),))}[case]
+    truth = {"control": [], "tone": ["tone"], "damping_x3": ["damping"], "stop_and_noise": ["stop", "sensor_noise"],
+             "mass_and_tone": ["added_mass", "tone"]}[case]
+    rep = diagnose(make_record(effects=eff, xs=SEVEN, seed=23), "paper-reference", DiagnoseSettings(seed=1), workers=2).report
+    assert sorted(e["name"] for e in rep["effects"]) == sorted(truth), rep["steps"]

@@ -37,7 +37,9 @@ PINNED = {
         "distance_map", "log_band_distance_map", "log_spectral_distance_map", "relative_weight", "refine_grid",
         "delta_f_likelihood",
     ],
-    "tubeid.measured": ["read_measurements", "write_measurements", "validate_measurements", "diagnose", "DiagnoseSettings", "Diagnosis"],
+    "tubeid.measured": ["read_measurements", "write_measurements", "validate_measurements"],
+    "tubeid.diagnose": ["diagnose", "DiagnoseSettings", "Diagnosis", "detection_test", "Detection", "CATALOG", "Candidate",
+                        "LOAD_MODELS", "MAX_EFFECTS"],
     "tubeid.runner": [
         "Study", "Output", "Parameter", "pointwise", "load_study", "run", "open_results", "RunReport", "RngFactory",
         "store_status", "Pipeline", "PipelineReport", "open_pipeline", "pipeline_status", "Warmup", "verify",

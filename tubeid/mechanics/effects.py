@@ -22,27 +22,20 @@ simulation; the structural effects rewrite the tubes and stops.
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 from typing import ClassVar
 
-from tubeid._validation import is_number
+from tubeid import _validation as v
 from tubeid.errors import SpecificationError
 from tubeid.mechanics.spec import BundleSpec, StopSpec
 
 __all__ = ["Tone", "ExtraStop", "AddedMass", "Damping", "SensorNoise", "EFFECTS", "apply_effects", "effect_from_dict", "effect_to_dict"]
 
 
-def _num(field: str, value, *, positive: bool = False, nonneg: bool = False) -> float:
-    if not is_number(value):  # numbers are numbers: "16" or True is refused, not converted
-        raise SpecificationError(field, value, "must be a number")
-    try:
-        v = float(value)
-    except OverflowError:
-        v = math.inf
-    if not math.isfinite(v) or (positive and v <= 0) or (nonneg and v < 0):
-        raise SpecificationError(field, value, "must be > 0" if positive else "must be >= 0" if nonneg else "must be finite")
-    return v
+def _tube(field: str, value) -> str:
+    if not isinstance(value, str) or not value:
+        raise SpecificationError(field, value, "must be a tube name (a non-empty string)")
+    return value
 
 
 @dataclass(frozen=True)
@@ -56,8 +49,10 @@ class Tone:
     name: ClassVar[str] = "tone"
 
     def __post_init__(self):
-        _num("tone.frequency_hz", self.frequency_hz, positive=True)
-        _num("tone.amplitude", self.amplitude, nonneg=True)
+        v.positive("tone.frequency_hz", self.frequency_hz, "Hz")
+        v.non_negative("tone.amplitude", self.amplitude, "N")
+        _tube("tone.tube", self.tube)
+        v.real("tone.x", self.x, unit="m")
 
 
 @dataclass(frozen=True)
@@ -71,9 +66,10 @@ class ExtraStop:
     name: ClassVar[str] = "stop"
 
     def __post_init__(self):
-        _num("stop.x", self.x)
-        _num("stop.gap", self.gap, nonneg=True)
-        _num("stop.stiffness", self.stiffness, positive=True)
+        _tube("stop.tube", self.tube)
+        v.real("stop.x", self.x, unit="m")
+        v.non_negative("stop.gap", self.gap, "m")
+        v.positive("stop.stiffness", self.stiffness, "N/m")
 
 
 @dataclass(frozen=True)
@@ -85,7 +81,8 @@ class AddedMass:
     name: ClassVar[str] = "added_mass"
 
     def __post_init__(self):
-        _num("added_mass.factor", self.factor, nonneg=True)
+        _tube("added_mass.tube", self.tube)
+        v.non_negative("added_mass.factor", self.factor)
 
 
 @dataclass(frozen=True)
@@ -97,9 +94,8 @@ class Damping:
     name: ClassVar[str] = "damping"
 
     def __post_init__(self):
-        r = _num("damping.ratio", self.ratio, nonneg=True)
-        if r >= 1:
-            raise SpecificationError("damping.ratio", self.ratio, "must be in [0, 1)")
+        _tube("damping.tube", self.tube)
+        v.real("damping.ratio", self.ratio, low=0.0, high=1.0, high_open=True)
 
 
 @dataclass(frozen=True)
@@ -110,7 +106,7 @@ class SensorNoise:
     name: ClassVar[str] = "sensor_noise"
 
     def __post_init__(self):
-        _num("sensor_noise.level", self.level, nonneg=True)
+        v.non_negative("sensor_noise.level", self.level, "m^2/Hz")
 
 
 EFFECTS = {cls.name: cls for cls in (Tone, ExtraStop, AddedMass, Damping, SensorNoise)}

@@ -1,7 +1,6 @@
 """``tubeid diagnose DATA [--model NAME_OR_SPEC] [--out DIR] [--workers N | --scheduler ADDR]``: the
-measured-data loop of :mod:`tubeid.measured.diagnose` from the command line. Its grids and Monte
-Carlo simulations run as a runner pipeline in ``DIR/diagnose.zarr``: rerunning the same command
-resumes (or reuses) it."""
+loop of :mod:`tubeid.diagnose.method` from the command line. Its grids and Monte Carlo simulations run
+as a runner pipeline in ``DIR/diagnose.zarr``: rerunning the same command resumes (or reuses) it."""
 
 from __future__ import annotations
 
@@ -14,12 +13,13 @@ __all__ = ["register"]
 
 
 def _settings(args):
+    from tubeid.diagnose import DiagnoseSettings
     from tubeid.errors import SpecificationError
-    from tubeid.measured.diagnose import DiagnoseSettings
 
     kw = {k: v for k, v in (("realisations", args.realisations), ("blocks", args.blocks),
                             ("segment_seconds", args.segment_seconds), ("delta", args.delta),
-                            ("load_dispersion", args.load_dispersion), ("load", args.load),
+                            ("delta_reference", args.delta_reference), ("load_dispersion", args.load_dispersion),
+                            ("load", args.load), ("false_alarm", args.false_alarm), ("max_effects", args.max_effects),
                             ("seed", args.seed)) if v is not None}
     fields = {f.name for f in dataclasses.fields(DiagnoseSettings)}
     for name, value in args.settings:
@@ -30,7 +30,7 @@ def _settings(args):
 
 
 def _cmd_diagnose(args) -> int:
-    from tubeid.measured.diagnose import diagnose
+    from tubeid.diagnose import diagnose
 
     try:
         result = diagnose(args.data, args.model, _settings(args), out=args.out, workers=args.workers,
@@ -40,13 +40,20 @@ def _cmd_diagnose(args) -> int:
         print("\ntubeid: interrupted; finished tasks are kept in the store: rerun the same command to resume", file=sys.stderr)
         return 130
     rep = result.report
-    params = ", ".join(f"{k} = {v['value']:.4g} {v['units']}" if isinstance(v["value"], float) else f"{k} = {v['value']}"
-                       for k, v in rep["parameters"].items())
+    det = rep["detection"]
+    print(f"test: p = {det['p_value']:.3g} (false-alarm rate {det['false_alarm']:g}): "
+          + ("departure detected" if det["detected"] else "nothing detected"))
+    for e in rep["effects"]:
+        params = ", ".join(f"{k} = {v['value']:.4g} {v['units']}".rstrip() if isinstance(v["value"], float) else f"{k} = {v['value']}"
+                           for k, v in e["parameters"].items())
+        print(f"effect: {e['name']} ({params})")
+    if not rep["effects"]:
+        print("effect: none")
+    print(f"held-out error before: {rep['error_before']:.4g}  after: {rep['error_after']:.4g}; "
+          f"explained after: {rep['explained_after']} ({rep['stop_reason']})")
     load = rep["load"]
-    print(f"effect: {rep['effect']}" + (f" ({params})" if params else ""))
-    print(f"error before: {rep['error_before']:.4g}  after: {rep['error_after']:.4g}  (decades; held-out segments)")
     if load["delta_F_given"]:
-        print(f"delta_F: {load['delta_F']} (given)")
+        print(f"delta_F: {load['delta_F']} ({load['delta_F_source']})")
     else:
         std = load["delta_F_std"]
         print(f"delta_F: {load['delta_F']:.3g}" + (f" ± {std:.2g} (Monte Carlo)" if std is not None else "")
@@ -60,34 +67,38 @@ def _cmd_diagnose(args) -> int:
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        "diagnose", help="trace the residual of measured data to a missing effect; error before/after",
-        description="Identify the load (r, delta_F) on measured data for a declared model, compare the held-out "
-                    "spectra with the model's confidence band, trace the residual to a catalog effect "
-                    "(tone, stop, added_mass, damping, sensor_noise) or 'none', re-identify and report. "
-                    "Grids and Monte Carlo run as a runner pipeline in DIR/diagnose.zarr: rerun the same "
-                    "command to resume.",
-)
-    p.add_argument("data", help="measured record: NetCDF, Zarr, CSV (+ .sensors.csv) or UFF 58")
+        "diagnose", help="test measured data against a declared model; name the effects it lacks",
+        description="Identify the load (r, delta_F) on measured data for a declared model, test the held-out spectra "
+                    "against the model's own realisations (calibrated false-alarm rate), and when the test detects a "
+                    "departure select catalog effects (tone, stop, added_mass, damping, sensor_noise) by held-out "
+                    "error, re-fitting them and the load jointly. Grids and Monte Carlo run as a runner pipeline in "
+                    "DIR/diagnose.zarr: rerun the same command to resume.")
+    p.add_argument("data", help="measured record: NetCDF, Zarr, CSV (+ .sensors.csv) or UFF 58 (never modified)")
     p.add_argument("--model", default="paper-simplified", help="built-in model name or a .yaml/.toml specification (default: paper-simplified)")
     p.add_argument("--out", default="diagnosis",
-                   help="output directory: report.json, report.md, residual.png, delta_f.png, the validated record and "
-                        "the pipeline store diagnose.zarr (default: diagnosis)")
+                   help="output directory: report.json, report.md, residual.png, delta_f.png, a copy of the validated "
+                        "record and the pipeline store diagnose.zarr, listed in its manifest (default: diagnosis)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--workers", type=int, default=None,
                    help="embedded LocalCluster worker processes (default: one per core; 0 = sequentially in this process)")
     g.add_argument("--scheduler", default=None, help="address of an existing dask scheduler (default: DASK_SCHEDULER_ADDRESS)")
     p.add_argument("--overwrite", action="store_true",
-                   help="replace whatever diagnosis --out holds (default: resume the same one, refuse another)")
-    p.add_argument("--realisations", type=int, default=None, help="Monte Carlo size of the band (default 40)")
+                   help="replace the diagnosis --out holds: removes only the files its manifest lists, unchanged "
+                        "(default: resume the same diagnosis, refuse another)")
+    p.add_argument("--realisations", type=int, default=None, help="Monte Carlo size of the test (default 39: exact 5 %%)")
+    p.add_argument("--false-alarm", type=float, default=None, help="stated false-alarm rate of the test (default 0.05)")
     p.add_argument("--blocks", type=int, default=None, help="time blocks; even ones fit, odd ones held out (default 4)")
     p.add_argument("--segment-seconds", type=float, default=None, help="Welch segment in s (default 2)")
-    p.add_argument("--delta", type=float, default=None, help="model dispersion δ of B's stiffness (default 0.2)")
+    p.add_argument("--delta", type=float, default=None, help="model dispersion δ of B's stiffness, given (default 0.2)")
+    p.add_argument("--delta-reference", default=None,
+                   help="identify δ by the paper's maximum likelihood of J against this reference model (name or file)")
     p.add_argument("--load-dispersion", type=float, default=None,
-                   help="impose δ_F (default: identified by maximum likelihood of J_s)")
+                   help="impose δ_F (default: identified by maximum likelihood of J_s when there are enough blocks)")
     p.add_argument("--load", choices=("distributed", "force_and_moment"), default=None,
                    help="identification load model (default distributed)")
+    p.add_argument("--max-effects", type=int, default=None, help="effects selected at most (0: the test only; default 3)")
     p.add_argument("--seed", type=int, default=None, help="seed of all random streams (default 0)")
     p.add_argument("--set", dest="settings", action="append", type=_setting, default=[], metavar="NAME=VALUE",
-                   help="any other DiagnoseSettings field, e.g. --set delta_f_realisations=60 --set r0=[2.0]")
+                   help="any other DiagnoseSettings field, e.g. --set fit_realisations=4 --set r0=[2.0]")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=_cmd_diagnose)

@@ -1,0 +1,96 @@
+"""Forward selection of effects: the error a candidate is judged by, and the choice.
+
+**The error** of a model (the declared one with some effects, at some r) is how far the record's
+log10 PSD lies from the model's prediction — the mean model's PSD over ``fit_realisations``
+records — in units of the declared stochastic model's own scatter per bin and sensor σ (the band
+before any effect):
+
+    error = mean over sensors and 0 < f < f_Nyquist of ((log10 S_data − log10 S̄_model − o) / σ)²
+
+with o the σ⁻²-weighted mean log offset on the *fitting* blocks (the load level's residual; zero
+once r is re-fitted). On the fitting blocks it chooses a candidate's parameters; on the held-out
+blocks it judges the candidate: the held-out error. Where the declared model is uncertain (σ
+large, e.g. near resonances that the random stiffness of B moves) a misfit weighs little; a narrow
+line in a quiet part of the spectrum weighs a lot.
+
+**The choice** (:func:`choose`): among the candidates fitted at a step, the one with the lowest
+*penalised* held-out error, error × (1 − penalty)^−k for an effect with k parameters, if it lies
+below the current model's held-out error; else no effect is added. The best one — not the first
+that improves.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from tubeid.diagnose._spectra import analysis_bins, log10
+
+__all__ = ["Scored", "level_offset", "prediction_error", "choose", "line_minimum"]
+
+
+@dataclass(frozen=True)
+class Scored:
+    """A fitted candidate at one step: its ``name``, parameter count ``k``, its best trial's
+    fitting-block error ``fit_error`` and its held-out error ``held_out_error``."""
+
+    name: str
+    k: int
+    fit_error: float
+    held_out_error: float
+
+    def penalised(self, penalty: float) -> float:
+        """held_out_error × (1 − penalty)^−k."""
+        return self.held_out_error / (1.0 - penalty) ** self.k
+
+
+def level_offset(measured, model, sigma, f) -> float:
+    """σ⁻²-weighted mean of log10(measured / model) over the analysis bins [decades]."""
+    sel = analysis_bins(f)
+    w = 1.0 / np.asarray(sigma)[sel] ** 2
+    return float(np.sum(w * (log10(measured) - log10(model))[sel]) / np.sum(w))
+
+
+def prediction_error(measured, model, sigma, f, offset: float = 0.0) -> float:
+    """The error of the module docstring (dimensionless, ≈ 1 for a record within the scatter)."""
+    sel = analysis_bins(f)
+    z = (log10(measured) - log10(model) - offset)[sel] / np.asarray(sigma)[sel]
+    return float(np.mean(z**2))
+
+
+def choose(scored, current: float, penalty: float) -> Scored | None:
+    """The candidate with the lowest penalised held-out error if it is below ``current`` (the
+    held-out error of the model so far), else None. Ties go to the fewer parameters, then the
+    catalog order of ``scored``."""
+    best = None
+    for s in scored:
+        if not np.isfinite(s.held_out_error):
+            continue
+        key = (s.penalised(penalty), s.k)
+        if best is None or key < best[0]:
+            best = (key, s)
+    if best is None or not best[0][0] < current:
+        return None
+    return best[1]
+
+
+def line_minimum(values, errors, log: bool) -> float:
+    """The minimiser of errors along one line of a trial grid: the vertex of the parabola through
+    the discrete minimum and its neighbours (in log10 of the values when ``log``), kept between
+    them; the grid value itself at an end of the line."""
+    x = np.asarray(values, dtype=float)
+    y = np.asarray(errors, dtype=float)
+    order = np.argsort(x)
+    x, y = x[order], y[order]
+    i = int(np.nanargmin(y))
+    if i == 0 or i == x.size - 1:
+        return float(x[i])
+    u = np.log10(x[i - 1: i + 2]) if log else x[i - 1: i + 2]
+    y0, y1, y2 = y[i - 1: i + 2]
+    den = (u[1] - u[0]) * (y1 - y2) - (u[1] - u[2]) * (y1 - y0)
+    if den == 0 or not np.isfinite(den):
+        return float(x[i])
+    num = (u[1] - u[0]) ** 2 * (y1 - y2) - (u[1] - u[2]) ** 2 * (y1 - y0)
+    uv = float(np.clip(u[1] - 0.5 * num / den, u[0], u[2]))
+    return float(10.0**uv) if log else uv

@@ -1,0 +1,355 @@
+"""Close the loop with measured data: a calibrated test, then the effects the model lacks, several at once.
+
+``diagnose(data, model)`` on a validated record (``displacement`` (time, sensor) [m] with ``x``
+and ``tube`` on ``sensor``) for a declared model. Every Monte Carlo realisation and every trial of a
+grid is a task of the runner pipeline :mod:`tubeid.diagnose.stages` (one Zarr store in ``out``,
+resumable); this module holds the context every stage reads and assembles the report.
+
+1. **Split.** The record is cut into ``blocks`` equal time blocks; the even ones fit, the odd ones
+   are held out. Welch auto-PSDs (two-sided per Hz) of each set (:mod:`tubeid.diagnose._spectra`).
+2. **Model uncertainty δ** (B's stiffness): given (``delta``, default 0.2), or identified by the
+   paper's maximum likelihood of J when a reference model exists (``delta_reference``: J_ref of
+   that model against the Monte Carlo of J(δ) of the declared one; MODEL.md §3.2). Not from the
+   record: one record is one structure, so its blocks cannot show a spread of structures, and a
+   δ fitted to them would absorb the very effect the diagnosis looks for.
+3. **Load** on the fitting blocks: r by a coarse-then-fine trial method, δ_F by maximum likelihood
+   of J_s when there are enough fitting blocks (:mod:`tubeid.diagnose._load`).
+4. **Detection**: the held-out spectra against R realisations of the declared stochastic model at
+   (δ, δ_F, r): a Monte Carlo test of three statistics (a scan for lines, a goodness-of-fit of log
+   band energies, the sharpness of resonances), exact at the stated false-alarm rate
+   (:mod:`tubeid.diagnose._detection`). Not detected: the answer is ``none``.
+5. **Forward selection** (:mod:`tubeid.diagnose._selection`): at each step every catalog effect not
+   yet chosen (:mod:`tubeid.diagnose.catalog`) is placed and sized from its signature, fitted by a
+   trial grid of the mean model on the fitting blocks (the chosen effects held, the level
+   profiled), and judged by its held-out error; the best penalised one is added if it improves on
+   the current model; then all chosen effects and r are **re-fitted jointly** (one cross-design
+   sweep: each parameter and r along a line of 3 trials around the current point, the others
+   held; each moved to its line's parabola vertex), and the augmented model's band is tested
+   again. The loop stops when the test no longer detects anything (``explained``), when no
+   candidate pays its penalty, or after ``max_effects`` steps.
+
+``report.json``: ``effect`` (the first effect's name, or ``none``), ``effects`` ([{name,
+parameters}]), ``detection`` (p-values before), ``steps`` (per step: the candidates' errors, the
+choice, the re-fitted effects and r, the held-out error and the test after), ``error_before``,
+``error_after``, ``explained_before``/``explained_after``, ``load``, ``delta``, ``assumptions``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import xarray as xr
+
+from tubeid._outputs import OutputDir
+from tubeid.diagnose._settings import DiagnoseSettings
+from tubeid.diagnose._simulate import load_dimension, spec_for
+from tubeid.diagnose._spectra import MeasuredSpectra, measured_spectra
+from tubeid.dynamics.spectra import j_s
+from tubeid.errors import SpecificationError
+from tubeid.mechanics.effects import effect_from_dict, effect_to_dict
+from tubeid.mechanics.library import resolve_spec
+from tubeid.mechanics.spec import BundleSpec, spec_from_dict, spec_to_dict
+from tubeid.uncertainty.random_matrices import delta_max
+
+__all__ = ["DiagnoseContext", "Diagnosis", "diagnose", "load_context", "data_hash", "effects_to_json",
+           "effects_from_json", "STAGES_FILE", "STORE_NAME", "ERROR_METRIC"]
+
+#: The runner pipeline definition run by :func:`diagnose` (workers load it by its source text).
+STAGES_FILE = Path(__file__).with_name("stages.py")
+#: The pipeline store's name in the output directory.
+STORE_NAME = "diagnose.zarr"
+
+#: What ``error_before`` / ``error_after`` measure (one sentence, written into report.json).
+ERROR_METRIC = (
+    "mean over sensors and 0 < f < f_Nyquist of ((log10 S_held_out - log10 S_mean_model - o) / sigma)^2: the held-out "
+    "PSD against the mean model's prediction in units of the declared stochastic model's own scatter sigma of log10 "
+    "PSD per bin and sensor (the band before any effect); o the level offset fitted on the fitting blocks")
+
+
+def data_hash(data: xr.Dataset) -> str:
+    """SHA-256 of a validated record's content: time, displacement (time × sensor), sensor names,
+    positions and tubes (independent of the file format and of attributes)."""
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(data["time"].values, dtype="<f8").tobytes())
+    h.update(np.ascontiguousarray(data["displacement"].transpose("time", "sensor").values, dtype="<f8").tobytes())
+    h.update(json.dumps([[str(s) for s in data["sensor"].values], [float(x) for x in data["x"].values],
+                         [str(x) for x in data["tube"].values]]).encode())
+    return h.hexdigest()
+
+
+def effects_from_json(text: str) -> list:
+    """Effects from their JSON list form (``effect_to_dict``)."""
+    return [effect_from_dict(e, f"effects[{i}]") for i, e in enumerate(json.loads(text))]
+
+
+def effects_to_json(effects) -> str:
+    return json.dumps([effect_to_dict(e) for e in effects], sort_keys=True)
+
+
+@dataclass(frozen=True)
+class DiagnoseContext:
+    """What every stage and task of a diagnosis reads: ``settings``, the declared model ``spec0``
+    and ``spec`` (with the data's sensors), the spectra ``meas``, the load dimension ``m`` and the
+    observed J_s per fitting block ``j_s_observed`` [(m²/Hz)²·rad/s]."""
+
+    settings: DiagnoseSettings
+    spec0: BundleSpec
+    spec: BundleSpec
+    meas: MeasuredSpectra
+    m: int
+    j_s_observed: np.ndarray
+
+    @property
+    def delta_f_grid(self) -> tuple[float, ...]:
+        from tubeid.diagnose._load import default_delta_f_grid
+
+        return self.settings.delta_f_grid or default_delta_f_grid(self.m)
+
+    @property
+    def identify_delta_f(self) -> bool:
+        """δ_F is identified (not given) and the record has enough fitting blocks to try."""
+        return self.settings.load_dispersion is None and self.meas.n_fit_blocks >= self.settings.delta_f_min_blocks
+
+    @property
+    def candidate_names(self) -> tuple[str, ...]:
+        from tubeid.diagnose.catalog import CATALOG
+
+        return self.settings.candidates or tuple(CATALOG)
+
+
+def _context(data: xr.Dataset, spec0: BundleSpec, settings: DiagnoseSettings) -> DiagnoseContext:
+    t = np.asarray(data["time"].values, dtype=float)
+    dt = float((t[-1] - t[0]) / (t.size - 1))
+    if 1.0 / (2.0 * dt) < spec0.band_hz:
+        raise SpecificationError("data dt", dt, f"the Nyquist frequency 1/(2 dt) must reach the model band {spec0.band_hz} Hz")
+    meas = measured_spectra(data, settings.blocks, settings.segment_seconds)
+    spec = spec_for(spec0, meas.sensors, meas.tube, meas.x)
+    m = load_dimension(spec, settings)
+    dmax = delta_max(m)
+    for name in ("load_dispersion", "delta_f_fallback"):
+        v = getattr(settings, name)
+        if v is not None and v >= dmax:
+            raise SpecificationError(f"settings.{name}", v, f"must be < δ_max = {dmax:.4f} for the {settings.load} load "
+                                     f"(SG+ of size m = {m})")
+    from tubeid.diagnose._load import default_delta_f_grid
+
+    grid = settings.delta_f_grid or default_delta_f_grid(m)
+    if max(grid) >= dmax:
+        raise SpecificationError("settings.delta_f_grid", grid, f"must lie in (0, {dmax:.4f}) for the {settings.load} load "
+                                 f"(m = {m})")
+    if settings.delta_reference is not None:
+        resolve_spec(settings.delta_reference)  # refused here if unknown
+    from tubeid.mechanics.reduction import reduce
+
+    n_b = reduce(spec).subsystem.n
+    if settings.delta >= delta_max(n_b):
+        raise SpecificationError("settings.delta", settings.delta, f"must be < δ_max = {delta_max(n_b):.4f} for the "
+                                 f"declared model's reduced B (n = {n_b})")
+    obs = j_s(meas.frequency, meas.fit_cross, band=spec.band_hz)
+    return DiagnoseContext(settings=settings, spec0=spec0, spec=spec, meas=meas, m=m, j_s_observed=np.atleast_1d(obs))
+
+
+_CONTEXTS: dict[tuple, DiagnoseContext] = {}
+
+
+def load_context(data: str, data_sha256: str, model: str, settings: str) -> DiagnoseContext:
+    """The context of a diagnosis from the pipeline's plain parameters (cached per process):
+    ``data`` the path of the validated record, ``data_sha256`` its :func:`data_hash` (refused if
+    the file no longer matches), ``model`` the declared model as JSON (``spec_to_dict``),
+    ``settings`` :meth:`DiagnoseSettings.to_json`."""
+    key = (data, data_sha256, model, settings)
+    if key not in _CONTEXTS:
+        from tubeid.measured.readers import read_measurements
+
+        if not data:
+            raise SpecificationError("parameters.data", data, "the pipeline needs the path of the record")
+        spec0 = spec_from_dict(json.loads(model))
+        ds = read_measurements(data, tubes={t.name: t.length for t in spec0.tubes})
+        if data_hash(ds) != data_sha256:
+            raise SpecificationError("data", data, f"its content changed since this diagnosis started (sha256 {data_sha256[:12]})")
+        _CONTEXTS[key] = _context(ds, spec0, DiagnoseSettings.from_json(settings))
+    return _CONTEXTS[key]
+
+
+# ----------------------------------------------------------------------------------------------
+# The result
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Diagnosis:
+    """Result of :func:`diagnose`. ``report`` is what report.json holds; ``frequency`` (F,) Hz,
+    ``measured`` (the held-out PSD (F, m) [m²/Hz]), ``bands`` ({label: (lower, upper)} of the
+    model's band before and after, at ``settings.level``) feed the figure; ``store``: the pipeline
+    store (None when it lived in a temporary directory)."""
+
+    report: dict
+    frequency: np.ndarray
+    measured: np.ndarray
+    sensors: tuple
+    bands: dict
+    store: Path | None = None
+
+    @property
+    def effect(self) -> str:
+        return self.report["effect"]
+
+    @property
+    def effects(self) -> list[str]:
+        return [e["name"] for e in self.report["effects"]]
+
+    def write(self, out) -> Path:
+        """Write report.json, report.md, residual.png (and delta_f.png when δ_F was identified)
+        into directory ``out`` (through its manifest: a file tubeid did not write is never
+        replaced)."""
+        from tubeid.diagnose.report import write_files
+
+        return write_files(self, out)
+
+
+# ----------------------------------------------------------------------------------------------
+# The run
+# ----------------------------------------------------------------------------------------------
+
+
+def _resolve_data(data, spec0: BundleSpec) -> tuple[xr.Dataset, Path | None]:
+    tubes = {t.name: t.length for t in spec0.tubes}
+    if isinstance(data, xr.Dataset):
+        from tubeid.measured.validation import validate_measurements
+
+        return validate_measurements(data, tubes=tubes), None
+    from tubeid.measured.readers import read_measurements
+
+    return read_measurements(data, tubes=tubes), Path(data)
+
+
+def _check_store(store: Path, key: str) -> None:
+    """Refuse a store in ``out`` made from other data, model or settings (before any work)."""
+    if not store.exists():
+        return
+    from tubeid.runner.store import read_attrs
+
+    try:
+        attrs = read_attrs(store)
+    except Exception:
+        raise SpecificationError("out", str(store.parent), f"{store.name} exists but is not a diagnosis store; "
+                                 "choose another --out") from None
+    if attrs.get("study_hash") != key:
+        raise SpecificationError(
+            "out", str(store.parent),
+            f"holds a diagnosis of other data, model or settings ({store.name}, hash {str(attrs.get('study_hash'))[:12]} "
+            f"vs {key[:12]} now): refusing to mix them; choose another --out or use --overwrite")
+
+
+def _netcdf_bytes(data: xr.Dataset) -> bytes:
+    from tubeid.measured.readers import write_measurements
+
+    with tempfile.TemporaryDirectory(prefix="tubeid-diagnose-") as tmp:
+        path = write_measurements(data, Path(tmp) / "record.nc", format="netcdf")
+        return path.read_bytes()
+
+
+def _check_outputs(outdir: OutputDir, names) -> None:
+    """Refuse, before any work, to write over a file tubeid did not write (or that changed since)."""
+    for name in names:
+        p = outdir.path / name
+        if (p.exists() or p.is_symlink()) and not outdir.owned(name):
+            raise SpecificationError(f"{outdir.field}/{name}", str(p),
+                                     "exists and was not written by tubeid (or was changed since): it is left untouched; "
+                                     f"move it or choose another {outdir.field}")
+
+
+def diagnose(data, model="paper-simplified", settings: DiagnoseSettings = DiagnoseSettings(), *, out=None,
+             workers: int | None = 0, scheduler: str | None = None, overwrite: bool = False,
+             progress: bool | None = False, quiet: bool = True) -> Diagnosis:
+    """Run the loop of the module docstring.
+
+    Parameters
+    ----------
+    data : xarray.Dataset or path
+        A record: a Dataset (validated here) or a file readable by
+        :func:`tubeid.measured.read_measurements`. Never modified, moved or deleted.
+    model : str or BundleSpec
+        The declared model: built-in name, specification file or :class:`BundleSpec` (without
+        carried effects).
+    settings : DiagnoseSettings
+    out : path, optional
+        Output directory: the pipeline store ``diagnose.zarr``, the validated record it reads
+        (``data-<sha256[:16]>.nc``) and the report files, all recorded in its manifest. Running
+        again with the same data, model and settings resumes or reuses the store; other ones are
+        refused unless ``overwrite``, which removes only what the manifest lists (and replaces the
+        store). Default: a temporary directory, removed afterwards (no files written).
+    workers : int or None
+        0 (default): every task in this process; N > 0: an embedded LocalCluster of N
+        single-threaded workers; None: the runner's default unless ``scheduler`` is given.
+    scheduler : str, optional
+        Address of an existing dask scheduler.
+    overwrite, progress, quiet
+        See above; the runner's progress bars and messages.
+
+    Returns
+    -------
+    Diagnosis
+    """
+    from tubeid.runner.execute import run
+    from tubeid.runner.study import study_hash
+
+    if not isinstance(settings, DiagnoseSettings):
+        raise SpecificationError("settings", type(settings).__name__, "must be a DiagnoseSettings")
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 0):
+        raise SpecificationError("workers", workers, "must be a non-negative integer")
+    spec0 = resolve_spec(model)
+    if spec0.effects:
+        raise SpecificationError("model.effects", spec0.effects, "diagnose a model without carried effects")
+    data, source = _resolve_data(data, spec0)
+    ctx = _context(data, spec0, settings)  # everything that can be refused, before any run
+    h = data_hash(data)
+
+    tmp = tempfile.TemporaryDirectory(prefix="tubeid-diagnose-") if out is None else None
+    try:
+        outdir = OutputDir(tmp.name if tmp is not None else out, field="out")
+        from tubeid.diagnose.report import OUTPUT_FILES
+
+        copy = f"data-{h[:16]}.nc"
+        source_name = source.resolve().name if source is not None and source.resolve().parent == outdir.path.resolve() else None
+        if overwrite:  # only what tubeid wrote, unchanged, and never the record being read
+            outdir.remove([n for n in outdir.entries() if n != source_name])
+        _check_outputs(outdir, (copy, *OUTPUT_FILES))
+        store = outdir.path / STORE_NAME
+        data_path = (outdir.path / copy).resolve()
+        overrides = {"data": str(data_path), "data_sha256": h, "model": json.dumps(spec_to_dict(spec0), sort_keys=True),
+                     "settings": settings.to_json()}
+        if not overwrite:
+            _check_store(store, study_hash(STAGES_FILE.read_text(), overrides))
+        if store.exists() and STORE_NAME not in outdir.entries():
+            raise SpecificationError(f"out/{STORE_NAME}", str(store), "exists and was not created by tubeid here (not in "
+                                     "the manifest): it is left untouched; move it or choose another --out")
+        outdir.record_directory(STORE_NAME)
+        if not outdir.owned(copy):
+            outdir.write_bytes(copy, _netcdf_bytes(data))
+        _CONTEXTS[(overrides["data"], h, overrides["model"], overrides["settings"])] = ctx
+        from threadpoolctl import threadpool_limits
+
+        with threadpool_limits(limits=1):  # many small matrices: BLAS threads would only contend
+            report = run(STAGES_FILE, store, workers=workers, scheduler=scheduler, overrides=overrides,
+                         overwrite=overwrite, progress=progress, quiet=quiet)
+        from tubeid.diagnose.report import assemble
+
+        diagnosis = assemble(store, ctx)
+        diagnosis.report["runner"] = {
+            "store": str(store.resolve()) if tmp is None else None, "workers": report.workers,
+            "tasks_computed": report.computed, "tasks_reused": report.skipped,
+            "stages": {n: {"computed": r.computed, "reused": r.skipped, "seconds": round(r.wall, 3)}
+                       for n, r in report.stages.items()}}
+        if tmp is None:
+            diagnosis.store = store.resolve()
+            diagnosis.write(outdir.path)
+        return diagnosis
+    finally:
+        if tmp is not None:
+            tmp.cleanup()

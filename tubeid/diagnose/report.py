@@ -1,0 +1,306 @@
+"""The report of a diagnosis: assembled from the pipeline store, written as report.json, report.md,
+residual.png and delta_f.png through the output directory's manifest.
+
+``residual.png``: per sensor, the measured held-out PSD against the declared model's band before
+and, when effects were chosen, the augmented model's band after. ``delta_f.png`` (only when δ_F was
+identified): the likelihood of δ_F over its grid, with the argmax.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from tubeid._outputs import OutputDir
+from tubeid.diagnose import stages as st
+from tubeid.diagnose.catalog import CATALOG
+from tubeid.mechanics.effects import effect_from_dict
+
+__all__ = ["assemble", "write_files", "markdown", "OUTPUT_FILES"]
+
+#: Every file a diagnosis writes into its output directory besides the store and the record's copy.
+OUTPUT_FILES = ("report.json", "report.md", "residual.png", "delta_f.png")
+
+
+def _json_default(o):
+    if isinstance(o, (np.floating, np.integer, np.bool_)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(type(o).__name__)
+
+
+def _open(store, name):
+    from tubeid.runner.store import open_results
+
+    return open_results(store, name).load()
+
+
+def _band(ds, level):
+    P = st.band_samples(ds)[0]
+    lo, hi = np.quantile(P, [(1 - level) / 2, (1 + level) / 2], axis=0)
+    return lo, hi
+
+
+def _describe(effect_dict) -> dict:
+    e = effect_from_dict(effect_dict)
+    return {"name": e.name, "parameters": CATALOG[e.name].describe(e)}
+
+
+def assemble(store, ctx):
+    """The :class:`~tubeid.diagnose.method.Diagnosis` of a complete pipeline store."""
+    from tubeid.diagnose.method import ERROR_METRIC, Diagnosis
+
+    s, meas = ctx.settings, ctx.meas
+    results = {n: _open(store, n) for n in st.study.stage_names}
+    fine = results["load_r_fine"]
+    error_before = st.point_result(ctx, results, 0)["held_out_error"]
+    det0 = json.loads(results["band"].attrs["detection"])
+    steps, stop_reason, final = [], "", None
+    det_last, band_last = det0, results["band"]
+    for k in range(1, st.MAX_EFFECTS + 1):
+        tr = results[f"step{k}_trials"]
+        if st.skipped(tr):
+            stop_reason = str(tr["skipped"].values[0])
+            break
+        sel = st.selection(ctx, results, k)
+        prev = st.state_before(ctx, results, k)
+        step = {"step": k, "error_current": sel["current"], "chosen": sel["chosen"] or None,
+                "candidates": [{**c, "signature_score": prev["screen"][c["name"]]["score"],
+                                "signature_estimate": prev["screen"][c["name"]]["estimate"],
+                                "fitted": _describe(c["effect"])["parameters"]}
+                               for c in sel["candidates"]]}
+        for c in step["candidates"]:
+            c.pop("effect"), c.pop("trial")
+        if not sel["chosen"]:
+            stop_reason = f"no candidate pays its penalty at step {k}"
+            steps.append(step)
+            break
+        rf, pt = st.refit_result(ctx, results, k), st.point_result(ctx, results, k)
+        det_last, band_last = json.loads(results[f"step{k}_band"].attrs["detection"]), results[f"step{k}_band"]
+        step.update({"refit": rf["lines"], "effects_after": [_describe(e) for e in pt["effects"]], "r_after": pt["r"],
+                     "error_after": pt["held_out_error"], "fit_error_after": pt["fit_error"],
+                     "detection_after": det_last})
+        steps.append(step)
+        final = pt
+        if not det_last["detected"]:
+            stop_reason = f"explained after step {k}: the test no longer detects anything"
+            break
+    else:
+        stop_reason = f"max_effects = {s.max_effects} reached"
+    effects = [] if final is None else [_describe(e) for e in final["effects"]]
+    r_before = [float(v) for v in fine.attrs["r_opt"]]
+    r_after = r_before if final is None else [float(v) for v in final["r"]]
+    report = {
+        "effect": effects[0]["name"] if effects else "none",
+        "effects": effects,
+        "parameters": effects[0]["parameters"] if effects else {},
+        "error_before": error_before,
+        "error_after": error_before if final is None else final["held_out_error"],
+        "metric": ERROR_METRIC + f"; {meas.n_held_out_blocks} held-out blocks of {meas.block_seconds:.4g} s not used for "
+                  f"fitting; sigma from {s.realisations} realisations",
+        "detection": det0,
+        "detection_after": det_last,
+        "explained_before": not det0["detected"],
+        "explained_after": not det_last["detected"],
+        "steps": steps,
+        "stop_reason": stop_reason,
+        "selection_rule": ("at each step every catalog effect not yet chosen is fitted on the fitting blocks (the chosen "
+                           "effects held, the level profiled) and scored by its held-out error; the lowest held-out "
+                           f"error x (1 - {s.penalty})^-k (k parameters) is added if it is below the current model's "
+                           "held-out error; then r and every chosen effect's parameters are re-fitted jointly and the "
+                           "augmented model is tested again"),
+        "model": ctx.spec0.name,
+        "load": _load(ctx, results, r_before, r_after),
+        "delta": {k: results["delta_ml"].attrs[k] for k in results["delta_ml"].attrs.get("summary_keys", [])},
+        "assumptions": _assumptions(ctx),
+        "sensors": [{"name": n, "tube": t, "x": x} for n, t, x in zip(meas.sensors, meas.tube, meas.x)],
+        "settings": json.loads(s.to_json()),
+    }
+    bands = {"before": _band(results["band"], s.level)}
+    if band_last is not results["band"]:
+        bands["after"] = _band(band_last, s.level)
+    return Diagnosis(report=report, frequency=meas.frequency, measured=meas.held_out, sensors=meas.sensors, bands=bands)
+
+
+def _load(ctx, results, r_before, r_after) -> dict:
+    from tubeid.identification.loads import JS_UNITS
+
+    s = ctx.settings
+    dF = results["load_delta_f"].attrs
+    units = ["N^2/Hz"] if s.load == "distributed" else ["N^2/Hz", "(N m)^2/Hz"]
+    fine, coarse = results["load_r_fine"], results["load_r"]
+    load = {"model": s.load, "r_before": r_before, "r_after": r_after, "units": units,
+            "r_trials": int(np.prod([coarse.sizes[d] for d in st.R_DIMS if d in coarse.dims]))
+            + int(np.prod([fine.sizes[d] for d in st.R_DIMS if d in fine.dims])),
+            "r_fine_at_boundary": bool(fine.attrs["at_boundary"]),
+            "delta_F": float(dF["delta_F"]), "delta_F_given": bool(dF["delta_F_given"]),
+            "delta_F_source": dF.get("delta_F_source", ""), "load_dispersion": float(dF["delta_F_used"]), "m": ctx.m,
+            "delta_F_refitted": False}
+    if not dF["delta_F_given"]:
+        load.update({
+            "delta_F_std": dF.get("delta_F_std"), "delta_F_std_observations": dF.get("delta_F_std_observations"),
+            "delta_F_flat": bool(dF["flat"]), "delta_F_identified": bool(dF["identified"]),
+            "delta_F_at_boundary": bool(dF["at_boundary"]), "delta_F_note": dF["note"],
+            "load_dispersion_reason": dF["used_reason"] or "the maximum-likelihood δ_F",
+            "delta_F_likelihood": {"grid": dF["grid"], "log_likelihood": dF["log_likelihood"], "likelihood": dF["likelihood"],
+                                   "n_realisations": dF["n_realisations"], "n_observations": len(dF["J_s_observed"])},
+            "J_s_observed": dF["J_s_observed"], "J_s_units": JS_UNITS})
+    return load
+
+
+def _assumptions(ctx) -> list[str]:
+    s = ctx.settings
+    out = [f"load: {s.load} model ({'the declared force points with coherence exp(-|dx|/%g m)' % s.correlation_length if s.load == 'distributed' else 'force and moment at x = %g m' % s.load_x}); its level r is fitted",
+           "δ (dispersion of B's stiffness): " + (f"given ({s.delta})" if s.delta_reference is None else
+                                                   f"identified by maximum likelihood of J against {s.delta_reference}"),
+           "δ_F (load dispersion) is not re-fitted with the effects",
+           "effects of one kind are chosen at most once"]
+    for n in ctx.candidate_names:
+        out += CATALOG[n].assumptions(ctx.spec)
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Files
+# ----------------------------------------------------------------------------------------------
+
+
+def write_files(diag, out) -> Path:
+    """Write the report files of ``diag`` into ``out`` through its manifest (:class:`OutputDir`)."""
+    d = OutputDir(out, field="out")
+    d.write_text("report.json", json.dumps(diag.report, indent=2, default=_json_default) + "\n")
+    d.write_text("report.md", markdown(diag.report))
+    _residual_figure(diag, d)
+    if not diag.report["load"].get("delta_F_given", True):
+        _delta_f_figure(diag.report["load"], d)
+    return d.path
+
+
+def _fmt(v, spec=".3g"):
+    return "n/a" if v is None else format(v, spec)
+
+
+def _value(v) -> str:
+    return f"{v['value']:.4g}" if isinstance(v["value"], float) else str(v["value"])
+
+
+def _detection_line(det: dict, when: str) -> str:
+    ps = ", ".join(f"{k} {v:.3g}" for k, v in det["p_values"].items())
+    verdict = "**detected**" if det["detected"] else "not detected"
+    return (f"- test {when}: p = {det['p_value']:.3g} ({ps}; {det['n_realisations']} realisations, stated false-alarm "
+            f"rate {det['false_alarm']:g}, exact size {det['size']:.3g}): {verdict}")
+
+
+def _delta_f_lines(load: dict) -> list[str]:
+    if load.get("delta_F_given", True):
+        return [f"- δ_F = {load['delta_F']} ({load.get('delta_F_source') or 'given'}; not identified)"]
+    lik = load["delta_F_likelihood"]
+    lines = [f"- δ_F = {load['delta_F']:.3g} by maximum likelihood of J_s over {lik['n_observations']} fitting blocks "
+             f"(Monte Carlo: {lik['n_realisations']} records per grid value; bootstrap std {_fmt(load['delta_F_std'])} "
+             f"over realisations, {_fmt(load['delta_F_std_observations'])} over observations)"]
+    if load["delta_F_flat"]:
+        lines.append("- **The likelihood of δ_F is flat** over the grid: these data do not identify δ_F.")
+    elif load["delta_F_note"]:
+        lines.append(f"- δ_F: {load['delta_F_note']}.")
+    if load["load_dispersion"] != load["delta_F"]:
+        lines.append(f"- **The band uses δ_F = {load['load_dispersion']:g}** (the fallback): {load['load_dispersion_reason']}.")
+    return lines
+
+
+def markdown(rep: dict) -> str:
+    """The report.md of a report dict."""
+    names = ", ".join(f"`{e['name']}`" for e in rep["effects"]) or "`none`"
+    lines = [f"# Diagnosis of measured data against `{rep['model']}`", "", f"**Effects: {names}**", ""]
+    if not rep["explained_after"]:
+        lines += ["**Warning:** the test still detects a departure from the model after the selection "
+                  f"({rep['stop_reason']}): the residual is not fully explained by the catalog — consider the model "
+                  "uncertainty (δ), the load model, or an effect the catalog does not hold.", ""]
+    for e in rep["effects"]:
+        lines += [f"### `{e['name']}`", "", "| parameter | value | units | fitted |", "|---|---|---|---|"]
+        lines += [f"| {k} | {_value(v)} | {v['units']} | {'yes' if v['fitted'] else 'no (assumed)'} |"
+                  for k, v in e["parameters"].items()]
+        lines.append("")
+    load, delta = rep["load"], rep["delta"]
+    r_b = ", ".join(f"{v:.4g} {u}" for v, u in zip(load["r_before"], load["units"]))
+    r_a = ", ".join(f"{v:.4g} {u}" for v, u in zip(load["r_after"], load["units"]))
+    lines += [_detection_line(rep["detection"], "before")]
+    if rep["steps"] and "detection_after" in rep["steps"][-1]:
+        lines.append(_detection_line(rep["detection_after"], "after"))
+    lines += [f"- held-out error before: {rep['error_before']:.4g}; after: {rep['error_after']:.4g} ({rep['stop_reason']})",
+              f"- metric: {rep['metric']}",
+              f"- load ({load['model']}): r before ({r_b}), after ({r_a})",
+              f"- δ = {delta.get('delta', 'n/a'):.4g} ({delta.get('delta_source', '')})" if delta else "- δ: n/a",
+              *_delta_f_lines(load), ""]
+    for step in rep["steps"]:
+        lines += [f"## Step {step['step']}: {('`' + step['chosen'] + '` added') if step['chosen'] else 'nothing added'}", "",
+                  f"Held-out error of the model so far: {step['error_current']:.4g}.", "",
+                  "| candidate | signature | k | fit error | held-out error | penalised |", "|---|---|---|---|---|---|"]
+        for c in step["candidates"]:
+            lines.append(f"| {c['name']} | {c['signature_score']:.3f} | {c['k']} | {c['fit_error']:.4g} | "
+                         f"{c['held_out_error']:.4g} | {c['penalised']:.4g} |")
+        if "error_after" in step:
+            lines += ["", f"After the joint re-fit: held-out error {step['error_after']:.4g}, test p = "
+                          f"{step['detection_after']['p_value']:.3g}."]
+        lines.append("")
+    lines += ["## Rules and assumptions", "", rep["selection_rule"] + ".", ""]
+    lines += [f"- {a}" for a in rep["assumptions"]]
+    lines += ["", "![residual](residual.png)", ""]
+    if not load.get("delta_F_given", True):
+        lines += ["![likelihood of δ_F](delta_f.png)", ""]
+    return "\n".join(lines)
+
+
+def _plt():
+    from tubeid._optional import require
+
+    matplotlib = require("matplotlib", "tubeid diagnose")
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _residual_figure(diag, d: OutputDir) -> None:
+    plt = _plt()
+    f = diag.frequency
+    m = len(diag.sensors)
+    rows = len(diag.bands)
+    fig, axes = plt.subplots(rows, m, figsize=(3.6 * m, 3.0 * rows), squeeze=False)
+    level = diag.report["settings"]["level"]
+    names = ", ".join(e["name"] for e in diag.report["effects"])
+    for i, (label, (lo, hi)) in enumerate(diag.bands.items()):
+        for j, s in enumerate(diag.sensors):
+            ax = axes[i, j]
+            ax.fill_between(f[1:], lo[1:, j], hi[1:, j], color="0.8", label=f"model {level:.0%} band")
+            ax.semilogy(f[1:], diag.measured[1:, j], "r", lw=0.6, label="measured (held out)")
+            ax.set_title(f"{s}: {label}" + (f" ({names})" if label == "after" else ""), fontsize=8)
+            ax.set_xlabel("f [Hz]", fontsize=8)
+            ax.tick_params(labelsize=7)
+            if j == 0:
+                ax.set_ylabel("PSD [m²/Hz, two-sided]", fontsize=8)
+    axes[0, 0].legend(fontsize=7)
+    fig.tight_layout()
+    d.save_figure(fig, "residual.png", dpi=80)
+    plt.close(fig)
+
+
+def _delta_f_figure(load: dict, d: OutputDir) -> None:
+    plt = _plt()
+    lik = load["delta_F_likelihood"]
+    fig, ax = plt.subplots(figsize=(5, 3.2))
+    ax.plot(lik["grid"], lik["likelihood"], "o-", color="C2", ms=3, label="joint likelihood (max 1)")
+    ax.axvline(load["delta_F"], color="k", lw=0.8, ls="--", label=f"argmax δ_F = {load['delta_F']:.3g}")
+    if load["load_dispersion"] != load["delta_F"]:
+        ax.axvline(load["load_dispersion"], color="C3", lw=0.8, ls=":", label=f"band's δ_F = {load['load_dispersion']:g} (fallback)")
+    ax.set_xscale("log")
+    ax.set_xlabel("δ_F (log scale)")
+    ax.set_ylabel("likelihood / max")
+    ax.set_title("δ_F by maximum likelihood of J_s" + (" (flat)" if load["delta_F_flat"] else ""), fontsize=9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    d.save_figure(fig, "delta_f.png", dpi=90)
+    plt.close(fig)

@@ -1,0 +1,635 @@
+"""The runner pipeline of ``tubeid diagnose`` (the method: :mod:`tubeid.diagnose.method`).
+
+Run by :func:`tubeid.diagnose.diagnose` into ``DIR/diagnose.zarr`` (one Zarr group per stage). Its
+parameters are plain text: ``data`` (path of the validated record written into DIR),
+``data_sha256`` (its content hash, checked by every process that reads it), ``model`` (the
+declared model, JSON of ``spec_to_dict``) and ``settings`` (``DiagnoseSettings.to_json()``); all
+four are hashed into the store's identity. Every grid point and Monte Carlo realisation is a
+runner task; a stage with nothing to compute holds one ``skipped`` placeholder whose coordinate
+says why. Random streams are keyed by the stage, the settings' seed and, where named, the
+realisation; the trials of one stage share one stream (common random numbers).
+
+``delta_ml``        J(δ) of the declared model's random B → δ by maximum likelihood of J_ref of
+                    ``delta_reference`` (skipped when δ is given)
+``load_r``          coarse trial grid of r (mean model, fitting blocks) → log-spectral distance
+``load_r_fine``     fine grid around the levelled coarse minimum → r_opt
+``load_delta_f``    J_s over a δ_F grid × realisations → δ_F (skipped when given or too few blocks)
+``band``            R realisations of the stochastic model, held-out layout → the calibrated test,
+                    and (when something is detected) the signatures of the catalog for step 1
+``step{k}_trials``  the catalog's trial grids (mean model, fitting blocks, chosen effects held)
+                    → the choice of step k by held-out error
+``step{k}_refit``   lines of 3 trials around (r, every chosen effect's parameters) → joint re-fit
+``step{k}_band``    R realisations with the re-fitted effects → the test after step k (and the
+                    signatures for step k + 1)
+
+Every band stage also holds, as realisation −1, the mean model's prediction at its point (fitting
+layout, ``fit_realisations`` records): the held-out error of that point.
+"""
+
+import dataclasses
+import importlib
+import json
+
+import numpy as np
+
+from tubeid.diagnose._detection import band_moments, detection_test
+from tubeid.diagnose._load import delta_f_identification, grid_minimum, r_coarse_grid, r_distance, r_fine_grid, scaled_r
+from tubeid.diagnose._selection import Scored, choose, level_offset, line_minimum, prediction_error
+from tubeid.diagnose._settings import MAX_EFFECTS, DiagnoseSettings
+from tubeid.diagnose._simulate import load_spectrum, simulate_blocks, simulate_series
+from tubeid.diagnose.catalog import CATALOG, Evidence
+from tubeid.dynamics import warmup
+from tubeid.dynamics.spectra import j_s, psd_matrix
+from tubeid.identification.loads import JS_UNITS
+from tubeid.mechanics.effects import apply_effects, effect_from_dict, effect_to_dict
+from tubeid.runner.pipeline import Pipeline
+from tubeid.runner.study import Output, Parameter, Study, Warmup
+
+__all__ = ["study", "SEED", "STEP_STAGES", "state_before", "selection", "refit_result", "point_result"]
+
+method = importlib.import_module("tubeid.diagnose.method")
+
+SEED = 6
+R_DIMS = ("r1", "r2")
+R_UNITS = {"r1": "N^2/Hz", "r2": "(N m)^2/Hz"}
+STATISTICS = ["rms", "skewness", "excess_kurtosis"]
+#: The stages of one selection step, in order.
+STEP_STAGES = ("trials", "refit", "band")
+
+
+def _ctx(p: dict):
+    return method.load_context(p["data"], p["data_sha256"], p["model"], p["settings"])
+
+
+def _base(data, data_sha256, model, settings) -> dict:
+    return {"data": data, "data_sha256": data_sha256, "model": model, "settings": settings}
+
+
+def _params(ds) -> dict:
+    return json.loads(ds.attrs["parameters"])
+
+
+def skipped(ds) -> bool:
+    """Whether a stage had nothing to compute (its only axis is ``skipped``)."""
+    return "skipped" in ds.dims
+
+
+def _spectral_coords(ctx) -> dict:
+    return {"frequency": ctx.meas.frequency, "sensor": list(ctx.meas.sensors)}
+
+
+def _psd_output(what: str, *, finite: bool = True) -> Output:
+    return Output(dims=("frequency", "sensor"), units="m^2/Hz", long_name=f"auto-PSD at the sensors, two-sided: {what}",
+                  finite=finite)
+
+
+def _mean_psd(ctx, r, effects, gen) -> np.ndarray:
+    """Mean-model auto-PSD (F, m) on the fitting layout, averaged over ``fit_realisations`` records."""
+    s, meas = ctx.settings, ctx.meas
+    P, _ = simulate_blocks(ctx.spec, r, effects, meas, meas.n_fit_blocks, range(s.fit_realisations), s, rngs=[gen])
+    return P.mean(axis=0)
+
+
+def _realisation_chunk(delta: float, n: int) -> int:
+    """Realisations per task. With δ = 0 every realisation of a call shares one set of solver
+    tables: two tasks, one table each; with δ > 0 each realisation has its own random K_B, and
+    tasks of 2 balance the workers."""
+    return 2 if delta > 0 else max(2, -(-n // 2))
+
+
+# -- nothing to compute ---------------------------------------------------------------------------------
+def nothing(block, rng, **_):
+    return {"nothing": np.zeros(len(block["skipped"]))}
+
+
+def _skipped(name: str, reason: str, summarize=None, parameters=None) -> Study:
+    return Study(name=name, seed=SEED, description=f"nothing to compute: {reason}", axes={"skipped": [reason]},
+                 task=nothing, outputs={"nothing": Output(units="1", long_name="placeholder: nothing was computed")},
+                 summarize=summarize, parameters=parameters or {})
+
+
+# -- δ by the paper's maximum likelihood of J -----------------------------------------------------------------
+def delta_block(block, rng, *, data, data_sha256, model, settings, j_reference):
+    from tubeid.mechanics.reduction import reduce
+    from tubeid.uncertainty.random_models import j_monte_carlo
+
+    ctx = method.load_context(data, data_sha256, model, settings)
+    sub = reduce(ctx.spec).subsystem
+    J = j_monte_carlo(sub, [float(d) for d in block["delta"]], ctx.settings.seed,
+                      [int(k) for k in block["realisation"]], ctx.spec.band_hz)
+    return {"J": J.values}
+
+
+def summarize_delta(ds):
+    p = _params(ds)
+    s = DiagnoseSettings.from_json(p["settings"])
+    if skipped(ds):
+        return {"delta": float(s.delta), "delta_source": "given"}
+    from tubeid.identification.likelihood import likelihood_curve
+
+    lik = likelihood_curve(ds["J"].transpose("delta", "realisation").values, p["j_reference"], ds["delta"].values,
+                           "delta", n_bootstrap=s.n_bootstrap, rng=s.seed)
+    ll = lik["log_likelihood"].values
+    rel = ll - np.nanmax(ll)
+    return {"delta": float(lik.attrs["argmax"]), "delta_source": f"maximum likelihood of J against {s.delta_reference}",
+            "delta_std": float(lik.attrs["argmax_std"]), "delta_at_grid_edge": bool(lik.attrs["argmax_at_boundary"]),
+            "delta_flat": bool(np.nanmax(rel) - np.nanmin(rel) < 2.0), "J_reference": float(p["j_reference"]),
+            "delta_grid": [float(d) for d in ds["delta"].values], "delta_log_likelihood": [float(v) for v in rel]}
+
+
+def delta_ml(results, *, data, data_sha256, model, settings):
+    base = _base(data, data_sha256, model, settings)
+    ctx = _ctx(base)
+    s = ctx.settings
+    if s.delta_reference is None:
+        return _skipped("delta_ml", f"delta given: {s.delta}", summarize_delta, base)
+    from tubeid.identification.delta import default_delta_grid, reference_j
+    from tubeid.mechanics.reduction import reduce
+
+    grid = [float(d) for d in np.round(default_delta_grid(reduce(ctx.spec).subsystem.n), 4)]
+    return Study(
+        name="delta_ml", seed=SEED, description=f"J(delta) of the declared model's random B against J of {s.delta_reference}",
+        axes={"delta": grid, "realisation": range(s.delta_realisations)},
+        chunks={"delta": len(grid), "realisation": s.delta_realisations}, seed_axes=(), task=delta_block,
+        outputs={"J": Output(units="m^2 rad/(N^2 s)", long_name="J = integral of ||Z^-1||_F^2 over the band")},
+        units={"delta": "1"}, parameters={**base, "j_reference": float(reference_j(s.delta_reference))},
+        summarize=summarize_delta)
+
+
+def _delta(results) -> float:
+    return float(results["delta_ml"].attrs["delta"])
+
+
+# -- trial grids of r ---------------------------------------------------------------------------------
+def r_block(block, rng, *, data, data_sha256, model, settings, effects):
+    ctx = method.load_context(data, data_sha256, model, settings)
+    eff = method.effects_from_json(effects)
+    dims = [d for d in R_DIMS if d in block]
+    shape = tuple(len(block[d]) for d in dims)
+    meas = ctx.meas
+    psd = np.empty(shape + (meas.frequency.size, len(meas.sensors)))
+    dist, off = np.empty(shape), np.empty(shape)
+    for idx in np.ndindex(*shape):
+        r = tuple(float(block[d][i]) for d, i in zip(dims, idx))
+        psd[idx] = _mean_psd(ctx, r, eff, rng(ctx.settings.seed))
+        dist[idx], off[idx] = r_distance(meas.fit, psd[idx], meas.frequency, ctx.spec.band_hz)
+    return {"psd": psd, "distance": dist, "offset": off}
+
+
+def _r_minimum(ds, refine):
+    dims = [d for d in R_DIMS if d in ds.dims]
+    d = ds["distance"].transpose(*dims).values
+    r, idx, boundary = grid_minimum(d, [ds[x].values for x in dims], refine=refine)
+    return r, idx, boundary, ds["offset"].transpose(*dims).values[idx], d[idx], dims
+
+
+def summarize_r_coarse(ds):
+    r, idx, boundary, off, d, dims = _r_minimum(ds, refine=False)
+    return {"r_best": list(r), "offset_best": float(off), "distance_best": float(d), "at_boundary": boundary,
+            "r_next": list(scaled_r(r, off))}
+
+
+def summarize_r_fine(ds):
+    r, idx, boundary, off, d, dims = _r_minimum(ds, refine=True)
+    return {"r_opt": list(r), "r_discrete": [float(ds[x].values[i]) for x, i in zip(dims, idx)],
+            "distance_opt": float(d), "offset_opt": float(off), "at_boundary": boundary}
+
+
+def _r_study(name, base, ctx, grid, what, summarize) -> Study:
+    axes = dict(zip(R_DIMS, grid))
+    return Study(
+        name=name, seed=SEED,
+        description=f"{what}: trial grid of r ({ctx.settings.load} load), mean model, fitting blocks; log-spectral distance",
+        axes=axes, chunks={d: 1 for d in axes}, seed_axes=(), task=r_block, coords=_spectral_coords(ctx),
+        outputs={"psd": _psd_output("mean model, fitting blocks"),
+                 "distance": Output(units="decades^2", long_name="mean squared log10 distance to the fitting PSD, 0 < f <= band"),
+                 "offset": Output(units="decades", long_name="mean log10(measured / model) over the same bins")},
+        units={**{d: R_UNITS[d] for d in axes}, "frequency": "Hz"}, parameters={**base, "effects": "[]"},
+        summarize=summarize)
+
+
+def load_r(results, *, data, data_sha256, model, settings):
+    base = _base(data, data_sha256, model, settings)
+    ctx = _ctx(base)
+    s = ctx.settings
+    return _r_study("load_r", base, ctx, r_coarse_grid(s.start_r, s.r_points, s.r_step), "coarse", summarize_r_coarse)
+
+
+def load_r_fine(results, *, data, data_sha256, model, settings):
+    base = _base(data, data_sha256, model, settings)
+    ctx = _ctx(base)
+    s = ctx.settings
+    return _r_study("load_r_fine", base, ctx, r_fine_grid(results["load_r"].attrs["r_next"], s.r_fine_points, s.r_fine_span),
+                    "fine, around the levelled coarse minimum", summarize_r_fine)
+
+
+# -- δ_F ----------------------------------------------------------------------------------------------
+def delta_f_block(block, rng, *, data, data_sha256, model, settings, r, delta):
+    ctx = method.load_context(data, data_sha256, model, settings)
+    s, meas = ctx.settings, ctx.meas
+    reals = [int(k) for k in block["realisation"]]
+    out = np.empty((len(block["delta_F"]), len(reals)))
+    for i, dF in enumerate(block["delta_F"]):
+        y = simulate_series(ctx.spec, r, (), meas, meas.block_samples, reals, s, delta=delta,
+                            load_dispersion=float(dF), rngs=[rng(s.seed, realisation=k) for k in reals])
+        f, S = psd_matrix(y, meas.dt, segment_seconds=s.segment_seconds)
+        out[i] = j_s(f, S, band=ctx.spec.band_hz)
+    return {"J_s": out}
+
+
+def summarize_delta_f(ds):
+    p = _params(ds)
+    ctx = _ctx(p)
+    s = ctx.settings
+    if skipped(ds):
+        given = s.load_dispersion is not None
+        v = float(s.load_dispersion if given else s.delta_f_fallback)
+        why = ("given" if given else f"the record has {ctx.meas.n_fit_blocks} fitting blocks, fewer than "
+               f"delta_f_min_blocks = {s.delta_f_min_blocks}: one J_s per block cannot show a dispersion")
+        return {"delta_F": v, "delta_F_used": v, "delta_F_given": True, "delta_F_source": why}
+    out = delta_f_identification(ds["J_s"], ctx.j_s_observed, ctx.m, s)
+    out["delta_F_given"] = False
+    out["delta_F_source"] = "maximum likelihood of J_s"
+    return out
+
+
+def load_delta_f(results, *, data, data_sha256, model, settings):
+    base = _base(data, data_sha256, model, settings)
+    ctx = _ctx(base)
+    s = ctx.settings
+    if not ctx.identify_delta_f:
+        reason = (f"delta_F given: {s.load_dispersion}" if s.load_dispersion is not None
+                  else f"delta_F not identifiable from {ctx.meas.n_fit_blocks} fitting blocks")
+        return _skipped("load_delta_f", reason, summarize_delta_f, base)
+    r = [float(v) for v in results["load_r_fine"].attrs["r_opt"]]
+    grid = list(ctx.delta_f_grid)
+    d = _delta(results)
+    return Study(
+        name="load_delta_f", seed=SEED,
+        description=f"J_s of one block's length ({ctx.meas.block_seconds:.4g} s) of the stochastic model at "
+                    f"delta = {d:.4g}, r = {r}, over a delta_F grid (common random numbers across delta_F)",
+        axes={"delta_F": grid, "realisation": range(s.delta_f_realisations)},
+        chunks={"delta_F": len(grid), "realisation": _realisation_chunk(d, s.delta_f_realisations)},
+        seed_axes=("realisation",), task=delta_f_block,
+        outputs={"J_s": Output(units=JS_UNITS, long_name="J_s = integral of ||S_Z(w)||_F^2 over the band")},
+        units={"delta_F": "1"}, parameters={**base, "r": r, "delta": d}, summarize=summarize_delta_f)
+
+
+# -- bands and the test ----------------------------------------------------------------------------------
+#: The band stages' realisation that holds the mean model's prediction (fitting layout).
+MEAN_MODEL = -1
+
+
+def band_block(block, rng, *, data, data_sha256, model, settings, r, effects, delta, load_dispersion, step):
+    ctx = method.load_context(data, data_sha256, model, settings)
+    s, meas = ctx.settings, ctx.meas
+    eff = method.effects_from_json(effects)
+    reals = [int(k) for k in block["realisation"]]
+    P = np.empty((len(reals), meas.frequency.size, len(meas.sensors)))
+    stats = np.empty((len(reals), len(meas.sensors), 3))
+    cf = np.empty(len(reals))
+    mean = [i for i, k in enumerate(reals) if k == MEAN_MODEL]
+    rest = [i for i, k in enumerate(reals) if k != MEAN_MODEL]
+    for i in mean:  # the mean model's prediction, fitting layout, fit_realisations records
+        Pm, sm, cm = simulate_blocks(ctx.spec, r, eff, meas, meas.n_fit_blocks, range(s.fit_realisations), s,
+                                     rngs=[rng(s.seed, realisation=MEAN_MODEL)], contact=True)
+        P[i], stats[i], cf[i] = Pm.mean(axis=0), sm.mean(axis=0), cm.mean()
+    if rest:
+        P[rest], stats[rest], cf[rest] = simulate_blocks(
+            ctx.spec, r, eff, meas, meas.n_held_out_blocks, [reals[i] for i in rest], s, delta=delta,
+            load_dispersion=load_dispersion, rngs=[rng(s.seed, realisation=reals[i]) for i in rest], contact=True)
+    return {"psd": P, "stats": stats, "contact": cf}
+
+
+def band_samples(ds) -> tuple[np.ndarray, np.ndarray]:
+    """The stochastic model's realisations of a band stage: psd (R, F, m), stats (R, m, 3)."""
+    b = ds.sel(realisation=ds["realisation"].values[ds["realisation"].values != MEAN_MODEL])
+    return (b["psd"].transpose("realisation", "frequency", "sensor").values,
+            b["stats"].transpose("realisation", "sensor", "statistic").values)
+
+
+def mean_prediction(ds) -> np.ndarray:
+    """The mean model's prediction (F, m) stored in a band stage."""
+    return ds["psd"].sel(realisation=MEAN_MODEL).transpose("frequency", "sensor").values
+
+
+def evidence(ctx, ds) -> Evidence:
+    """The :class:`~tubeid.diagnose.catalog.Evidence` of a band stage (its model, r and realisations)."""
+    from tubeid.diagnose._detection import band_moments as moments
+    from tubeid.diagnose._surrogate import LinearSurrogate
+
+    p = _params(ds)
+    effects = method.effects_from_json(p["effects"])
+    spec = apply_effects(ctx.spec, effects)
+    P, stats = band_samples(ds)
+    mu, sd = moments(P)
+    z = (ctx.meas.fit_stats - stats.mean(axis=0)) / np.maximum(stats.std(axis=0, ddof=1), 1e-300)
+    sur = LinearSurrogate(spec, load_spectrum(spec, p["r"], ctx.settings), ctx.meas.frequency)
+    ev = Evidence(frequency=ctx.meas.frequency, fit=ctx.meas.fit, mu=mu, sigma=np.maximum(sd, 1e-6), z_stats=z,
+                  rms=ctx.meas.fit_stats[:, 0], spec=spec, surrogate=sur, band_hz=ctx.spec.band_hz)
+    sur.contact = float(np.mean(ds["contact"].sel(realisation=ds["realisation"].values >= 0).values))
+    return ev
+
+
+def summarize_band(ds):
+    if skipped(ds):
+        return {"detected": False}
+    p = _params(ds)
+    ctx = _ctx(p)
+    s = ctx.settings
+    det = detection_test(ctx.meas.held_out, band_samples(ds)[0], ctx.meas.frequency, false_alarm=s.false_alarm,
+                         band_width_hz=s.band_width_hz)
+    out = {"detection": json.dumps(det.to_dict(), sort_keys=True), "detected": det.detected, "p_value": det.p_value}
+    chosen = [e["kind"] for e in json.loads(p["effects"])]
+    remaining = [n for n in ctx.candidate_names if n not in chosen]
+    if det.detected and p["step"] < s.max_effects and remaining:
+        ev = evidence(ctx, ds)
+        screen = {n: CATALOG[n].signature(ev) for n in remaining}
+        out["screen"] = json.dumps(screen, sort_keys=True, default=float)
+        out["contact_weight"] = ev.surrogate.contact
+    return out
+
+
+def _band_study(name, base, ctx, r, effects, delta, dF, step, what) -> Study:
+    s = ctx.settings
+    return Study(
+        name=name, seed=SEED,
+        description=f"{what}: stochastic model at delta = {delta:.4g}, delta_F = {dF:.4g}, r = {list(r)}, held-out layout",
+        axes={"realisation": [MEAN_MODEL, *range(s.realisations)]},
+        chunks={"realisation": _realisation_chunk(delta, s.realisations + 1)}, task=band_block, coords={**_spectral_coords(ctx), "statistic": STATISTICS},
+        outputs={"psd": _psd_output("stochastic model, averaged over the held-out layout's blocks (realisation -1: the "
+                                    "mean model's prediction, fitting layout)"),
+                 "stats": Output(dims=("sensor", "statistic"), units="m | 1 | 1", long_name="RMS [m], skewness, excess kurtosis"),
+                 "contact": Output(units="1", long_name="fraction of time the stops are closed (mean over the stops)")},
+        units={"frequency": "Hz"},
+        parameters={**base, "r": [float(v) for v in r], "effects": effects, "delta": float(delta),
+                    "load_dispersion": float(dF), "step": int(step)},
+        summarize=summarize_band)
+
+
+def band(results, *, data, data_sha256, model, settings):
+    base = _base(data, data_sha256, model, settings)
+    ctx = _ctx(base)
+    return _band_study("band", base, ctx, results["load_r_fine"].attrs["r_opt"], "[]", _delta(results),
+                       results["load_delta_f"].attrs["delta_F_used"], 0, "the declared model")
+
+
+# -- selection steps -------------------------------------------------------------------------------------
+def _sigma(results) -> np.ndarray:
+    """σ of log10 PSD per bin and sensor of the band before any effect: the unit of every error."""
+    return np.maximum(band_moments(band_samples(results["band"])[0])[1], 1e-6)
+
+
+def _errors(ctx, psd, sigma) -> tuple[float, float, float]:
+    """(level offset on the fitting blocks, fitting error, held-out error) of a model PSD."""
+    f, meas = ctx.meas.frequency, ctx.meas
+    o = level_offset(meas.fit, psd, sigma, f)
+    return o, prediction_error(meas.fit, psd, sigma, f, o), prediction_error(meas.held_out, psd, sigma, f, o)
+
+
+def state_before(ctx, results, k: int) -> dict:
+    """Where step k starts: {"active", "reason", "effects" (JSON list), "r", "screen" ({name:
+    signature}) and "band" (the stage whose test decided)}."""
+    s = ctx.settings
+    prev_band = "band" if k == 1 else f"step{k - 1}_band"
+    if k == 1:
+        effects, r = "[]", [float(v) for v in results["load_r_fine"].attrs["r_opt"]]
+    else:
+        bk = results[f"step{k - 1}_band"]
+        if skipped(bk):
+            return {"active": False, "reason": f"step {k - 1} added no effect"}
+        effects, r = _params(bk)["effects"], [float(v) for v in _params(bk)["r"]]
+    if k > s.max_effects:
+        return {"active": False, "reason": f"max_effects = {s.max_effects}"}
+    b = results[prev_band]
+    if not b.attrs.get("detected", False):
+        return {"active": False, "reason": "nothing detected" if k == 1 else f"explained after step {k - 1}"}
+    if "screen" not in b.attrs:
+        return {"active": False, "reason": "every catalog candidate is chosen"}
+    return {"active": True, "reason": "", "effects": effects, "r": r, "screen": json.loads(b.attrs["screen"]),
+            "band": prev_band}
+
+
+def trial_block(block, rng, *, data, data_sha256, model, settings, trials, lines=""):
+    ctx = method.load_context(data, data_sha256, model, settings)
+    trials = json.loads(trials)
+    meas = ctx.meas
+    out = np.full((len(block["trial"]), meas.frequency.size, len(meas.sensors)), np.nan)
+    for i, k in enumerate(block["trial"]):
+        t = trials[int(k)]
+        if not t.get("analytic"):
+            out[i] = _mean_psd(ctx, t["r"], [effect_from_dict(e) for e in t["effects"]], rng(ctx.settings.seed))
+    return {"psd": out}
+
+
+def _trial_study(name, base, ctx, trials, what) -> Study:
+    return Study(
+        name=name, seed=SEED, description=what, axes={"trial": range(len(trials))}, chunks={"trial": 1}, seed_axes=(),
+        task=trial_block, coords=_spectral_coords(ctx),
+        outputs={"psd": _psd_output("mean model with the trial's effects, fitting layout (NaN: derived exactly from "
+                                    "another trial)", finite=False)},
+        units={"frequency": "Hz"}, parameters={**base, "trials": json.dumps(trials, sort_keys=True)})
+
+
+def _trials(k, results, base):
+    ctx = _ctx(base)
+    s = ctx.settings
+    st = state_before(ctx, results, k)
+    name = f"step{k}_trials"
+    if not st["active"]:
+        return _skipped(name, st["reason"])
+    held = json.loads(st["effects"])
+    trials = [{"candidate": "", "effects": held, "r": st["r"]}]
+    for n, sig in sorted(st["screen"].items(), key=lambda kv: list(CATALOG).index(kv[0])):
+        cand = CATALOG[n]
+        for e in cand.trials(sig["estimate"], ctx.spec, s.grid_points):
+            trials.append({"candidate": n, "effects": held + [effect_to_dict(e)], "r": st["r"],
+                           "analytic": cand.exact_from_baseline})
+    return _trial_study(name, base, ctx, trials,
+                        f"step {k}: trial grids of {sorted(st['screen'])} (mean model, fitting blocks, chosen effects held)")
+
+
+def _trial_psds(ds, trials, centre=0) -> np.ndarray:
+    """The trials' PSDs (T, F, m), the analytic ones derived from trial ``centre``."""
+    psd = ds["psd"].transpose("trial", "frequency", "sensor").values.copy()
+    base_effects = {json.dumps(e, sort_keys=True) for e in trials[centre]["effects"]}
+    for i, t in enumerate(trials):
+        if t.get("analytic"):
+            new = [effect_from_dict(e) for e in t["effects"] if json.dumps(e, sort_keys=True) not in base_effects]
+            old = [effect_from_dict(e) for e in trials[centre]["effects"]
+                   if json.dumps(e, sort_keys=True) not in {json.dumps(x, sort_keys=True) for x in t["effects"]}]
+            p = psd[centre].copy()
+            for e in old:
+                p = CATALOG[e.name].from_baseline(e, p, remove=True)
+            for e in new:
+                p = CATALOG[e.name].from_baseline(e, p)
+            psd[i] = p
+    return psd
+
+
+def selection(ctx, results, k: int) -> dict:
+    """The choice of step k from its trials (see :mod:`tubeid.diagnose._selection`): {"current"
+    (the held-out error of the model so far), "candidates" ([{name, k, fit_error, held_out_error,
+    penalised, trials, effect, offset}]), "chosen" (name or ""), "effects" (JSON list with the
+    chosen effect), "r" (levelled by the chosen trial's offset)}."""
+    s = ctx.settings
+    ds = results[f"step{k}_trials"]
+    trials = json.loads(_params(ds)["trials"])
+    psd = _trial_psds(ds, trials)
+    sigma = _sigma(results)
+    # derived trials (a tone's amplitude profile): appended, with their effect
+    trials, psd = list(trials), list(psd)
+    for i in range(1, len(trials)):
+        t = trials[i]
+        effect = effect_from_dict(t["effects"][-1])
+        for e, q in CATALOG[t["candidate"]].variants(effect, psd[i], psd[0], ctx.meas.frequency):
+            trials.append({**t, "effects": t["effects"][:-1] + [effect_to_dict(e)], "derived": i})
+            psd.append(q)
+    errs = [_errors(ctx, p, sigma) for p in psd]
+    current = errs[0][2]
+    scored, info = [], []
+    for n in dict.fromkeys(t["candidate"] for t in trials[1:]):
+        idx = [i for i, t in enumerate(trials) if t["candidate"] == n]
+        i = min(idx, key=lambda j: errs[j][1])
+        kk = CATALOG[n].n_parameters(ctx.spec)
+        sc = Scored(n, kk, errs[i][1], errs[i][2])
+        scored.append(sc)
+        info.append({"name": n, "k": kk, "fit_error": errs[i][1], "held_out_error": errs[i][2],
+                     "penalised": sc.penalised(s.penalty), "trials": len(idx), "effect": trials[i]["effects"][-1],
+                     "offset": errs[i][0], "trial": i})
+    c = choose(scored, current, s.penalty)
+    out = {"current": current, "candidates": info, "chosen": "" if c is None else c.name}
+    if c is not None:
+        best = next(x for x in info if x["name"] == c.name)
+        out["effects"] = json.dumps(trials[best["trial"]]["effects"], sort_keys=True)
+        out["r"] = list(scaled_r(trials[0]["r"], best["offset"]))
+    return out
+
+
+def _surrogate(ctx, results, effects, r, band_stage):
+    """The linear surrogate of the declared model with ``effects`` at ``r``, its contact weight
+    from the band stage ``band_stage``."""
+    from tubeid.diagnose._surrogate import LinearSurrogate
+
+    spec = apply_effects(ctx.spec, effects)
+    sur = LinearSurrogate(spec, load_spectrum(spec, r, ctx.settings), ctx.meas.frequency)
+    ds = results[band_stage]
+    sur.contact = float(np.mean(ds["contact"].sel(realisation=ds["realisation"].values >= 0).values))
+    return sur
+
+
+def _refit(k, results, base):
+    ctx = _ctx(base)
+    name = f"step{k}_refit"
+    if skipped(results[f"step{k}_trials"]):
+        return _skipped(name, "no selection at this step")
+    sel = selection(ctx, results, k)
+    if not sel["chosen"]:
+        return _skipped(name, "no candidate pays its penalty")
+    effects = [effect_from_dict(e) for e in json.loads(sel["effects"])]
+    r = [float(v) for v in sel["r"]]
+    centre = {"effects": [effect_to_dict(e) for e in effects], "r": r}
+    trials, lines = [dict(centre)], []
+    for j in range(len(r)):
+        values = [r[j] * 10.0**u for u in (-0.1, 0.0, 0.1)]
+        idx = []
+        for v in values:
+            if v == r[j]:
+                idx.append(0)
+                continue
+            rr = list(r)
+            rr[j] = float(v)
+            trials.append({"effects": centre["effects"], "r": rr})
+            idx.append(len(trials) - 1)
+        lines.append({"what": "r", "index": j, "parameter": R_DIMS[j], "log": True, "values": values, "trials": idx})
+    sur = _surrogate(ctx, results, effects, r, "band" if k == 1 else f"step{k - 1}_band")
+    for i, e in enumerate(effects):
+        cand = CATALOG[e.name]
+        for par, (values, log, variants) in cand.refine(e, ctx.spec, sur).items():
+            idx = []
+            for v, ev in zip(values, variants):
+                if ev == e:
+                    idx.append(0)
+                    continue
+                eff = list(centre["effects"])
+                eff[i] = effect_to_dict(ev)
+                trials.append({"effects": eff, "r": r, "analytic": cand.exact_from_baseline})
+                idx.append(len(trials) - 1)
+            lines.append({"what": "effect", "index": i, "parameter": par, "log": log, "values": [float(v) for v in values],
+                          "trials": idx})
+    st = _trial_study(name, base, ctx, trials, f"step {k}: joint re-fit of r and {[e.name for e in effects]} (lines of 3)")
+    return dataclasses.replace(st, parameters={**st.parameters, "lines": json.dumps(lines, sort_keys=True)})
+
+
+def refit_result(ctx, results, k: int) -> dict:
+    """The joint re-fit of step k: each line's minimiser (fitting blocks, no level profiling: r is
+    one of the lines) → {"effects" (JSON), "r", "lines" ([{what, parameter, values, errors, best}])}."""
+    ds = results[f"step{k}_refit"]
+    p = _params(ds)
+    trials, lines = json.loads(p["trials"]), json.loads(p["lines"])
+    psd = _trial_psds(ds, trials)
+    sigma = _sigma(results)
+    f = ctx.meas.frequency
+    fit_err = [prediction_error(ctx.meas.fit, q, sigma, f) for q in psd]
+    effects = [effect_from_dict(e) for e in trials[0]["effects"]]
+    r = list(trials[0]["r"])
+    report, best_of = [], {}
+    for ln in lines:
+        errs = [fit_err[i] for i in ln["trials"]]
+        best = line_minimum(ln["values"], errs, ln["log"])
+        report.append({**{k_: ln[k_] for k_ in ("what", "index", "parameter", "values")}, "errors": errs, "best": best})
+        if ln["what"] == "r":
+            r[ln["index"]] = best
+        else:
+            best_of.setdefault(ln["index"], {})[ln["parameter"]] = best
+    sur = _surrogate(ctx, results, effects, trials[0]["r"], "band" if k == 1 else f"step{k - 1}_band")
+    for i, best in best_of.items():
+        effects[i] = CATALOG[effects[i].name].combine(effects[i], best, ctx.spec, sur)
+    return {"effects": method.effects_to_json(effects), "r": [float(v) for v in r], "lines": report,
+            "centre_fit_error": fit_err[0]}
+
+
+def _band_k(k, results, base):
+    ctx = _ctx(base)
+    name = f"step{k}_band"
+    if skipped(results[f"step{k}_refit"]):
+        return _skipped(name, "no effect chosen at this step", summarize_band)
+    rf = refit_result(ctx, results, k)
+    return _band_study(name, base, ctx, rf["r"], rf["effects"], _delta(results),
+                       results["load_delta_f"].attrs["delta_F_used"], k, f"after step {k}")
+
+
+def point_result(ctx, results, k: int) -> dict:
+    """The mean model at the point of band stage k (0: before any effect; k: after step k's
+    re-fit): {"effects", "r", "offset", "fit_error", "held_out_error"}."""
+    ds = results["band" if k == 0 else f"step{k}_band"]
+    p = _params(ds)
+    o, fe, he = _errors(ctx, mean_prediction(ds), _sigma(results))
+    return {"effects": json.loads(p["effects"]), "r": p["r"], "offset": o, "fit_error": fe, "held_out_error": he}
+
+
+_BUILDERS = {"trials": _trials, "refit": _refit, "band": _band_k}
+
+
+def _step_stage(k: int, kind: str):
+    def stage(results, *, data, data_sha256, model, settings):
+        return _BUILDERS[kind](k, results, _base(data, data_sha256, model, settings))
+
+    stage.__name__ = stage.__qualname__ = f"step{k}_{kind}"
+    return stage
+
+
+study = Pipeline(
+    name="diagnose",
+    seed=SEED,
+    description="tubeid diagnose: delta, load (r, delta_F), the calibrated test, forward selection of effects with joint re-fits",
+    stages=[delta_ml, load_r, load_r_fine, load_delta_f, band,
+            *[_step_stage(k, kind) for k in range(1, MAX_EFFECTS + 1) for kind in STEP_STAGES]],
+    warmup=Warmup(warmup.MESSAGE, run=warmup.compile_solver, needed=warmup.cache_is_cold),
+    parameters={
+        "data": Parameter("", doc="path of the validated record (NetCDF written by tubeid diagnose)"),
+        "data_sha256": Parameter("", doc="content hash of the record (tubeid.diagnose.method.data_hash)"),
+        "model": Parameter("", doc="declared model: JSON of spec_to_dict"),
+        "settings": Parameter("", doc="DiagnoseSettings.to_json()"),
+    },
+)
