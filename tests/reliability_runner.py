@@ -340,6 +340,37 @@ def overwrite(tmp: Path, study: Path, ref: Path) -> dict:
     return out
 
 
+def output_manifest(tmp: Path) -> dict:
+    """The output directory of a diagnosis (``OutputDir``) whose manifest was edited to list a file outside it,
+    with that file's true checksum: removing tubeid's outputs must refuse, deleting nothing."""
+    from tubeid._outputs import OutputDir, file_sha256
+
+    out = collections.Counter()
+    victim = tmp / "victim.txt"
+    for entry in ("../victim.txt", str(victim), "sub/victim.txt"):
+        victim.write_text("precious")
+        (tmp / "od" / "sub").mkdir(parents=True, exist_ok=True)
+        (tmp / "od" / "sub" / "victim.txt").write_text("precious")
+        od = OutputDir(tmp / "od")
+        od.write_text("report.md", "x")
+        m = json.loads((tmp / "od" / MANIFEST_NAME).read_text())
+        m["entries"][entry] = {"kind": "file", "sha256": file_sha256(victim), "size": 8, "written": "then"}
+        (tmp / "od" / MANIFEST_NAME).write_text(json.dumps(m))
+        try:
+            od.remove()
+            refused = False
+        except SpecificationError:
+            refused = True
+        except Exception:  # noqa: BLE001
+            out["traceback"] += 1
+            continue
+        lost = int(not victim.is_file()) + int(not (tmp / "od" / "sub" / "victim.txt").is_file())
+        out["refused" if refused and not lost else "wrong"] += 1
+        out["data lost"] += lost
+        shutil.rmtree(tmp / "od")
+    return out
+
+
 def network(tmp: Path, study: Path) -> dict:
     """A TLS scheduler reached by tcp://, a bare address, tls:// without certificates; an unreachable one;
     foreign clients (plain TCP, TLS of other credentials) on the embedded cluster."""
@@ -406,6 +437,8 @@ def main() -> None:
             rows[name] = counter
         for name, counter in overwrite(tmp, study, ref).items():
             rows[name] = counter
+        rows["a diagnosis's output directory: its manifest edited to list ../, an absolute path, a sub-path"] = \
+            output_manifest(tmp)
         if not args.no_network:
             rows["tcp://, bare address, tls:// without certificates to a TLS scheduler; unreachable; foreign "
                  "clients on the embedded cluster"] = network(tmp, study)
