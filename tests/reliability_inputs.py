@@ -283,6 +283,9 @@ def tls(tmp: Path) -> dict:
     (tmp / "t6").mkdir()
     (tmp / "t6" / "ca-key.pem").write_text("legacy")
     layouts.append(("legacy ca-key.pem in OUTPUT_DIR", (tmp / "t6", "DNS:x", tmp / "t6ca")))
+    (tmp / "t7" / "keys").mkdir(parents=True)
+    (tmp / "t7ca").symlink_to(tmp / "t7" / "keys", target_is_directory=True)  # looks outside, leads inside
+    layouts.append(("CA_DIR a symlink into OUTPUT_DIR", (tmp / "t7", "DNS:x", tmp / "t7ca")))
     for _name, args in layouts:
         r = run(*args)
         folder = Path(args[0])

@@ -105,3 +105,24 @@ def test_concurrent_writers_lose_no_manifest_entry(tmp_path):
         p.join(60)
     assert all(p.exitcode == 0 for p in procs)
     assert len(OutputDir(tmp_path).entries()) == 60
+
+
+@pytest.mark.parametrize("entry", ["../victim.txt", "absolute", "sub/victim.txt"])
+def test_a_manifest_naming_a_file_outside_the_directory_removes_nothing(tmp_path, entry):
+    """An edited manifest is no proof, even with the file's true checksum: tubeid records plain names only."""
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious")
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "victim.txt").write_text("precious")
+    out = OutputDir(tmp_path / "out")
+    out.write_text("report.md", "x")
+    name = str(victim) if entry == "absolute" else entry
+    target = tmp_path / "out" / name if entry != "absolute" else victim
+    manifest = json.loads((tmp_path / "out" / MANIFEST_NAME).read_text())
+    manifest["entries"][name] = {"kind": "file", "sha256": file_sha256(target if target.exists() else victim),
+                                 "size": 8, "written": "then"}
+    (tmp_path / "out" / MANIFEST_NAME).write_text(json.dumps(manifest))
+    with pytest.raises(SpecificationError, match="not plain file names"):
+        out.remove()
+    assert victim.read_text() == "precious" and (tmp_path / "sub" / "victim.txt").read_text() == "precious"
+    assert (tmp_path / "out" / "report.md").read_text() == "x"

@@ -297,6 +297,22 @@ def test_connect_timeout_comes_from_the_environment(tmp_path):
     assert out.returncode == 2 and "connect-timeout = 3s" in out.stderr and "Traceback" not in out.stderr
 
 
+@pytest.mark.parametrize("scheme, hint", [("", "give its tls:// address"), ("tls://", "needs the client certificates")])
+def test_an_unreachable_scheduler_names_the_tls_remedy(scheme, hint):
+    """A bare host:port is tcp:// too (the TLS hint applies); tls:// without client certificates says what is missing."""
+    import dask.config
+
+    from tubeid.errors import SpecificationError
+    from tubeid.runner.execute import _connect
+
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    with dask.config.set({"tubeid.runner.connect-timeout": "2s"}), \
+            pytest.raises(SpecificationError, match=rf"scheduler = '{scheme}127.0.0.1:{port}': cannot connect.*{hint}"):
+        _connect(f"{scheme}127.0.0.1:{port}")
+
+
 def test_the_embedded_cluster_admits_only_its_own_client(study, tmp_path):
     """Ephemeral TLS: the embedded scheduler speaks TLS only and refuses a client with other credentials."""
     from distributed import Client

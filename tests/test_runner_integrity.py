@@ -52,11 +52,20 @@ def _rewrite_values(store: pathlib.Path) -> None:
     arr[1:2, 4:6] = 2.0 * arr[1:2, 4:6]
 
 
+def _nan_values(store: pathlib.Path) -> None:
+    """Valid chunk bytes of block (0, 2) of x holding NaN (what a careless edit or a failed copy may leave)."""
+    arr = zarr.open_group(str(store), mode="r+", use_consolidated=False)["x"]
+    arr[0:1, 4:5] = np.nan  # half the block: the chunk stays (a chunk of fill values only would be removed)
+
+
 # damage -> (what verification names, blocks the repairing run computes, of which found damaged by verification)
 DAMAGE = {
     "deleted data chunk": (lambda s: (s / "x/c/0/3/0").unlink(), "block (0, 3): checksum mismatch: chunk x/c/0/3/0 missing", 1, 1),
     "garbage data chunk": (lambda s: _garbage(s / "count/c/1/1"), "block (1, 1): chunk count/c/1/1 undecodable", 1, 1),
+    # an integer chunk deleted reads as the fill value 0, not NaN
+    "deleted integer chunk": (lambda s: (s / "count/c/1/2").unlink(), "block (1, 2): checksum mismatch: chunk count/c/1/2 missing", 1, 1),
     "changed values": (_rewrite_values, "block (1, 2): checksum mismatch: values differ from what the block wrote", 1, 1),
+    "values overwritten with NaN": (_nan_values, "block (0, 2): checksum mismatch: values differ from what the block wrote", 1, 1),
     "deleted array": (lambda s: shutil.rmtree(s / "x"), "array x missing", 8, 8),
     "garbage flag chunk": (lambda s: _garbage(s / BOOKKEEPING / FLAG / "c/0/1"), "block (0, 1): flag chunk undecodable", 1, 1),
     # unproven blocks are recomputed (none is "damaged": there is no flag to check them against)
@@ -82,6 +91,13 @@ def test_damage_is_named_and_exactly_the_damaged_blocks_are_recomputed(reference
     out = capsys.readouterr().out
     if damage == "garbage data chunk":
         assert "count [1]: DAMAGED" in out and "count/c/1/1" in out
+    # ... and names a deleted chunk or array (read as NaN, or 0 for integers), beside the statistics
+    shown = {"deleted data chunk": "DAMAGED: block (0, 3): checksum mismatch: chunk x/c/0/3/0 missing",
+             "deleted integer chunk": "DAMAGED: block (1, 2): checksum mismatch: chunk count/c/1/2 missing",
+             "deleted array": "DAMAGED: block (0, 0): array x missing",
+             "values overwritten with NaN": "DAMAGED: block (0, 2): checksum mismatch: values differ"}
+    if damage in shown:
+        assert shown[damage] in out, out
     # a plain run (no --overwrite) repairs: exactly the damaged blocks are recomputed
     report = run(study, store, workers=0, quiet=True)
     assert (report.computed, report.repaired) == (computed, repaired)
@@ -164,6 +180,8 @@ def _values_study(values, dtype="float64", finite=True):
     ([1.5, 2.0], "int32", "must be whole numbers"),
     ([np.nan, 1.0], "int64", "cannot hold NaN"),
     ([2, 0], "bool", "must be 0 or 1"),
+    ([2.0**63, 0.0], "int64", "must lie in [-9223372036854775808, 9223372036854775807]"),  # max rounds up to 2**63
+    ([2.0**64, 1.0], "uint64", "must lie in [0, 18446744073709551615]"),
 ])
 def test_bad_block_values_are_refused_naming_output_block_and_rule(values, dtype, rule):
     s = _values_study(values, dtype)
@@ -173,7 +191,7 @@ def test_bad_block_values_are_refused_naming_output_block_and_rule(values, dtype
     assert err.value.field == "outputs.y" and rule in err.value.rule and "block (2,)" in str(err.value)
 
 
-def test_a_refused_block_is_not_marked_done_and_declared_nonfinite_values_are_stored(tmp_path):
+def test_a_refused_block_is_not_marked_done_and_declared_nonfinite_values_are_stored(tmp_path, capsys):
     src = tmp_path / "bad.py"
     src.write_text('''
 import numpy as np
@@ -194,6 +212,7 @@ study = Study(name="bad", seed=0, axes={"r": range(6)}, chunks={"r": 2}, task=ta
     y = open_results(tmp_path / "ok.zarr").y.values
     assert np.isnan(y[3]) and np.array_equal(y[[0, 1, 2, 4, 5]], [0, 1, 2, 4, 5])
     assert cli(["status", str(tmp_path / "ok.zarr"), "--verify"]) == 0  # NaN is a value, checksummed like any
+    assert cli(["show", str(tmp_path / "ok.zarr")]) == 0 and "DAMAGED" not in capsys.readouterr().out
 
 
 # -- what a plain xarray user sees -------------------------------------------------------------------------------
@@ -298,6 +317,46 @@ def test_a_store_without_manifest_is_not_deleted(reference, tmp_path):
     with pytest.raises(SpecificationError, match="no manifest"):
         run(reference[0], store, workers=0, quiet=True, overwrite=True)
     assert store_digest(store) == before
+
+
+@pytest.mark.parametrize("entry", ["../victim.zarr/data", "absolute", "symlink"])
+def test_a_manifest_naming_files_outside_the_store_deletes_nothing(reference, tmp_path, entry):
+    """An edited manifest is no proof: a node outside the store (``..``, absolute, through a symlink) is refused."""
+    victim = tmp_path / "victim.zarr"  # a user's Zarr store beside the tubeid store
+    zarr.open_group(str(victim), mode="w").create_array("data", data=np.arange(10.0), chunks=(5,))
+    before = store_digest(victim)
+    store = _copy(reference, tmp_path)
+    manifest = json.loads((store / MANIFEST_NAME).read_text())
+    if entry == "absolute":
+        entry = str(victim / "data")
+    elif entry == "symlink":
+        (store / "mine").symlink_to(victim / "data", target_is_directory=True)
+        entry = "mine"
+    manifest["nodes"][entry] = "array"
+    (store / MANIFEST_NAME).write_text(json.dumps(manifest))
+    kept = store_digest(store)
+    with pytest.raises(SpecificationError, match="outside the store"):
+        run(reference[0], store, workers=0, quiet=True, overwrite=True)
+    assert store_digest(victim) == before and (victim / "zarr.json").is_file() and store_digest(store) == kept
+
+
+@pytest.mark.parametrize("damage, rule", [
+    ("root metadata deleted", "is not a tubeid study store"), ("root metadata garbage", "is not a readable Zarr store"),
+    ("garbage lock file", "unreadable lock file"), ("empty lock file", "unreadable lock file")])
+def test_damage_a_runner_cannot_repair_is_refused_and_nothing_is_deleted(reference, tmp_path, damage, rule):
+    """Without the root's provenance the store cannot be proven to be this study's; a lock file nobody can read
+    cannot be proven stale: both are refused by name, every file left as it was."""
+    from tubeid.runner.lock import LOCK_NAME
+
+    store = _copy(reference, tmp_path)
+    {"root metadata deleted": lambda: (store / "zarr.json").unlink(),
+     "root metadata garbage": lambda: (store / "zarr.json").write_text("{garbage"),
+     "garbage lock file": lambda: (store / LOCK_NAME).write_text("{garbage"),
+     "empty lock file": lambda: (store / LOCK_NAME).write_text("")}[damage]()
+    before = {f: f.read_bytes() for f in store.rglob("*") if f.is_file()}
+    with pytest.raises(SpecificationError, match=rule):
+        run(reference[0], store, workers=0, quiet=True)
+    assert {f: f.read_bytes() for f in store.rglob("*") if f.is_file()} == before
 
 
 # -- parameters are typed --------------------------------------------------------------------------------------------

@@ -66,13 +66,18 @@ def test_a_second_run_issues_new_certificates_from_the_same_ca(tmp_path):
         _public_of_key(k) != _public_of_key(ca / "ca-key.pem") for k in _private_keys(tmp_path / "more"))
 
 
-@pytest.mark.parametrize("layout", ["ca inside output", "ca is output", "legacy key in output"])
+@pytest.mark.parametrize("layout", ["ca inside output", "ca is output", "legacy key in output",
+                                    "ca a symlink into output"])
 def test_layouts_that_would_expose_the_ca_key_are_refused(tmp_path, layout):
     out = tmp_path / "tls"
     if layout == "legacy key in output":  # what the earlier script left there
         out.mkdir()
         (out / "ca-key.pem").write_text("-----BEGIN PRIVATE KEY-----\n")
         ca = tmp_path / "ca"
+    elif layout == "ca a symlink into output":  # CA_DIR looks outside, but the key would land inside
+        (out / "keys").mkdir(parents=True)
+        ca = tmp_path / "ca-link"
+        ca.symlink_to(out / "keys")
     else:
         ca = out / "ca" if layout == "ca inside output" else out
     run = _make(out, "DNS:localhost", ca, check=False)

@@ -52,6 +52,15 @@ def file_sha256(path: os.PathLike | str, chunk: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
+def _plain_name(name) -> bool:
+    """A plain file name inside the directory (no separator, ``..`` or absolute path), not tubeid's own files."""
+    if not isinstance(name, str) or not name or "\\" in name:
+        return False
+    p = pathlib.PurePosixPath(name)
+    return not (p.is_absolute() or ".." in p.parts or len(p.parts) != 1 or name in (MANIFEST_NAME, _LOCK_NAME)
+                or name.startswith(_TMP_PREFIX))
+
+
 def _now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
 
@@ -105,11 +114,17 @@ class OutputDir:
             entries = doc["entries"]
             if not isinstance(entries, dict):
                 raise TypeError
-            return entries
         except (ValueError, KeyError, TypeError, OSError):
             raise SpecificationError(f"{self.field} manifest", str(p),
                                      "is not a tubeid manifest (unreadable): tubeid will not touch this directory's "
                                      "files; move it aside or choose another directory") from None
+        outside = [n for n in entries if not _plain_name(n)]
+        if outside:  # tubeid only ever records plain names: an edited or damaged manifest proves nothing
+            raise SpecificationError(f"{self.field} manifest", str(p),
+                                     f"lists {outside[:3]}, not plain file names in this directory: tubeid never "
+                                     "writes such entries and will not touch this directory's files; move it aside "
+                                     "or choose another directory")
+        return entries
 
     def _write_manifest(self, entries: dict) -> None:
         doc = {"tubeid_manifest": _VERSION, "entries": dict(sorted(entries.items()))}
@@ -134,9 +149,7 @@ class OutputDir:
             raise
 
     def _name(self, name: str) -> str:
-        p = pathlib.PurePosixPath(name)
-        if p.is_absolute() or ".." in p.parts or len(p.parts) != 1 or name in (MANIFEST_NAME, _LOCK_NAME) \
-                or name.startswith(_TMP_PREFIX):
+        if not _plain_name(name):
             raise SpecificationError("output name", name, "must be a plain file name inside the output directory")
         return name
 

@@ -27,7 +27,11 @@ san="${2:-DNS:localhost,IP:127.0.0.1}"
 out_abs="$(mkdir -p "$out" && cd "$out" && pwd -P)"
 ca="${3:-$out_abs.ca}"
 days="${TUBEID_TLS_DAYS:-365}"
-ca_abs="$(mkdir -p "$(dirname "$ca")" && cd "$(dirname "$ca")" && pwd -P)/$(basename "$ca")"  # not created yet
+if [ -e "$ca" ] || [ -L "$ca" ]; then        # an existing CA_DIR (or a symlink): where the key would really go
+  ca_abs="$(cd "$ca" && pwd -P)"
+else
+  ca_abs="$(mkdir -p "$(dirname "$ca")" && cd "$(dirname "$ca")" && pwd -P)/$(basename "$ca")"  # not created yet
+fi
 case "$ca_abs/" in
   "$out_abs/"*)
     echo "make-certs.sh: CA_DIR $ca_abs is OUTPUT_DIR or inside it; the CA key must not go where the" \

@@ -174,15 +174,24 @@ def _print_dataset(ds, store, group=None) -> None:
                 unreadable[name] = exc
     print(shown)
     damage = None
+    finished = _finished_blocks(store, group)
+    node = lambda name: f"{group}/{name}" if group else name  # noqa: E731 - the output's node, as verify names it
     for name, var in shown.data_vars.items():
         if var.size > 50_000_000:
             continue
-        if name in unreadable:
-            if damage is None:
-                from tubeid.runner.integrity import verify
+        # a chunk that cannot be decoded, or a finished block without its chunk or with missing values (a deleted
+        # chunk or array reads as the fill value): the store's verification names the damage, if any
+        suspect = name in unreadable or (finished is not None and _looks_damaged(store, node(name), var, finished))
+        if suspect and damage is None:
+            from tubeid.runner.integrity import verify
 
-                damage = verify(store, group)
-            bad = [f"block {i}: {r}" for i, r in sorted(damage.damaged.items()) if f"{name}/c/" in r]
+            damage = verify(store, group)
+        # a damaged block of this output: its chunk or array named, or changed values (verification cannot
+        # tell which output of the block changed)
+        bad = [f"block {i}: {r}" for i, r in sorted(damage.damaged.items())
+               if f"{node(name)}/c/" in r or f"array {node(name)} " in r or not ("/c/" in r or "array " in r)
+               ] if suspect else []
+        if name in unreadable:
             print(f"  {name} [{var.attrs.get('units', '')}]: DAMAGED, cannot be read ({type(unreadable[name]).__name__}); "
                   + ("; ".join(bad[:5]) or "see `tubeid status --verify`")
                   + ("" if len(bad) <= 5 else f"; ... {len(bad) - 5} more")
@@ -191,7 +200,46 @@ def _print_dataset(ds, store, group=None) -> None:
         v = np.asarray(var.values, dtype=float)
         ok = np.isfinite(v)
         stats = f"mean {v[ok].mean():.6g}, min {v[ok].min():.6g}, max {v[ok].max():.6g}" if ok.any() else "no data yet"
-        print(f"  {name} [{var.attrs.get('units', '')}]: {stats} ({ok.mean():.0%} written)")
+        print(f"  {name} [{var.attrs.get('units', '')}]: {stats} ({ok.mean():.0%} written)"
+              + (f"; DAMAGED: {'; '.join(bad[:5])}" + ("" if len(bad) <= 5 else f"; ... {len(bad) - 5} more")
+                 + "; rerun `tubeid run` on its study to recompute" if bad else ""))
+
+
+def _finished_blocks(store, group):
+    """``(axes, chunks, flags)`` of the store's finished blocks (None if the bookkeeping is unreadable)."""
+    from tubeid.runner.store import BOOKKEEPING, _group, read_flags
+
+    try:
+        attrs = _group(store, group, consolidated=False)[BOOKKEEPING].attrs
+        return list(attrs["axes"]), [int(c) for c in attrs["chunks"]], read_flags(store, group)[0] != 0
+    except Exception:  # damaged bookkeeping: `status` says so
+        return None
+
+
+def _looks_damaged(store, node: str, var, finished) -> bool:
+    """Whether output ``var`` (node ``node``) may be damaged in a finished block: a chunk file is missing (a
+    deleted chunk or array reads as the fill value: NaN, or 0 for integers) or a float value is not finite.
+    Only a hint (a block equal to the fill value has no chunk file; an output may declare non-finite values):
+    the store's verification decides."""
+    import pathlib
+
+    import numpy as np
+
+    from tubeid.runner.integrity import chunk_key
+
+    axes, chunks, done = finished
+    if not set(axes) <= set(var.dims):
+        return False
+    if any(not (pathlib.Path(store) / chunk_key(node, index, var.ndim)).is_file() for index in zip(*np.nonzero(done))):
+        return True
+    if var.dtype.kind not in "fc":
+        return False
+    for k, c in enumerate(chunks):  # block grid -> values (numpy only: a new xarray object would import dask.array)
+        done = np.repeat(done, c, axis=k)
+    order = [d for d in var.dims if d in axes]
+    done = np.transpose(done, [axes.index(d) for d in order])[tuple(slice(0, var.sizes[d]) for d in order)]
+    mask = np.broadcast_to(done.reshape([var.sizes[d] if d in axes else 1 for d in var.dims]), var.shape)
+    return not bool(np.isfinite(np.asarray(var.values)[mask]).all())
 
 
 def _show(args) -> int:

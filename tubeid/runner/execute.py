@@ -231,8 +231,13 @@ def _connect(scheduler: str):
         return Client(scheduler, timeout=timeout)
     except Exception as exc:  # unreachable, refused, TLS expected or misconfigured, timed out
         text = f"{type(exc).__name__}: {exc}"
-        hint = ("; if the scheduler uses TLS, give its tls:// address and the client certificates (DASK_CONFIG, "
-                "see cluster/tls)") if scheduler.startswith("tcp://") else ""
+        if scheduler.startswith("tcp://") or "://" not in scheduler:  # no scheme is tcp:// too
+            hint = ("; if the scheduler uses TLS, give its tls:// address and the client certificates (DASK_CONFIG, "
+                    "see cluster/tls)")
+        elif scheduler.startswith("tls://") and "ssl_context" in text:  # no client certificates configured
+            hint = "; a tls:// scheduler needs the client certificates in the dask configuration (DASK_CONFIG, see cluster/tls)"
+        else:
+            hint = ""
         raise SpecificationError("scheduler", scheduler,
                                  f"cannot connect within tubeid.runner.connect-timeout = {timeout} ({text[:300]}){hint}") from exc
 

@@ -11,7 +11,8 @@ half-written lock). Where hard links are not supported, ``open(O_CREAT | O_EXCL)
 
 **Stale locks.** A holder on this host (same host name, boot id and PID namespace) is dead when
 its PID is gone or now belongs to a process started at another time. A holder elsewhere (another
-host, container or pod) cannot be asked: it proves it is alive by a heartbeat, touching the lock
+host, container or pod; also a host of the same name with another boot id: rebooted, or a second
+machine of the same name) cannot be asked: it proves it is alive by a heartbeat, touching the lock
 file every ``tubeid.runner.lock-heartbeat`` (default 10 s); its lock is stale when the file's
 modification time is older than ``tubeid.runner.lock-stale-after`` (default 60 s), measured on
 the file server's clock (against a probe file created beside it), so clock skew between hosts
@@ -140,9 +141,10 @@ def _server_age(path: pathlib.Path, token: str) -> float | None:
 def holder_state(rec: dict, path: pathlib.Path) -> tuple[str, str]:
     """``("alive" | "dead", why)`` for the holder recorded in ``rec`` (lock file ``path``)."""
     me = _me()
-    same_host = rec.get("host") == me["host"] and rec.get("pid_ns") == me["pid_ns"]
-    if same_host and rec.get("boot") != me["boot"]:
-        return "dead", "the host has rebooted since"
+    # Same host: same name, PID namespace and boot. A different boot id under the same name is a reboot,
+    # or another machine with the same host name (cloned VMs; every host's initial PID namespace has the
+    # same inode): its PIDs mean nothing here, so its lock is judged by its heartbeat like any other host's.
+    same_host = rec.get("host") == me["host"] and rec.get("pid_ns") == me["pid_ns"] and rec.get("boot") == me["boot"]
     if same_host:
         start, recorded = _process_start(int(rec.get("pid", -1))), rec.get("pid_start")
         if start is None:
@@ -154,8 +156,10 @@ def holder_state(rec: dict, path: pathlib.Path) -> tuple[str, str]:
     stale_after = _seconds("runner.lock-stale-after", 60)
     if age is None:
         return "dead", "the lock was just released"
+    rebooted = rec.get("host") == me["host"] and rec.get("boot") != me["boot"]
     if age > stale_after:
-        return "dead", f"no heartbeat for {age:.0f} s (> tubeid.runner.lock-stale-after = {stale_after:g} s)"
+        return "dead", (f"no heartbeat for {age:.0f} s (> tubeid.runner.lock-stale-after = {stale_after:g} s)"
+                        + ("; the host has rebooted since, or it is another host of the same name" if rebooted else ""))
     return "alive", f"its last heartbeat was {max(age, 0):.0f} s ago (stale after {stale_after:g} s)"
 
 

@@ -244,8 +244,30 @@ def _node_files(p: pathlib.Path, node: str, kind: str) -> list[pathlib.Path]:
     return out
 
 
+def _check_nodes(p: pathlib.Path, nodes: dict) -> None:
+    """Refuse a manifest naming a node outside the store (``..``, an absolute path, a symlink leading out):
+    tubeid never wrote there, so nothing is deleted (the manifest was edited or damaged)."""
+    root = p.resolve()
+
+    def inside(node) -> bool:
+        if not isinstance(node, str):
+            return False
+        pure = pathlib.PurePosixPath(node)
+        if node and (pure.is_absolute() or ".." in pure.parts or "\\" in node):
+            return False
+        d = (p / node).resolve() if node else root
+        return d == root or root in d.parents
+
+    outside = [n for n in nodes if not inside(n)]
+    if outside:
+        raise SpecificationError("store", str(p), f"its manifest {MANIFEST_NAME} lists {outside[:3]} outside the store: "
+                                 "tubeid never writes there, so it deletes nothing (the manifest was edited or damaged; "
+                                 "remove the store yourself, or choose another --store)")
+
+
 def _remove_nodes(p: pathlib.Path, nodes: dict) -> None:
     """Remove the files of ``nodes`` and the directories this leaves empty (deepest first)."""
+    _check_nodes(p, nodes)
     dirs = set()
     for node, kind in nodes.items():
         for f in _node_files(p, node, kind):
@@ -284,6 +306,7 @@ def remove_store(path, *, keep_lock: bool = True, dry_run: bool = False) -> list
         nodes = {}
     else:
         raise SpecificationError("store", str(p), "exists and is not a tubeid store: refusing to delete it (choose another --store)")
+    _check_nodes(p, nodes)
     if dry_run:
         return []
     _remove_nodes(p, nodes)

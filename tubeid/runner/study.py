@@ -262,7 +262,9 @@ class Output:
                 if refuse_if.any():
                     refuse(refuse_if, f"must be whole numbers to be stored as {dt}")
             if arr.size and arr.dtype.kind in "iuf":
-                out = (arr < info.min) | (arr > info.max)
+                # floats against the exclusive bound max + 1 (a power of two, exact): int64's max rounds up to
+                # 2**63 as a float, so 2.0**63 > max is False and the cast would wrap it
+                out = (arr < info.min) | ((arr >= float(info.max) + 1.0) if arr.dtype.kind == "f" else (arr > info.max))
                 if out.any():
                     refuse(out, f"must lie in [{info.min}, {info.max}], the range of {dt} (not wrapped)")
         if dt.kind == "b" and arr.dtype.kind != "b":
