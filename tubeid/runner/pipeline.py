@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from tubeid import _validation
 from tubeid.errors import SpecificationError
 from tubeid.runner.study import RESERVED, Parameter, Parameterised, Study, Warmup, _plain, check_name
 
@@ -65,8 +66,7 @@ class Pipeline(Parameterised):
 
     def __post_init__(self):
         check_name("name", self.name)
-        if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
-            raise SpecificationError("seed", self.seed, "must be a non-negative integer")
+        _validation.seed("seed", self.seed)
         stages = list(self.stages)
         if not stages:
             raise SpecificationError("stages", stages, "must hold at least one stage")

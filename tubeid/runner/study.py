@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from tubeid import _validation
 from tubeid.errors import Described, SpecificationError
 from tubeid.seeds import rng_for
 
@@ -415,8 +416,7 @@ class Study(Parameterised):
         from tubeid import config
 
         check_name("name", self.name)
-        if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
-            raise SpecificationError("seed", self.seed, "must be a non-negative integer")
+        _validation.seed("seed", self.seed)
         if not self.axes:
             raise SpecificationError("axes", dict(self.axes), "must name at least one axis")
         axes = {}
