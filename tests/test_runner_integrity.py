@@ -52,6 +52,15 @@ def _rewrite_values(store: pathlib.Path) -> None:
     arr[1:2, 4:6] = 2.0 * arr[1:2, 4:6]
 
 
+def _swap_blocks(store: pathlib.Path) -> None:
+    """Blocks (0, 1) and (0, 2) swapped whole: their data chunks and their flags (a copy gone wrong)."""
+    for a, b in (("x/c/0/1/0", "x/c/0/2/0"), ("count/c/0/1", "count/c/0/2"),
+                 (f"{BOOKKEEPING}/{FLAG}/c/0/1", f"{BOOKKEEPING}/{FLAG}/c/0/2")):
+        (store / a).rename(store / "swap.tmp")
+        (store / b).rename(store / a)
+        (store / "swap.tmp").rename(store / b)
+
+
 def _nan_values(store: pathlib.Path) -> None:
     """Valid chunk bytes of block (0, 2) of x holding NaN (what a careless edit or a failed copy may leave)."""
     arr = zarr.open_group(str(store), mode="r+", use_consolidated=False)["x"]
@@ -65,6 +74,8 @@ DAMAGE = {
     # an integer chunk deleted reads as the fill value 0, not NaN
     "deleted integer chunk": (lambda s: (s / "count/c/1/2").unlink(), "block (1, 2): checksum mismatch: chunk count/c/1/2 missing", 1, 1),
     "changed values": (_rewrite_values, "block (1, 2): checksum mismatch: values differ from what the block wrote", 1, 1),
+    # the values are intact but each sits at the other block's coordinates
+    "blocks swapped whole": (_swap_blocks, "block (0, 1): checksum mismatch: values differ from what the block wrote", 2, 2),
     "values overwritten with NaN": (_nan_values, "block (0, 2): checksum mismatch: values differ from what the block wrote", 1, 1),
     "deleted array": (lambda s: shutil.rmtree(s / "x"), "array x missing", 8, 8),
     "garbage flag chunk": (lambda s: _garbage(s / BOOKKEEPING / FLAG / "c/0/1"), "block (0, 1): flag chunk undecodable", 1, 1),
@@ -118,15 +129,16 @@ def test_no_verify_trusts_the_flags(reference, tmp_path):
 
 def test_checksums_are_of_the_values_written():
     a = {"x": np.arange(6.0).reshape(2, 3), "n": np.array([1, 2], dtype="int32")}
-    c = integrity.block_checksum(a)
-    assert c != 0 and c == integrity.block_checksum({"n": a["n"].copy(), "x": a["x"].copy()})  # order-free
+    c = integrity.block_checksum(a, (0, 1))
+    assert c != 0 and c == integrity.block_checksum({"n": a["n"].copy(), "x": a["x"].copy()}, [0, 1])  # order-free
+    assert integrity.block_checksum(a, (1, 0)) != c  # the same values at another block
     x2 = a["x"].copy()
     x2[1, 2] = np.nextafter(x2[1, 2], np.inf)
     for changed in ({"x": x2, "n": a["n"]},                                                   # one value, by one ulp
                     {"x": a["x"].reshape(3, 2), "n": a["n"]},                               # same bytes, other shape
                     {"x": a["x"], "n": a["n"].astype("int64")},                              # same values, other dtype
                     {"y": a["x"], "n": a["n"]}):                                             # other name
-        assert integrity.block_checksum(changed) != c
+        assert integrity.block_checksum(changed, (0, 1)) != c
     assert integrity.values_checksum([1, 2]) == integrity.values_checksum(np.array([1.0, 2.0]))
     assert integrity.values_checksum(["a", "b"]) != integrity.values_checksum(["ab"])
 
@@ -139,7 +151,7 @@ def test_flags_carry_the_checksums_of_the_stored_blocks(reference):
     x, count = ds.x.values, ds["count"].values
     for i, j in np.ndindex(*f.shape):
         block = {"x": x[i:i + 1, 2 * j:2 * j + 2], "count": count[i:i + 1, 2 * j:2 * j + 2]}
-        assert int(f[i, j]) == integrity.block_checksum(block)
+        assert int(f[i, j]) == integrity.block_checksum(block, (i, j))
 
 
 def test_a_pipeline_stage_is_verified_and_repaired(tmp_path, capsys):

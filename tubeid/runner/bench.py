@@ -94,11 +94,11 @@ def integrity(mb: float = 16.0, reps: int = 9) -> dict:
         ts, tw, tv = [], [], []
         for _ in range(reps):
             t0 = time.perf_counter()
-            block_checksum({"u": a})
+            block_checksum({"u": a}, (0,))
             t1 = time.perf_counter()
             arr[:] = a
             t2 = time.perf_counter()
-            block_checksum({"u": arr[:]})
+            block_checksum({"u": arr[:]}, (0,))
             t3 = time.perf_counter()
             ts.append(t1 - t0), tw.append(t2 - t1), tv.append(t3 - t2)
     c, w, v = (statistics.median(x) for x in (ts, tw, tv))

@@ -19,15 +19,15 @@ import hashlib
 import os
 import pathlib
 import tempfile
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
 __all__ = ["block_checksum", "values_checksum", "verify", "repair_structure", "Verification", "CHECKSUM_RULE",
            "chunk_key"]
 
-CHECKSUM_RULE = ("first 64 bits (little-endian) of SHA-256 over the block's outputs in name order (name, dtype, "
-                 "shape, little-endian values), lowest bit set")
+CHECKSUM_RULE = ("first 64 bits (little-endian) of SHA-256 over the block's index, then its outputs in name order "
+                 "(name, dtype, shape, little-endian values), lowest bit set")
 
 
 def _bytes(a: np.ndarray):
@@ -39,13 +39,16 @@ def _bytes(a: np.ndarray):
     return memoryview(a.reshape(-1)).cast("B") if a.size else b""
 
 
-def block_checksum(outputs: Mapping[str, np.ndarray]) -> int:
-    """Checksum of one block's outputs as stored.
+def block_checksum(outputs: Mapping[str, np.ndarray], index: Sequence[int]) -> int:
+    """Checksum of one block's outputs as stored, at its place in the store.
 
     Parameters
     ----------
     outputs : mapping of str to ndarray
         ``{output name: the block's values}`` in their stored dtype (any order).
+    index : sequence of int
+        The block's index per axis: the same values at another block (e.g. two blocks' chunks and
+        flags swapped) give another checksum.
 
     Returns
     -------
@@ -53,6 +56,7 @@ def block_checksum(outputs: Mapping[str, np.ndarray]) -> int:
         63 bits of SHA-256 (see ``CHECKSUM_RULE``), never 0 (a flag of 0 means "not done").
     """
     h = hashlib.sha256()
+    h.update(f"block {tuple(int(i) for i in index)}\0".encode())
     for name in sorted(outputs):
         a = np.asarray(outputs[name])
         h.update(f"{name}\0{a.dtype.name}\0{a.shape}\0".encode())
@@ -222,7 +226,7 @@ def verify(path: str | os.PathLike, group: str | None = None) -> Verification:
                               f"({type(exc).__name__}: {str(exc)[:80]})")
         if errors:
             ver.damaged[index] = "; ".join(errors)
-        elif block_checksum(values) != int(flags[index]):
+        elif block_checksum(values, index) != int(flags[index]):
             gone = [chunk_key(_node(group, n), index, a.ndim) for n, a in arrays.items()
                     if not _chunk_exists(path, chunk_key(_node(group, n), index, a.ndim))]
             ver.damaged[index] = ("checksum mismatch: " + (f"chunk {', '.join(gone)} missing" if gone else

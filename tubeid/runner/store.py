@@ -562,7 +562,7 @@ def write_block(path, study, block, outputs, group=None) -> None:
     region = tuple(block.slices.values())
     for name, arr in outputs.items():
         g[name][region] = arr
-    g[f"{BOOKKEEPING}/{FLAG}"][tuple(block.index)] = block_checksum(outputs)
+    g[f"{BOOKKEEPING}/{FLAG}"][tuple(block.index)] = block_checksum(outputs, block.index)
 
 
 def store_status(path: str | os.PathLike, group: str | None = None) -> dict:
