@@ -32,6 +32,18 @@ def _time(tree: pathlib.Path, args: list[str], cwd: str) -> float:
     return time.perf_counter() - t
 
 
+def _check_tree(tree: pathlib.Path) -> None:
+    """Exit if ``tubeid`` in a fresh interpreter with ``tree`` on PYTHONPATH is not ``tree``'s (an
+    installed tubeid, e.g. an editable install, comes first and every tree would time the same code)."""
+    env = dict(os.environ, PYTHONPATH=str(tree))
+    where = subprocess.run([sys.executable, "-c", "import tubeid; print(tubeid.__file__)"], env=env,
+                           cwd=tempfile.gettempdir(), capture_output=True, text=True, check=True).stdout.strip()
+    if pathlib.Path(where).resolve().parent != (tree / "tubeid").resolve():
+        sys.exit(f"bench_cli: `import tubeid` gives {where}, not {tree / 'tubeid'}: an installed tubeid shadows "
+                 "PYTHONPATH; run from an environment holding tubeid's dependencies but not tubeid "
+                 "(pip install . && pip uninstall tubeid)")
+
+
 def main() -> None:
     """Print cold and warm times per command and tree, then the ratios to the baseline."""
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -44,6 +56,8 @@ def main() -> None:
     if args.baseline:
         trees = {"baseline": pathlib.Path(args.baseline).resolve(), **trees}
     commands = [["--help"], ["--version"], ["status", store], ["show", store]]
+    for tree in trees.values():
+        _check_tree(tree)
     print("load average before: " + ", ".join(f"{x:.1f}" for x in os.getloadavg()))
     warm: dict[tuple[str, str], float] = {}
     with tempfile.TemporaryDirectory() as cwd:

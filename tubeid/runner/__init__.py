@@ -10,7 +10,8 @@ if TYPE_CHECKING:  # the lazy exports: imported on first use (tubeid._lazy reads
     from tubeid.runner.execute import PipelineReport, RunReport, run
     from tubeid.runner.integrity import Verification, verify
     from tubeid.runner.pipeline import Pipeline
-    from tubeid.runner.store import open_pipeline, open_results, pipeline_status, store_status
+    from tubeid.runner.status import pipeline_status, store_status
+    from tubeid.runner.store import open_pipeline, open_results
     from tubeid.runner.study import Output, Parameter, RngFactory, Study, Warmup, load_study, pointwise
 
 __all__ = [

@@ -112,7 +112,7 @@ def _verifications(store, st):
 
 
 def _status(args) -> int:
-    from tubeid.runner.store import store_status
+    from tubeid.runner.status import store_status  # no zarr import: status answers at once
 
     st = store_status(args.store)
     st["path"] = args.store

@@ -43,7 +43,7 @@ import numpy as np
 import zarr
 
 from tubeid.errors import SpecificationError
-from tubeid.runner.study import RESERVED
+from tubeid.runner.status import BOOKKEEPING, FLAG, FORMAT, LEGACY_FORMATS, PIPELINE_FORMAT, pipeline_status, store_status
 
 if TYPE_CHECKING:  # imported where used: `tubeid status` needs no xarray
     import xarray as xr
@@ -53,13 +53,8 @@ __all__ = ["init_store", "init_pipeline_store", "init_stage", "check_store", "ch
            "pipeline_status", "is_pipeline", "prepare_path", "remove_store", "FLAG", "BOOKKEEPING", "MANIFEST_NAME",
            "REFERENCES", "now", "history_line"]
 
-FLAG = "block_done"
-BOOKKEEPING = RESERVED
-FORMAT = "tubeid-study-store/2"
-PIPELINE_FORMAT = "tubeid-pipeline-store/2"
 STAGE_FORMAT = "tubeid-pipeline-stage/2"
 BLOCKS_FORMAT = "tubeid-blocks/1"
-LEGACY_FORMATS = ("tubeid-study-store/1", "tubeid-pipeline-store/1")
 MANIFEST_NAME = ".tubeid-manifest.json"
 CONVENTIONS = "CF-1.10"
 REFERENCES = ("A. Batou and C. Soize, Experimental identification of stochastic processes using an uncertain "
@@ -393,6 +388,7 @@ def _write_empty(study, p, attrs, group=None) -> None:
         g = _group(p, group, mode="r+", consolidated=False)
         bk = g.create_group(BOOKKEEPING, attributes=bookkeeping_attrs(study))
         bk.create_array(FLAG, shape=study.block_grid, chunks=(1,) * len(axes), dtype="uint64", fill_value=0,
+                        compressors=None,  # FLAG_CODECS: 8 raw bytes per block, read without zarr by `tubeid status`
                         dimension_names=_flag_dims(study),
                         attributes={"long_name": "block completion flag: 0 = not written, else the block's checksum"})
     _consolidate(p, group)
@@ -563,101 +559,6 @@ def write_block(path, study, block, outputs, group=None) -> None:
     for name, arr in outputs.items():
         g[name][region] = arr
     g[f"{BOOKKEEPING}/{FLAG}"][tuple(block.index)] = block_checksum(outputs, block.index)
-
-
-def store_status(path: str | os.PathLike, group: str | None = None) -> dict:
-    """How complete a study store (or one stage of a pipeline store) is; readable while a run writes it.
-
-    Parameters
-    ----------
-    path : path-like
-        The store directory.
-    group : str, optional
-        A stage of a pipeline store; without it a pipeline store gives :func:`pipeline_status`.
-
-    Returns
-    -------
-    dict
-        ``done``, ``total`` (blocks), ``complete`` (bool), ``attrs`` (provenance), ``lock`` (the record
-        of the runner holding the store, or None), ``unreadable_flags`` (block indices), ``damaged``
-        ('' or why the flags cannot be read). Flags are trusted here; :func:`tubeid.runner.verify`
-        checks them against the data.
-    """
-    from tubeid.runner.lock import LOCK_NAME, read_lock
-
-    p = pathlib.Path(path)
-    if not p.is_dir():
-        raise SpecificationError("store", str(path), "no such store")
-    try:
-        root = read_attrs(p)
-    except Exception as exc:
-        raise SpecificationError("store", str(path), f"is not a readable tubeid study store ({type(exc).__name__}: {exc})") from exc
-    if root.get("format") in LEGACY_FORMATS:
-        raise SpecificationError("store", str(path), f"was written by an older tubeid (layout {root.get('format')}): "
-                                 "xarray.open_zarr still reads it; rerun its study with --overwrite for the current layout")
-    if group is None and root.get("format") == PIPELINE_FORMAT:
-        return pipeline_status(p)
-    if group is not None:
-        if root.get("format") != PIPELINE_FORMAT:
-            raise SpecificationError("group", group, f"{path} is a single-study store (it has no stages)")
-        if group not in root.get("stages", []):
-            raise SpecificationError("group", group, f"is not a stage of {path} (stages: {root.get('stages')})")
-        if not (p / group / "zarr.json").exists():
-            raise SpecificationError("group", group, f"stage not started yet in {path}")
-    elif root.get("format") != FORMAT:
-        raise SpecificationError("store", str(path), "is not a tubeid study store")
-    try:
-        attrs = read_attrs(p, group) if group else root
-    except Exception as exc:
-        raise SpecificationError("store", f"{path} (stage {group})", f"has unreadable group metadata ({type(exc).__name__}): "
-                                 "`tubeid run` rebuilds the stage") from exc
-    damaged = ""
-    try:
-        flags, bad = read_flags(p, group)
-    except Exception as exc:  # the flag array is gone or unreadable: nothing is proven done
-        damaged = f"block flags unreadable ({type(exc).__name__}): `tubeid run` repairs them (unproven blocks are recomputed)"
-        bad = []
-        try:
-            flags = np.zeros(_group(p, group, consolidated=True)[f"{BOOKKEEPING}/{FLAG}"].shape, dtype=np.uint64)
-        except Exception:
-            flags = np.zeros(0, dtype=np.uint64)
-    done, total = int(np.count_nonzero(flags)), int(flags.size)
-    complete = done == total and bool(attrs.get("finished")) and not damaged
-    return {"done": done, "total": total, "complete": complete, "attrs": attrs, "lock": read_lock(p / LOCK_NAME),
-            "unreadable_flags": bad, "damaged": damaged}
-
-
-def pipeline_status(path: str | os.PathLike) -> dict:
-    """Per-stage status of a pipeline store; readable while a run writes it.
-
-    Parameters
-    ----------
-    path : path-like
-        The pipeline store directory.
-
-    Returns
-    -------
-    dict
-        ``{"attrs", "lock", "stages": {name: {"started", "done", "total", "complete"[, "damaged"]}},
-        "done", "total", "complete"}``: the root provenance, the lock's holder (or None), and blocks
-        per stage and summed over the stages started so far.
-    """
-    from tubeid.runner.lock import LOCK_NAME, read_lock
-
-    p = pathlib.Path(path)
-    attrs = read_attrs(p)
-    stages = {}
-    for name in attrs.get("stages", []):
-        if (p / name / "zarr.json").exists():
-            st = store_status(p, name)
-            stages[name] = {"started": True, "done": st["done"], "total": st["total"], "complete": st["complete"]}
-            if st["damaged"]:
-                stages[name]["damaged"] = st["damaged"]
-        else:
-            stages[name] = {"started": False, "done": 0, "total": None, "complete": False}
-    return {"attrs": attrs, "stages": stages, "lock": read_lock(p / LOCK_NAME),
-            "done": sum(s["done"] for s in stages.values()), "total": sum(s["total"] or 0 for s in stages.values()),
-            "complete": all(s["complete"] for s in stages.values())}
 
 
 def open_results(path: str | os.PathLike, group: str | None = None, *, flags: bool = False,
