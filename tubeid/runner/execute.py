@@ -256,6 +256,36 @@ def _embedded_security():
                                  "to the embedded cluster)") from exc
 
 
+_UNGUARDED = ("the worker processes of the embedded cluster import the script that starts them, so a script that "
+              "calls tubeid.runner.run() at module level runs it again in every worker: put the call under "
+              "`if __name__ == \"__main__\":` (a notebook or `tubeid run` needs nothing)")
+
+
+def _spawned_reimport() -> str | None:
+    """The script's path when run() is called from a script that a process started by
+    multiprocessing's spawn is re-importing (it then runs as ``__mp_main__``); else None."""
+    frame = sys._getframe(1)
+    while frame is not None:
+        if frame.f_globals.get("__name__") == "__mp_main__":
+            return str(frame.f_globals.get("__file__", "the parent's script"))
+        frame = frame.f_back
+    return None
+
+
+def _refuse_in_a_spawned_reimport() -> None:
+    """Stop a worker process that reached run() by re-importing an unguarded script: one line on
+    stderr and exit status 1 (a traceback per worker would bury the cause)."""
+    script = _spawned_reimport()
+    if script is not None:
+        raise SystemExit(f"tubeid: error: run() called while a worker process imports {script}: " + _UNGUARDED)
+
+
+def _main_script() -> str | None:
+    """The script this process runs (None in a notebook, an interactive session or ``python -c``)."""
+    path = getattr(sys.modules.get("__main__"), "__file__", None)
+    return str(path) if path and pathlib.Path(path).is_file() else None
+
+
 @contextlib.contextmanager
 def _client(workers: int | None, scheduler: str | None, client, quiet: bool):
     """``(client, where)``: the Client to run on and a description of it for the progress line.
@@ -295,11 +325,19 @@ def _client(workers: int | None, scheduler: str | None, client, quiet: bool):
     n = workers or config.get("runner.workers") or os.cpu_count() or 1
     security = _embedded_security()
     with dask.config.set({"distributed.scheduler.allowed-failures": config.get("runner.allowed-failures", 3)}):
-        cluster = LocalCluster(n_workers=int(n), threads_per_worker=int(config.get("runner.threads-per-worker", 1)),
-                               processes=True, host=config.get("runner.host", "127.0.0.1"),
-                               dashboard_address=config.get("runner.dashboard-address", "127.0.0.1:0"),
-                               silence_logs=logging.CRITICAL, security=security,
-                               protocol="tls://" if security is not None else None)
+        try:
+            cluster = LocalCluster(n_workers=int(n), threads_per_worker=int(config.get("runner.threads-per-worker", 1)),
+                                   processes=True, host=config.get("runner.host", "127.0.0.1"),
+                                   dashboard_address=config.get("runner.dashboard-address", "127.0.0.1:0"),
+                                   silence_logs=logging.CRITICAL, security=security,
+                                   protocol="tls://" if security is not None else None)
+        except Exception as exc:
+            script = _main_script()
+            if script is None:
+                raise
+            raise SpecificationError("workers", int(n), f"the embedded cluster's worker processes did not start "
+                                     f"({type(exc).__name__}: {exc}); if {script} calls run() outside "
+                                     f"`if __name__ == \"__main__\":`, that is why: {_UNGUARDED}") from None
     with cluster, Client(cluster, security=security) as own:
         own.run(_warm)  # imports once per worker, before the clock of the first task starts
         tls = ", TLS with ephemeral credentials" if security is not None else ""
@@ -420,6 +458,7 @@ def run(study_path: str | os.PathLike, store: str | os.PathLike | None = None, *
     RunReport or PipelineReport
         What the run did (blocks computed, skipped, repaired; timings).
     """
+    _refuse_in_a_spawned_reimport()
     base, source, _ = load_definition(study_path)  # validates the definition as written
     # each --set value as its parameter's check makes it (e.g. a model file read into its content, checked
     # now, never from a cache): the workers and the study hash get that, not the raw text
