@@ -20,7 +20,8 @@ from tubeid.errors import SpecificationError
 from tubeid.runner import integrity
 from tubeid.runner.cli import main as cli
 from tubeid.runner.execute import run
-from tubeid.runner.store import BOOKKEEPING, FLAG, MANIFEST_NAME, REFERENCES, open_results, read_flags, store_status
+from tubeid.runner.store import (BOOKKEEPING, FLAG, MANIFEST_NAME, REFERENCES, open_results, read_attrs, read_flags,
+                                 store_status)
 from tubeid.runner.study import Output, Parameter, Study
 from tubeid.runner.testing import flags, store_digest, write_pipeline, write_study
 
@@ -115,6 +116,23 @@ def test_damage_is_named_and_exactly_the_damaged_blocks_are_recomputed(reference
     assert store_digest(store) == ref_digest
     assert cli(["status", str(store), "--verify"]) == 0
     assert "verified: blocks: 8 finished blocks match their checksums" in capsys.readouterr().out
+
+
+def test_a_store_of_an_earlier_checksum_rule_is_recomputed_and_not_called_damaged(reference, tmp_path, capsys):
+    study, _, ref_digest = reference
+    store = _copy(reference, tmp_path)
+    g = zarr.open_group(str(store / BOOKKEEPING), mode="r+", use_consolidated=False)
+    g.attrs["checksum"] = "first 64 bits of SHA-256 over the outputs (an earlier rule)"
+    f = g[FLAG]
+    f[...] = f[...] ^ np.uint64(1)  # the checksums of another rule: other nonzero values
+    assert integrity.verify(store).other_rule == "first 64 bits of SHA-256 over the outputs (an earlier rule)"
+    report = run(study, store, workers=0)
+    err = capsys.readouterr().err
+    assert "made by an earlier tubeid's rule" in err and "8 of 8 finished blocks" in err and "damaged" not in err, err
+    assert (report.computed, report.repaired) == (8, 8)
+    assert store_digest(store) == ref_digest  # the same values, now under this tubeid's rule
+    assert integrity.verify(store).ok and integrity.verify(store).other_rule is None
+    assert "damaged" not in read_attrs(store, BOOKKEEPING).get("history", "") + read_attrs(store).get("history", "")
 
 
 def test_no_verify_trusts_the_flags(reference, tmp_path):

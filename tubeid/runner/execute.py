@@ -60,7 +60,8 @@ class RunReport:
     warmup : float
         The once-per-machine warm-up (e.g. compiling), 0 if none was needed [s].
     repaired : int
-        Finished blocks found damaged by verification (recomputed).
+        Finished blocks verification could not prove, recomputed: damaged ones, or all of them in a
+        store whose checksums an earlier tubeid made by another rule.
     dashboard : str
         The dask dashboard's address ('' if none).
     """
@@ -77,7 +78,7 @@ class RunReport:
     compute: float = 0.0      # sum over tasks of the study task itself
     write: float = 0.0        # sum over tasks of the region + flag writes
     warmup: float = 0.0       # once-per-machine warm-up (e.g. compiling), 0 if none was needed
-    repaired: int = 0         # finished blocks found damaged by verification (recomputed)
+    repaired: int = 0         # finished blocks verification could not prove (damaged, or an earlier checksum rule): recomputed
     dashboard: str = ""
 
     @property
@@ -399,14 +400,28 @@ def _record_resume(path, quiet) -> None:
 def _verify_and_repair(study, path, group, quiet, where) -> int:
     """Verify a resumed store (or stage): repair its structure if damaged, clear the damaged blocks' flags.
 
-    Returns the number of blocks to recompute because they were damaged.
+    Returns the number of finished blocks to recompute: damaged ones, or all of them when the store's
+    checksums were made by an earlier rule (written by an earlier tubeid: they cannot be proven).
     """
     ver = verify(path, group)
-    if ver.structure:  # metadata or coordinates damaged: rewrite them from the study, then check the blocks
+    other_rule = ver.other_rule
+    if other_rule is None and ver.structure:  # metadata or coordinates damaged: rewrite them from the study, then check the blocks
         repaired = repair_structure(study, path, group)
         _log(f"tubeid: {where}: " + "; ".join(ver.structure[:3]) + f": rewrote {len(repaired)} metadata/coordinate "
              "file(s) from the study: " + ", ".join(repaired[:5]) + (" ..." if len(repaired) > 5 else ""), quiet)
         ver = verify(path, group)
+    if other_rule is not None:  # written by an earlier tubeid: not damage, but its blocks cannot be proven
+        repair_structure(study, path, group)  # the bookkeeping attributes now state this tubeid's rule
+        ver = verify(path, group)
+        bad = ver.to_recompute
+        _log(f"tubeid: {where}: its block checksums were made by an earlier tubeid's rule ({other_rule!r}): "
+             f"{len(bad)} of {ver.checked + len(ver.unreadable_flags)} finished blocks cannot be proven under this "
+             "tubeid's rule and are recomputed (their values should not change)", quiet)
+        if bad:
+            set_flags(path, bad, 0, group)
+            update_attrs(path, group, finished="")
+            append_history(path, group, f"{len(bad)} block(s) made under an earlier checksum rule, recomputed")
+        return len(bad)
     bad = ver.to_recompute
     if bad:
         _log(f"tubeid: {where}: {len(bad)} of {ver.checked + len(ver.unreadable_flags)} finished blocks are damaged; "

@@ -97,6 +97,10 @@ class Verification:
         Block indices whose flag chunk cannot be decoded (recomputed too).
     structure : list of str
         Damaged metadata or coordinates (rewritten from the study by ``tubeid run``).
+    other_rule : str or None
+        The checksum rule the store's blocks were made by when it is not this tubeid's
+        (:data:`CHECKSUM_RULE`): a store written by an earlier tubeid, not a damaged one; its blocks
+        cannot be verified.
     """
 
     group: str | None = None
@@ -105,6 +109,7 @@ class Verification:
     damaged: dict = dataclasses.field(default_factory=dict)
     unreadable_flags: list = dataclasses.field(default_factory=list)
     structure: list = dataclasses.field(default_factory=list)
+    other_rule: str | None = None
 
     @property
     def ok(self) -> bool:
@@ -183,6 +188,7 @@ def verify(path: str | os.PathLike, group: str | None = None) -> Verification:
         ver.structure.append("block layout unknown: no block can be verified")
         return ver
     if attrs.get("checksum") != CHECKSUM_RULE:
+        ver.other_rule = str(attrs.get("checksum"))
         ver.structure.append(f"block checksums made by another rule ({attrs.get('checksum')!r}, this tubeid: "
                              f"{CHECKSUM_RULE!r}): its blocks cannot be verified")
         return ver
