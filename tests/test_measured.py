@@ -679,6 +679,9 @@ def test_integer_samples_need_an_explicit_scale(tmp_path):
     bare.displacement.encoding["_FillValue"] = -32768
     bare.to_netcdf(tmp_path / "bare.nc", engine="h5netcdf")
     refused(lambda: read_measurements(tmp_path / "bare.nc"), "bare.nc: displacement.dtype = 'int16'", "explicit scale")
+    raw.displacement.attrs.update(scale_factor=-0.05)  # a sign flip the sidecar refuses too (scale > 0)
+    raw.to_netcdf(tmp_path / "negative.nc", engine="h5netcdf")
+    refused(lambda: read_measurements(tmp_path / "negative.nc"), "negative.nc: displacement.scale_factor = -0.05", "> 0")
 
 
 def test_integer_csv_columns_need_a_scale_in_the_sidecar(tmp_path):

@@ -216,6 +216,10 @@ def _unpacked(da: xr.DataArray, source: str) -> np.ndarray:
             f"{source}: displacement.dtype", str(stored),
             "integer samples (counts) need an explicit scale: give the size of one count in the variable's units "
             "as its CF attribute scale_factor (optionally add_offset), e.g. units = 'um', scale_factor = 0.05")
+    if "scale_factor" in da.encoding:  # a file's CF packing, unpacked by xarray: the same rule as in memory
+        scale = da.encoding["scale_factor"]
+        real(f"{source}: displacement.scale_factor", scale.item() if isinstance(scale, np.generic) else scale,
+             low=0.0, low_open=True)
     if np.issubdtype(da.dtype, np.integer):  # in memory, scale_factor in attrs: unpack here
         scale, offset = da.attrs["scale_factor"], da.attrs.get("add_offset", 0.0)
         real(f"{source}: displacement.scale_factor", scale, low=0.0, low_open=True)
