@@ -331,3 +331,58 @@ def test_overwrite_never_deletes_a_directory_that_is_not_a_store(tmp_path):
     study = pathlib.Path(__file__).resolve().parents[1] / "studies" / "example_pi.py"
     assert main(["run", str(study), "--store", str(precious), "--overwrite", "--workers", "0", "--no-progress"]) == 2
     assert (precious / "important.txt").read_text() == "keep me"
+
+
+FAILING = '''
+import pathlib
+from tubeid.runner.study import Output, Parameter, Study, pointwise
+
+@pointwise
+def f(point, rng, marker):
+    if point["r"] == 3 and pathlib.Path(marker).exists():  # a cause outside the study (a file, the memory...)
+        raise ZeroDivisionError("a failure at r = %d" % point["r"])
+    return {"y": float(point["r"])}
+
+study = Study(name="failing", seed=3, axes={"r": range(6)}, chunks={"r": 2}, task=f,
+              outputs={"y": Output(units="m")}, units={"r": "1"}, parameters={"marker": Parameter("")})
+'''
+
+
+def test_a_failing_task_names_its_block_keeps_the_others_and_resumes(tmp_path, capsys):
+    from tubeid.errors import BlockFailed
+    from tubeid.runner.cli import main as cli
+    from tubeid.runner.status import store_status
+
+    path = tmp_path / "failing.py"
+    path.write_text(FAILING)
+    marker = tmp_path / "fail-here"
+    marker.touch()
+    store = tmp_path / "failing.zarr"
+    with pytest.raises(BlockFailed) as info:
+        run(path, store, workers=0, quiet=True, overrides={"marker": str(marker)})
+    assert "study 'failing', block (1,) (r = 2 … 3) failed: ZeroDivisionError: a failure at r = 3" in str(info.value)
+    assert isinstance(info.value.__cause__, ZeroDivisionError)  # the study's own traceback is kept
+    assert store_status(store)["done"] == 1  # block (0,) stays; (2,) was never reached
+    # the command line: the study's traceback, then one line naming the block, exit status 1
+    from tubeid.cli import main
+
+    assert main(["run", str(path), "--store", str(store), "--workers", "0", "--set", f"marker={marker}"]) == 1
+    err = capsys.readouterr().err
+    assert "ZeroDivisionError: a failure at r = 3" in err and "Traceback" in err
+    assert err.rstrip().splitlines()[-1].startswith("tubeid: error: study 'failing', block (1,) (r = 2 … 3) failed")
+    # the cause gone, the same command resumes with the blocks not yet done
+    marker.unlink()
+    report = run(path, store, workers=0, quiet=True, overrides={"marker": str(marker)})
+    assert (report.computed, report.skipped) == (2, 1)
+    assert cli(["status", str(store)]) == 0 and "3/3 blocks done" in capsys.readouterr().out
+
+
+@pytest.mark.distributed
+def test_a_failing_task_on_workers_names_its_block(tmp_path):
+    from tubeid.errors import BlockFailed
+
+    path = tmp_path / "failing.py"
+    path.write_text(FAILING)
+    (tmp_path / "fail-here").touch()
+    with pytest.raises(BlockFailed, match=r"block \(1,\) \(r = 2 … 3\) failed: ZeroDivisionError"):
+        run(path, tmp_path / "failing.zarr", workers=2, quiet=True, overrides={"marker": str(tmp_path / "fail-here")})

@@ -139,7 +139,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     from threadpoolctl import threadpool_limits
 
-    from tubeid.errors import MissingDependencyError, SpecificationError
+    from tubeid.errors import BlockFailed, MissingDependencyError, SpecificationError
 
     try:
         # the hot paths are many small matrices (N ≈ 20–50): BLAS threads only contend with the
@@ -149,3 +149,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (SpecificationError, MissingDependencyError) as exc:
         print(f"tubeid: error: {exc}", file=sys.stderr)
         return 2
+    except BlockFailed as exc:  # a bug in a study's code: its traceback, then which block and how to resume
+        import traceback
+
+        if exc.__cause__ is not None:
+            traceback.print_exception(exc.__cause__, file=sys.stderr)
+        print(f"tubeid: error: {exc}", file=sys.stderr)
+        return 1

@@ -14,7 +14,7 @@ from __future__ import annotations
 import reprlib
 from typing import Any
 
-__all__ = ["SpecificationError", "MissingDependencyError", "Described", "shown", "VALUE_CHARS"]
+__all__ = ["BlockFailed", "SpecificationError", "MissingDependencyError", "Described", "shown", "VALUE_CHARS"]
 
 #: Longest value shown in a message.
 VALUE_CHARS = 240
@@ -95,6 +95,30 @@ class MissingDependencyError(ImportError):
     def __init__(self, feature: str, package: str, extra: str) -> None:
         self.feature, self.package, self.extra = feature, package, extra
         super().__init__(f'{feature} needs {package}: pip install "tubeid[{extra}]"', name=package)
+
+
+class BlockFailed(RuntimeError):
+    """A block's task raised: names the block, its coordinates and the cause (chained as ``__cause__``).
+
+    The blocks finished before it are in the store; rerunning the same command resumes (the same
+    study definition: a changed one is refused on that store).
+
+    Parameters
+    ----------
+    where : str
+        The study (or pipeline stage) and the block, e.g. ``"study 'bad', block (1,) (r = 2 … 3)"``.
+    cause : str
+        The task's exception as ``"Type: message"``.
+    """
+
+    def __init__(self, where: str, cause: str) -> None:
+        self.where, self.cause = where, cause
+        super().__init__(f"{where} failed: {_clip(cause, 4 * VALUE_CHARS)}; the blocks finished so far are stored: "
+                         "once the cause is fixed, the same command resumes (a changed study definition needs "
+                         "--new-store or --overwrite)")
+
+    def __reduce__(self):
+        return type(self), (self.where, self.cause)
 
 
 class Described(str):

@@ -24,7 +24,7 @@ import time
 from typing import TYPE_CHECKING
 
 from tubeid import config
-from tubeid.errors import SpecificationError
+from tubeid.errors import BlockFailed, SpecificationError
 from tubeid.runner.integrity import repair_structure, verify
 from tubeid.runner.lock import StoreLock
 from tubeid.runner.pipeline import Pipeline, stage_hash
@@ -579,9 +579,10 @@ def _run_study(ctx: _Run) -> RunReport:
             _describe_cluster(client, where, report, quiet)
         report.warmup = _warm_up(client, study.warmup, quiet) if todo else 0.0
         if client is None:
-            _run_here(fn, todo, report, ctx.progress, lock=ctx.lock)
+            _run_here(fn, todo, report, ctx.progress, lock=ctx.lock, label=functools.partial(_block_label, study))
         else:
-            _run_dask(client, fn, f"tubeid-{ctx.key[:10]}", todo, report, ctx.progress, lock=ctx.lock)
+            _run_dask(client, fn, f"tubeid-{ctx.key[:10]}", todo, report, ctx.progress, lock=ctx.lock,
+                      label=functools.partial(_block_label, study))
     t0 = time.perf_counter()
     if not block_flags(path).all():
         raise RuntimeError(f"{path}: run ended with unfinished blocks")  # should not happen
@@ -684,10 +685,12 @@ def _run_stage(ctx: _Run, name: str, client) -> RunReport:
     if todo:
         report.warmup = _warm_up(client, study.warmup, quiet)
     if client is None:
-        _run_here(fn, todo, report, ctx.progress, desc=name, lock=ctx.lock)
+        _run_here(fn, todo, report, ctx.progress, desc=name, lock=ctx.lock,
+                  label=functools.partial(_block_label, study, stage=name))
     else:
         report.workers = len(client.scheduler_info(n_workers=-1)["workers"])
-        _run_dask(client, fn, f"tubeid-{shash[:10]}-{name}", todo, report, ctx.progress, desc=name, lock=ctx.lock)
+        _run_dask(client, fn, f"tubeid-{shash[:10]}-{name}", todo, report, ctx.progress, desc=name, lock=ctx.lock,
+                  label=functools.partial(_block_label, study, stage=name))
     t0 = time.perf_counter()
     if not block_flags(path, name).all():
         raise RuntimeError(f"{path}: stage {name} ended with unfinished blocks")  # should not happen
@@ -712,7 +715,26 @@ def _account(report, res, bar):
     bar.update(1)
 
 
-def _run_here(fn, todo, report, progress, desc=None, lock=None):
+def _block_label(study, index, stage: str | None = None) -> str:
+    """``study 'name', block (i, j) (dim = first … last, ...)``: which block, for an error message."""
+    block = study.block(index)
+    parts = []
+    for dim, values in block.coords.items():
+        values = list(values)
+        parts.append(f"{dim} = {values[0]}" if len(values) == 1 else f"{dim} = {values[0]} … {values[-1]}")
+    what = f"stage {stage!r}" if stage else f"study {study.name!r}"
+    return f"{what}, block {tuple(int(i) for i in index)} ({', '.join(parts)})"
+
+
+def _failed(exc: Exception, label) -> BaseException:
+    """The exception to raise for a block whose task raised ``exc``: a refusal stays as it is (it names
+    its field and rule); anything else becomes :class:`~tubeid.errors.BlockFailed` naming the block."""
+    if isinstance(exc, SpecificationError):
+        return exc
+    return BlockFailed(label, f"{type(exc).__name__}: {exc}")
+
+
+def _run_here(fn, todo, report, progress, desc=None, lock=None, label=lambda index: f"block {index}"):
     """Run ``fn(index)`` for every block index in this process."""
     report.workers = 1
     t0 = time.perf_counter()
@@ -720,7 +742,11 @@ def _run_here(fn, todo, report, progress, desc=None, lock=None):
         for index in todo:
             if lock is not None:
                 lock.check()
-            _account(report, fn(index), bar)
+            try:
+                res = fn(index)
+            except Exception as exc:
+                raise _failed(exc, label(index)) from exc
+            _account(report, res, bar)
     report.tasks = time.perf_counter() - t0
 
 
@@ -734,19 +760,24 @@ def _describe_cluster(client, where, report, quiet):
     _log(f"tubeid: running on {where}" + (f"; dashboard {link}" if link else ""), quiet)
 
 
-def _run_dask(client, fn, prefix, todo, report, progress, desc=None, lock=None):
+def _run_dask(client, fn, prefix, todo, report, progress, desc=None, lock=None, label=lambda index: f"block {index}"):
     """Submit ``fn(index)`` for every block index (task key ``<prefix>-block-<index>``) and wait for all."""
     from distributed import as_completed
 
     t1 = time.perf_counter()
     futures = [client.submit(fn, index, pure=False, key=f"{prefix}-block-{'-'.join(map(str, index))}")
                for index in todo]
+    index_of = {fut.key: index for fut, index in zip(futures, todo)}
     try:
         with _bar(report.total, report.skipped, progress, desc) as bar:
             for fut in as_completed(futures):
                 if lock is not None:
                     lock.check()
-                _account(report, fut.result(), bar)
+                try:
+                    res = fut.result()
+                except Exception as exc:
+                    raise _failed(exc, label(index_of[fut.key])) from exc
+                _account(report, res, bar)
                 # the block is in the store: let the cluster forget its result, or a worker that
                 # leaves (lifetime, pre-emption) would make the scheduler recompute every finished
                 # block it held, ahead of the blocks not yet run (a livelock with short lifetimes)
