@@ -245,6 +245,13 @@ def test_catalog_entries_declare_parameters_grids_and_refinement_lines():
     grid = CATALOG["stop"].trials({"tube": "centre", "x": 9.0, "rms_nearest": 2e-6}, spec, 4)
     assert sorted({e.x for e in grid}) == [6.0, 8.0, 10.0] and len(grid) == 12  # nodes around the estimate × gaps
     assert all(isinstance(e, ExtraStop) and e.stiffness == 1e8 for e in grid)
+    # damping: the surrogate's tube and direction, not its size (it gave 0.2 for a true 0.06 = 3 × the declared 0.02)
+    more = CATALOG["damping"].trials({"tube": "centre", "ratio": 0.2, "second": {"tube": "outer4", "ratio": 0.002}}, spec, 4)
+    centre = [e.ratio for e in more if e.tube == "centre"]
+    assert len(more) == 8 and all(r > 0.02 for r in centre) and min(centre) < 0.06 < max(centre)  # a grid step: × 2.25
+    assert all(e.ratio < 0.02 for e in more if e.tube == "outer4")
+    less = [e.ratio for e in CATALOG["damping"].trials({"tube": "centre", "ratio": 0.002}, spec, 4)]
+    assert all(r < 0.02 for r in less) and min(less) < 0.008 < max(less)  # 0.4 × declared
     tone = Tone(37.0, 20.0, "centre", 5.0)
     lines = CATALOG["tone"].refine(tone, spec)
     assert set(lines) == {"amplitude", "x"} and lines["x"][0] == [4.0, 5.0, 6.0] and lines["x"][2][1] == tone

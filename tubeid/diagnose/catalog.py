@@ -416,8 +416,11 @@ class AddedMassCandidate(_TubeFactor):
 
 class DampingCandidate(_TubeFactor):
     """Modal damping of one tube: the ratio of all its own modes. The two best tubes and their
-    ratios from the surrogate (the declared ratio × 0.1 … 10, 6 values); trials on each:
-    ``points`` ratios over ×/÷ 1.7."""
+    ratios from the surrogate (the declared ratio × 0.1 … 10, 6 values). The surrogate tells the
+    tube and the direction (more or less damping than declared) but not the size (measured: 0.2
+    for a true 0.06, the declared 0.02 × 3), so the trials on each tube are ``points`` ratios
+    log-spaced from the declared ratio × 1.5 to the surrogate's × 1.7 (or from its ÷ 1.7 to the
+    declared ÷ 1.5), never only around the surrogate's value."""
 
     name = "damping"
     effect_type = Damping
@@ -431,6 +434,21 @@ class DampingCandidate(_TubeFactor):
 
     def _effect(self, tube, value):
         return Damping(tube, float(min(value, 0.9)))
+
+    @staticmethod
+    def _between(declared: float, estimated: float, points: int) -> np.ndarray:
+        """``points`` ratios from beyond the declared ratio to beyond the surrogate's, on its side."""
+        if estimated >= declared:
+            return np.geomspace(declared * 1.5, max(estimated, declared * 1.5) * 1.7, points)
+        return np.geomspace(max(min(estimated, declared / 1.5) / 1.7, 1e-4), declared / 1.5, points)
+
+    def trials(self, estimate, spec, points, *, rms=None) -> list:
+        out = []
+        for e in (estimate, estimate.get("second")):
+            if e:
+                declared = spec.tube(e["tube"]).damping_ratio
+                out += [self._effect(e["tube"], v) for v in self._between(declared, e[self.value_name], points)]
+        return out
 
     def assumptions(self, spec) -> list[str]:
         return ["damping: one modal damping ratio for all the modes of one tube (as declared models carry it)"]
