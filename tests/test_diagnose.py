@@ -133,6 +133,16 @@ def test_the_choice_is_the_best_penalised_held_out_error_not_the_first_improveme
     assert choose([Scored("tone", 1, 1.0, np.nan)], current=1.0, penalty=0.1) is None
 
 
+def test_the_refit_keeps_the_moved_point_only_if_it_is_no_worse_than_the_best_evaluated_one():
+    from tubeid.diagnose._selection import keeps_moved_point
+
+    # measured (stop at 10 m, seed 42): r and the gap each moved to their line's end, together 3.46
+    # where the evaluated point (r moved alone) had 1.89
+    assert not keeps_moved_point(3.46, 1.89)
+    assert keeps_moved_point(0.81, 2.50) and keeps_moved_point(1.0, 1.0)
+    assert not keeps_moved_point(float("nan"), 1.0)
+
+
 def test_line_minimum_is_the_parabola_vertex_in_log_and_keeps_an_end():
     x = np.array([0.5, 1.0, 2.0])
     y = (np.log10(x) - np.log10(1.3)) ** 2

@@ -4,6 +4,7 @@ parameter overrides, status/show, and real processes (2 local workers vs in-proc
 mid-stage-2 and resumed). Every store comparison is byte-for-byte (chunk files + non-volatile metadata).
 """
 
+import dataclasses
 import json
 import os
 import pathlib
@@ -88,6 +89,32 @@ def test_stage_functions_must_return_their_study():
     with pytest.raises(SpecificationError, match="earlier stages"):
         p.stage("named_wrong", {})
     assert p.stage("a", {}).stream_key == ("a",)
+
+
+def _draws(block, rng):
+    return {"y": np.array([rng.at({"r": r}).standard_normal() for r in block["r"]])}
+
+
+def test_a_stage_may_keep_an_earlier_stages_streams(tmp_path):
+    """Common random numbers across stages: a stage naming an earlier stage's stream key draws its
+    streams; one that does not draws its own (its name)."""
+    def first(results):
+        return Study(name="first", seed=1, axes={"r": range(4)}, task=_draws, outputs={"y": Output()})
+
+    def same(results):
+        return dataclasses.replace(first(results), name="same", stream_key=("first",))
+
+    def other(results):
+        return dataclasses.replace(first(results), name="other")
+
+    p = Pipeline(name="crn", seed=1, stages=[first, same, other])
+    assert p.stage("same", {"first": None}).stream_key == ("first",)
+    res = {}
+    for name in ("first", "same", "other"):
+        st = p.stage(name, res)
+        res[name] = st.compute_block(st.block((0,)))["y"]
+    np.testing.assert_array_equal(res["same"], res["first"])
+    assert not np.any(res["other"] == res["first"])
 
 
 def test_pipeline_overrides_are_validated(tmp_path, capsys):

@@ -27,7 +27,7 @@ import numpy as np
 
 from tubeid.diagnose._spectra import analysis_bins, log10
 
-__all__ = ["Scored", "level_offset", "prediction_error", "choose", "line_minimum"]
+__all__ = ["Scored", "level_offset", "prediction_error", "choose", "line_minimum", "keeps_moved_point"]
 
 
 @dataclass(frozen=True)
@@ -94,3 +94,9 @@ def line_minimum(values, errors, log: bool) -> float:
     num = (u[1] - u[0]) ** 2 * (y1 - y2) - (u[1] - u[2]) ** 2 * (y1 - y0)
     uv = float(np.clip(u[1] - 0.5 * num / den, u[0], u[2]))
     return float(10.0**uv) if log else uv
+
+
+def keeps_moved_point(moved_fit_error: float, best_evaluated_fit_error: float) -> bool:
+    """The joint re-fit's safeguard: keep the point every line moved to only if its fitting-block
+    error is no worse than the best point the lines evaluated (a NaN moved error is not kept)."""
+    return bool(moved_fit_error <= best_evaluated_fit_error)

@@ -24,13 +24,16 @@ resumable); this module holds the context every stage reads and assembles the re
    profiled), and judged by its held-out error; the best penalised one is added if it improves on
    the current model; then all chosen effects and r are **re-fitted jointly** (one cross-design
    sweep: each parameter and r along a line of 3 trials around the current point, the others
-   held; each moved to its line's parabola vertex), and the augmented model's band is tested
+   held; each moved to its line's parabola vertex; the moved point is then evaluated, and if its
+   fitting-block error is worse than the best point the lines evaluated — the moves overshoot when
+   parameters trade off — that point is kept instead), and the augmented model's band is tested
    again. The loop stops when the test no longer detects anything (``explained``), when no
    candidate pays its penalty, or after ``max_effects`` steps.
 
 ``report.json``: ``effect`` (the first effect's name, or ``none``), ``effects`` ([{name,
 parameters}]), ``detection`` (p-values before), ``steps`` (per step: the candidates' errors, the
-choice, the re-fitted effects and r, the held-out error and the test after), ``error_before``,
+choice, the re-fitted effects and r, ``refit_check`` (the moved point's and the best evaluated point's fitting
+errors, ``fallback``), the held-out error and the test after), ``error_before``,
 ``error_after``, ``explained_before``/``explained_after``, ``load``, ``delta``, ``assumptions``.
 """
 

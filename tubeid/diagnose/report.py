@@ -78,9 +78,11 @@ def assemble(store, ctx):
             stop_reason = f"no candidate pays its penalty at step {k}"
             steps.append(step)
             break
-        rf, pt = st.refit_result(ctx, results, k), st.point_result(ctx, results, k)
+        rf, pt, chk = st.refit_result(ctx, results, k), st.point_result(ctx, results, k), st.refit_point(ctx, results, k)
         det_last, band_last = json.loads(results[f"step{k}_band"].attrs["detection"]), results[f"step{k}_band"]
-        step.update({"refit": rf["lines"], "effects_after": [_describe(e) for e in pt["effects"]], "r_after": pt["r"],
+        step.update({"refit": rf["lines"],
+                     "refit_check": {key: chk[key] for key in ("moved_fit_error", "best_fit_error", "fallback")},
+                     "effects_after": [_describe(e) for e in pt["effects"]], "r_after": pt["r"],
                      "error_after": pt["held_out_error"], "fit_error_after": pt["fit_error"],
                      "detection_after": det_last})
         steps.append(step)

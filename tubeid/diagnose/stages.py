@@ -34,7 +34,7 @@ import numpy as np
 
 from tubeid.diagnose._detection import band_moments, detection_test
 from tubeid.diagnose._load import delta_f_identification, grid_minimum, r_coarse_grid, r_distance, r_fine_grid, scaled_r
-from tubeid.diagnose._selection import Scored, choose, level_offset, line_minimum, prediction_error
+from tubeid.diagnose._selection import Scored, choose, keeps_moved_point, level_offset, line_minimum, prediction_error
 from tubeid.diagnose._settings import MAX_EFFECTS, DiagnoseSettings
 from tubeid.diagnose._simulate import load_spectrum, simulate_blocks, simulate_series
 from tubeid.diagnose.catalog import CATALOG, Evidence
@@ -45,7 +45,7 @@ from tubeid.mechanics.effects import apply_effects, effect_from_dict, effect_to_
 from tubeid.runner.pipeline import Pipeline
 from tubeid.runner.study import Output, Parameter, Study, Warmup
 
-__all__ = ["study", "SEED", "STEP_STAGES", "state_before", "selection", "refit_result", "point_result"]
+__all__ = ["study", "SEED", "STEP_STAGES", "state_before", "selection", "refit_result", "refit_point", "point_result"]
 
 method = importlib.import_module("tubeid.diagnose.method")
 
@@ -54,7 +54,7 @@ R_DIMS = ("r1", "r2")
 R_UNITS = {"r1": "N^2/Hz", "r2": "(N m)^2/Hz"}
 STATISTICS = ["rms", "skewness", "excess_kurtosis"]
 #: The stages of one selection step, in order.
-STEP_STAGES = ("trials", "refit", "band")
+STEP_STAGES = ("trials", "refit", "check", "band")
 
 
 def _ctx(p: dict):
@@ -585,8 +585,40 @@ def refit_result(ctx, results, k: int) -> dict:
     sur = _surrogate(ctx, results, effects, trials[0]["r"], "band" if k == 1 else f"step{k - 1}_band")
     for i, best in best_of.items():
         effects[i] = CATALOG[effects[i].name].combine(effects[i], best, ctx.spec, sur)
+    b = int(np.argmin(fit_err))
     return {"effects": method.effects_to_json(effects), "r": [float(v) for v in r], "lines": report,
-            "centre_fit_error": fit_err[0]}
+            "centre_fit_error": fit_err[0],
+            "best_trial": {"effects": json.dumps(trials[b]["effects"], sort_keys=True), "r": [float(v) for v in trials[b]["r"]],
+                           "fit_error": fit_err[b]}}
+
+
+def _check(k, results, base):
+    """The point every line of the re-fit moved to, evaluated (the lines were evaluated one at a time;
+    together the moves can overshoot when parameters trade off, e.g. a stop's gap against r). Drawn
+    with the re-fit's streams (common random numbers), so its error compares with the re-fit's."""
+    ctx = _ctx(base)
+    name = f"step{k}_check"
+    if skipped(results[f"step{k}_refit"]):
+        return _skipped(name, "no effect chosen at this step")
+    rf = refit_result(ctx, results, k)
+    trials = [{"effects": json.loads(rf["effects"]), "r": rf["r"]}]
+    st = _trial_study(name, base, ctx, trials, f"step {k}: the re-fit's moved point, evaluated")
+    return dataclasses.replace(st, stream_key=(f"step{k}_refit",))
+
+
+def refit_point(ctx, results, k: int) -> dict:
+    """Where step k's band is computed: the re-fit's moved point if its fitting-block error is no
+    worse than the best point the re-fit evaluated, else that point → {"effects" (JSON), "r",
+    "moved_fit_error", "best_fit_error", "fallback" (bool)}."""
+    rf = refit_result(ctx, results, k)
+    ds = results[f"step{k}_check"]
+    moved = prediction_error(ctx.meas.fit, _trial_psds(ds, json.loads(_params(ds)["trials"]))[0], _sigma(results),
+                             ctx.meas.frequency)
+    best = rf["best_trial"]
+    fallback = not keeps_moved_point(moved, best["fit_error"])
+    chosen = best if fallback else {"effects": rf["effects"], "r": rf["r"]}
+    return {"effects": chosen["effects"], "r": chosen["r"], "moved_fit_error": moved, "best_fit_error": best["fit_error"],
+            "fallback": fallback}
 
 
 def _band_k(k, results, base):
@@ -594,8 +626,8 @@ def _band_k(k, results, base):
     name = f"step{k}_band"
     if skipped(results[f"step{k}_refit"]):
         return _skipped(name, "no effect chosen at this step", summarize_band)
-    rf = refit_result(ctx, results, k)
-    return _band_study(name, base, ctx, rf["r"], rf["effects"], _delta(results),
+    pt = refit_point(ctx, results, k)
+    return _band_study(name, base, ctx, pt["r"], pt["effects"], _delta(results),
                        results["load_delta_f"].attrs["delta_F_used"], k, f"after step {k}")
 
 
@@ -608,7 +640,7 @@ def point_result(ctx, results, k: int) -> dict:
     return {"effects": json.loads(p["effects"]), "r": p["r"], "offset": o, "fit_error": fe, "held_out_error": he}
 
 
-_BUILDERS = {"trials": _trials, "refit": _refit, "band": _band_k}
+_BUILDERS = {"trials": _trials, "refit": _refit, "check": _check, "band": _band_k}
 
 
 def _step_stage(k: int, kind: str):

@@ -168,7 +168,9 @@ class Pipeline(Parameterised):
                 raise SpecificationError(f"stages.{name}.name", st.name, f"must be the stage (function) name {name!r}")
             if st.seed != self.seed:
                 raise SpecificationError(f"stages.{name}.seed", st.seed, f"must be the pipeline seed {self.seed}")
-        return dataclasses.replace(st, stream_key=(name,))
+        # each stage draws its own streams (keyed by its name) unless it names another stage's key to
+        # keep common random numbers with it (e.g. a check of one point of an earlier trial grid)
+        return dataclasses.replace(st, stream_key=st.stream_key or (name,))
 
 
 def stage_hash(pipeline_hash: str, study: Study, upstream: Sequence[tuple[str, str, Mapping]]) -> str:

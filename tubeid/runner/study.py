@@ -384,7 +384,8 @@ class Study(Parameterised):
     summarize : callable, optional
         ``summarize(dataset) -> str``: a short text ``tubeid show`` prints.
     stream_key : tuple of str
-        Prefix of every random stream key (a pipeline sets its stage name).
+        Prefix of every random stream key (in a pipeline: the stage name, unless the stage gives one,
+        e.g. an earlier stage's name to draw the same streams as that stage).
     long_names : mapping of str to str
         ``{dim: long_name}`` of the coordinates (CF).
     references : str
