@@ -600,3 +600,21 @@ def test_full_size(case):
              "mass_and_tone": ["added_mass", "tone"]}[case]
     rep = diagnose(make_record(effects=eff, xs=SEVEN, seed=23), "paper-reference", DiagnoseSettings(seed=1), workers=2).report
     assert sorted(e["name"] for e in rep["effects"]) == sorted(truth), rep["steps"]
+
+
+def test_a_store_of_another_diagnosis_version_is_refused_saying_so(tmp_path):
+    """Same data, model and settings but another pipeline (tubeid's stages changed): not "other data"."""
+    import zarr
+
+    from tubeid.diagnose.method import _check_store
+
+    overrides = {"data": "d.nc", "data_sha256": "ab" * 32, "model": "{}", "settings": "{}"}
+    store = tmp_path / "diagnose.zarr"
+    zarr.open_group(str(store), mode="w", attributes={"study_hash": "old", "parameters": json.dumps(overrides),
+                                                      "tubeid_version": "0.0.9"})
+    with pytest.raises(SpecificationError, match="same data, model and settings diagnosed by another version") as e:
+        _check_store(store, "new", overrides)
+    assert "tubeid 0.0.9" in str(e.value) and "--overwrite" in str(e.value)
+    with pytest.raises(SpecificationError, match="a diagnosis of other data, model or settings"):
+        _check_store(store, "new", {**overrides, "settings": '{"blocks": 6}'})
+    _check_store(store, "old", overrides)  # its own: accepted

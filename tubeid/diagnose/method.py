@@ -231,8 +231,9 @@ def _resolve_data(data, spec0: BundleSpec) -> tuple[xr.Dataset, Path | None]:
     return read_measurements(data, tubes=tubes), Path(data)
 
 
-def _check_store(store: Path, key: str) -> None:
-    """Refuse a store in ``out`` made from other data, model or settings (before any work)."""
+def _check_store(store: Path, key: str, overrides: dict | None = None) -> None:
+    """Refuse a store in ``out`` made from other data, model or settings, or by another version of
+    the diagnosis (its pipeline source, ``stages.py``), before any work."""
     if not store.exists():
         return
     from tubeid.runner.store import read_attrs
@@ -243,10 +244,17 @@ def _check_store(store: Path, key: str) -> None:
         raise SpecificationError("out", str(store.parent), f"{store.name} exists but is not a diagnosis store; "
                                  "choose another --out") from None
     if attrs.get("study_hash") != key:
+        try:
+            same_inputs = overrides is not None and json.loads(attrs.get("parameters", "{}")) == overrides
+        except (TypeError, ValueError):
+            same_inputs = False
+        what = (f"the same data, model and settings diagnosed by another version of tubeid's diagnosis (written by "
+                f"tubeid {attrs.get('tubeid_version')}; its stages changed since)") if same_inputs else \
+            "a diagnosis of other data, model or settings"
         raise SpecificationError(
             "out", str(store.parent),
-            f"holds a diagnosis of other data, model or settings ({store.name}, hash {str(attrs.get('study_hash'))[:12]} "
-            f"vs {key[:12]} now): refusing to mix them; choose another --out or use --overwrite")
+            f"holds {what} ({store.name}, hash {str(attrs.get('study_hash'))[:12]} vs {key[:12]} now): refusing to "
+            "mix them; choose another --out or use --overwrite")
 
 
 def _netcdf_bytes(data: xr.Dataset) -> bytes:
@@ -328,7 +336,7 @@ def diagnose(data, model="paper-simplified", settings: DiagnoseSettings = Diagno
         overrides = {"data": str(data_path), "data_sha256": h, "model": json.dumps(spec_to_dict(spec0), sort_keys=True),
                      "settings": settings.to_json()}
         if not overwrite:
-            _check_store(store, study_hash(STAGES_FILE.read_text(), overrides))
+            _check_store(store, study_hash(STAGES_FILE.read_text(), overrides), overrides)
         if store.exists() and STORE_NAME not in outdir.entries():
             raise SpecificationError(f"out/{STORE_NAME}", str(store), "exists and was not created by tubeid here (not in "
                                      "the manifest): it is left untouched; move it or choose another --out")
