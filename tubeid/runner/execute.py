@@ -404,13 +404,8 @@ def _verify_and_repair(study, path, group, quiet, where) -> int:
     checksums were made by an earlier rule (written by an earlier tubeid: they cannot be proven).
     """
     ver = verify(path, group)
-    other_rule = ver.other_rule
-    if other_rule is None and ver.structure:  # metadata or coordinates damaged: rewrite them from the study, then check the blocks
-        repaired = repair_structure(study, path, group)
-        _log(f"tubeid: {where}: " + "; ".join(ver.structure[:3]) + f": rewrote {len(repaired)} metadata/coordinate "
-             "file(s) from the study: " + ", ".join(repaired[:5]) + (" ..." if len(repaired) > 5 else ""), quiet)
-        ver = verify(path, group)
-    if other_rule is not None:  # written by an earlier tubeid: not damage, but its blocks cannot be proven
+    if ver.other_rule is not None:  # written by an earlier tubeid: not damage, but its blocks cannot be proven
+        other_rule = ver.other_rule
         repair_structure(study, path, group)  # the bookkeeping attributes now state this tubeid's rule
         ver = verify(path, group)
         bad = ver.to_recompute
@@ -422,6 +417,11 @@ def _verify_and_repair(study, path, group, quiet, where) -> int:
             update_attrs(path, group, finished="")
             append_history(path, group, f"{len(bad)} block(s) made under an earlier checksum rule, recomputed")
         return len(bad)
+    if ver.structure:  # metadata or coordinates damaged: rewrite them from the study, then check the blocks
+        repaired = repair_structure(study, path, group)
+        _log(f"tubeid: {where}: " + "; ".join(ver.structure[:3]) + f": rewrote {len(repaired)} metadata/coordinate "
+             "file(s) from the study: " + ", ".join(repaired[:5]) + (" ..." if len(repaired) > 5 else ""), quiet)
+        ver = verify(path, group)
     bad = ver.to_recompute
     if bad:
         _log(f"tubeid: {where}: {len(bad)} of {ver.checked + len(ver.unreadable_flags)} finished blocks are damaged; "
