@@ -78,7 +78,8 @@ def assemble(store, ctx):
             stop_reason = f"no candidate pays its penalty at step {k}"
             steps.append(step)
             break
-        rf, pt, chk = st.refit_result(ctx, results, k), st.point_result(ctx, results, k), st.refit_point(ctx, results, k)
+        rf, pt = st.refit_result(ctx, results, k), st.point_result(ctx, results, k)
+        chk = st.refit_point(ctx, results, k, rf)
         det_last, band_last = json.loads(results[f"step{k}_band"].attrs["detection"]), results[f"step{k}_band"]
         step.update({"refit": rf["lines"],
                      "refit_check": {key: chk[key] for key in ("moved_fit_error", "best_fit_error", "fallback")},

@@ -606,11 +606,11 @@ def _check(k, results, base):
     return dataclasses.replace(st, stream_key=(f"step{k}_refit",))
 
 
-def refit_point(ctx, results, k: int) -> dict:
+def refit_point(ctx, results, k: int, rf: dict | None = None) -> dict:
     """Where step k's band is computed: the re-fit's moved point if its fitting-block error is no
     worse than the best point the re-fit evaluated, else that point → {"effects" (JSON), "r",
-    "moved_fit_error", "best_fit_error", "fallback" (bool)}."""
-    rf = refit_result(ctx, results, k)
+    "moved_fit_error", "best_fit_error", "fallback" (bool)}. ``rf``: :func:`refit_result` if at hand."""
+    rf = refit_result(ctx, results, k) if rf is None else rf
     ds = results[f"step{k}_check"]
     moved = prediction_error(ctx.meas.fit, _trial_psds(ds, json.loads(_params(ds)["trials"]))[0], _sigma(results),
                              ctx.meas.frequency)
