@@ -48,6 +48,7 @@ def _study(**kw):
     (dict(chunks={"r": 0}), "chunks.r"),
     (dict(seed=-1), "seed"),
     (dict(seed_axes=("q",)), "seed_axes"),
+    (dict(in_process=1), "in_process"),                                      # not a bool
     (dict(outputs={"y": Output(dims=("f",))}), "outputs.y.dims"),            # extra dim without coords
     (dict(name="a b"), "name"),
 ])

@@ -367,3 +367,55 @@ def test_runner_killed_mid_stage_2_resumes_to_the_identical_store(big, reference
     assert "stage curve: complete" in resumed.stderr
     assert f"stage around: {total - done} of {total} blocks to compute" in resumed.stderr
     assert store_digest(store) == reference
+
+
+# -- where blocks run; the per-process cache of opened stages ---------------------------------------------
+WHERE = '''
+import os
+import numpy as np
+from tubeid.runner import Output, Pipeline, Study
+
+
+def _pid(block, rng):
+    return {"pid": np.full(len(block["i"]), float(os.getpid()))}
+
+
+def far(results):
+    return Study(name="far", seed=3, axes={"i": range(2)}, chunks={"i": 1}, task=_pid, outputs={"pid": Output()})
+
+
+def here(results):
+    return Study(name="here", seed=3, axes={"i": range(2)}, chunks={"i": 1}, task=_pid, outputs={"pid": Output()},
+                 in_process=True)
+
+
+study = Pipeline(name="where", seed=3, stages=[far, here])
+'''
+
+
+@pytest.mark.distributed
+@pytest.mark.timeout(120)
+def test_an_in_process_stage_runs_in_the_runner_and_the_others_on_the_workers(tmp_path):
+    (tmp_path / "where.py").write_text(WHERE)
+    rep = run(tmp_path / "where.py", tmp_path / "w.zarr", workers=1, quiet=True)
+    res = open_pipeline(tmp_path / "w.zarr")
+    assert rep.stages["far"].computed == rep.stages["here"].computed == 2
+    assert set(res["here"].pid.values) == {float(os.getpid())}
+    assert float(os.getpid()) not in set(res["far"].pid.values)
+
+
+def test_an_opened_stage_is_reopened_once_it_finished_again(tmp_path):
+    """The per-process cache of opened stages keys on the stage's ``finished`` time: a stage
+    recomputed or repaired (a new ``finished``) is opened afresh, with its new attributes."""
+    from tubeid.runner.execute import _open_stage
+    from tubeid.runner.store import now, update_attrs
+
+    path = write_pipeline(tmp_path)
+    run(path, tmp_path / "p.zarr", workers=0, quiet=True)
+    attrs = store_status(tmp_path / "p.zarr", "curve")["attrs"]
+    first = _open_stage(tmp_path / "p.zarr", "curve", attrs)
+    assert _open_stage(tmp_path / "p.zarr", "curve", dict(attrs)) is first
+    time.sleep(0.01)
+    update_attrs(tmp_path / "p.zarr", "curve", finished=now(), marker=1)
+    again = _open_stage(tmp_path / "p.zarr", "curve", store_status(tmp_path / "p.zarr", "curve")["attrs"])
+    assert again is not first and again.attrs["marker"] == 1 and "marker" not in first.attrs

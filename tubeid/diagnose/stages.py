@@ -6,7 +6,7 @@ parameters are plain text: ``data`` (path of the validated record written into D
 declared model, JSON of ``spec_to_dict``) and ``settings`` (``DiagnoseSettings.to_json()``); all
 four are hashed into the store's identity. Every grid point and Monte Carlo realisation is a
 runner task; a stage with nothing to compute holds one ``skipped`` placeholder whose coordinate
-says why. Random streams are keyed by the stage, the settings' seed and, where named, the
+says why (written by the runner's own process, not sent to the cluster). Random streams are keyed by the stage, the settings' seed and, where named, the
 realisation; the trials of one stage share one stream (common random numbers).
 
 ``delta_ml``        J(δ) of the declared model's random B → δ by maximum likelihood of J_ref of
@@ -105,7 +105,7 @@ def nothing(block, rng, **_):
 def _skipped(name: str, reason: str, summarize=None, parameters=None) -> Study:
     return Study(name=name, seed=SEED, description=f"nothing to compute: {reason}", axes={"skipped": [reason]},
                  task=nothing, outputs={"nothing": Output(units="1", long_name="placeholder: nothing was computed")},
-                 summarize=summarize, parameters=parameters or {})
+                 summarize=summarize, parameters=parameters or {}, in_process=True)
 
 
 # -- δ by the paper's maximum likelihood of J -----------------------------------------------------------------

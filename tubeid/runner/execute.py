@@ -11,6 +11,7 @@ process) and checks that it gets the stage hash the client computed.
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import dataclasses
 import functools
@@ -144,14 +145,32 @@ def run_block(store: str, source: str, overrides: dict, index: tuple[int, ...]) 
 _STAGES: dict[tuple, object] = {}
 
 
+_OPENED: collections.OrderedDict = collections.OrderedDict()
+_OPENED_MAX = 64
+
+
+def _open_stage(store, name: str, attrs: dict):
+    """Stage ``name`` of ``store`` opened without dask, kept per process (at most ``_OPENED_MAX``)
+    under its stage hash and ``finished`` time: a stage recomputed or repaired since has another
+    ``finished`` time, so an entry is always the stage as it stands complete in the store."""
+    import xarray as xr
+
+    key = (str(store), name, attrs.get("stage_hash"), attrs.get("finished"))
+    if key in _OPENED:
+        _OPENED.move_to_end(key)
+        return _OPENED[key]
+    ds = _OPENED[key] = xr.open_zarr(str(store), group=name, chunks=None)
+    while len(_OPENED) > _OPENED_MAX:
+        _OPENED.popitem(last=False)
+    return ds
+
+
 def stage_study(pipeline: Pipeline, key: str, store, name: str):
     """Build stage ``name`` from the earlier stages' stored results: ``(study, stage hash)``.
 
     The earlier stages are opened from ``store`` without dask (lazy numpy-backed arrays), with the
     attributes their ``summarize`` wrote; the stage hash covers their hashes and summaries too.
     """
-    import xarray as xr
-
     from tubeid.runner.store import store_status
 
     names = pipeline.stage_names
@@ -160,7 +179,7 @@ def stage_study(pipeline: Pipeline, key: str, store, name: str):
         st = store_status(store, earlier)
         if not st["complete"]:
             raise SpecificationError(f"stages.{name}", name, f"needs stage {earlier!r} complete in {store}")
-        results[earlier] = xr.open_zarr(str(store), group=earlier, chunks=None)
+        results[earlier] = _open_stage(store, earlier, st["attrs"])
         a = st["attrs"]
         upstream.append((earlier, a["stage_hash"], {k: a[k] for k in a.get("summary_keys", [])}))
     study = pipeline.stage(name, results)
@@ -578,7 +597,7 @@ def _run_study(ctx: _Run) -> RunReport:
         if client is not None:
             _describe_cluster(client, where, report, quiet)
         report.warmup = _warm_up(client, study.warmup, quiet) if todo else 0.0
-        if client is None:
+        if client is None or study.in_process:
             _run_here(fn, todo, report, ctx.progress, lock=ctx.lock, label=functools.partial(_block_label, study))
         else:
             _run_dask(client, fn, f"tubeid-{ctx.key[:10]}", todo, report, ctx.progress, lock=ctx.lock,
@@ -586,8 +605,8 @@ def _run_study(ctx: _Run) -> RunReport:
     t0 = time.perf_counter()
     if not block_flags(path).all():
         raise RuntimeError(f"{path}: run ended with unfinished blocks")  # should not happen
-    update_attrs(path, finished=now(), **_summary(study, path))
-    append_history(path, None, f"complete: {report.computed} block(s) computed, {report.skipped} already done")
+    update_attrs(path, finished=now(), **_summary(study, path),
+                 add_history=f"complete: {report.computed} block(s) computed, {report.skipped} already done")
     report.finalise = time.perf_counter() - t0
     _log(f"tubeid: done: {report.computed} blocks computed, {report.skipped} already done; store {path}", quiet)
     return report
@@ -638,8 +657,8 @@ def _run_pipeline(ctx: _Run) -> PipelineReport:
             report.stages[name] = _run_stage(ctx, name, client)
             report.workers = max(report.workers, report.stages[name].workers)
     t0 = time.perf_counter()
-    update_attrs(path, finished=now())
-    append_history(path, None, f"complete: {report.computed} block(s) computed, {report.skipped} already done")
+    update_attrs(path, finished=now(),
+                 add_history=f"complete: {report.computed} block(s) computed, {report.skipped} already done")
     report.finalise = time.perf_counter() - t0
     _log(f"tubeid: done: {report.computed} blocks computed, {report.skipped} already done "
          f"({len(pipeline.stages)} stages); store {path}", quiet)
@@ -647,10 +666,11 @@ def _run_pipeline(ctx: _Run) -> PipelineReport:
 
 
 def _stage_state(path, name, state):
+    """Record stage ``name``'s state at the root and consolidate the root (also when the state is
+    unchanged: the stage's group may have changed without it)."""
     status = dict(read_attrs(path).get("stage_status", {}))
-    if status.get(name) != state:
-        status[name] = state
-        update_attrs(path, stage_status=status)
+    status[name] = state
+    update_attrs(path, stage_status=status)
 
 
 def _run_stage(ctx: _Run, name: str, client) -> RunReport:
@@ -671,11 +691,11 @@ def _run_stage(ctx: _Run, name: str, client) -> RunReport:
             report.prepare = time.perf_counter() - t0
             _log(f"tubeid: stage {name}: complete ({study.n_blocks} blocks)", quiet)
             return report
-        update_attrs(path, name, runs=list(attrs.get("runs", [])) + [now()])
+        update_attrs(path, name, runs=list(attrs.get("runs", [])) + [now()], root=False)
     else:
         init_stage(study, path, name, pipeline_name=pipeline.name, pipeline_hash=ctx.key, stage_hash=shash,
-                   references=pipeline.references)
-    _stage_state(path, name, "running")
+                   references=pipeline.references, root=False)
+    _stage_state(path, name, "running")  # consolidates the root, with the group's change above
     flags = block_flags(path, name)
     todo = [b.index for b in study.blocks() if not flags[b.index]]
     report.skipped = study.n_blocks - len(todo)
@@ -684,7 +704,7 @@ def _run_stage(ctx: _Run, name: str, client) -> RunReport:
     fn = functools.partial(run_stage_block, str(path), ctx.source, ctx.overrides, name, shash)
     if todo:
         report.warmup = _warm_up(client, study.warmup, quiet)
-    if client is None:
+    if client is None or study.in_process:
         _run_here(fn, todo, report, ctx.progress, desc=name, lock=ctx.lock,
                   label=functools.partial(_block_label, study, stage=name))
     else:
@@ -694,9 +714,9 @@ def _run_stage(ctx: _Run, name: str, client) -> RunReport:
     t0 = time.perf_counter()
     if not block_flags(path, name).all():
         raise RuntimeError(f"{path}: stage {name} ended with unfinished blocks")  # should not happen
-    update_attrs(path, name, finished=now(), **_summary(study, path, name))
-    append_history(path, name, f"stage complete: {report.computed} block(s) computed, {report.skipped} already done")
-    _stage_state(path, name, "complete")
+    update_attrs(path, name, finished=now(), root=False, **_summary(study, path, name),
+                 add_history=f"stage complete: {report.computed} block(s) computed, {report.skipped} already done")
+    _stage_state(path, name, "complete")  # consolidates the root, with the group's change above
     report.finalise = time.perf_counter() - t0
     return report
 

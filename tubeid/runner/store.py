@@ -109,12 +109,15 @@ def _zarr_writes(path):
             "left it in place: move it out of the store and rerun") from exc
 
 
-def _consolidate(path, group=None):
-    """Consolidate the metadata of ``group`` (if any), then of the root (which nests every group's)."""
+def _consolidate(path, group=None, root: bool = True):
+    """Consolidate the metadata of ``group`` (if any), then (``root``) of the root, which nests every
+    group's: its cost grows with the number of groups, so a caller about to change the root anyway
+    passes ``root=False`` and lets that change consolidate it."""
     with _quiet(), _zarr_writes(path):
         if group:
             zarr.consolidate_metadata(str(path), path=group)
-        zarr.consolidate_metadata(str(path))
+        if root or not group:
+            zarr.consolidate_metadata(str(path))
 
 
 def _group(path, group=None, mode="r", consolidated=None):
@@ -356,7 +359,7 @@ def bookkeeping_attrs(study) -> dict:
             "coordinates": {d: values_checksum(v) for d, v in {**study.axes, **study.coords}.items()}}
 
 
-def _write_empty(study, p, attrs, group=None) -> None:
+def _write_empty(study, p, attrs, group=None, root: bool = True) -> None:
     """Write coordinates, lazy empty outputs and zero flags of ``study`` (at the root or in ``group``).
 
     The nodes are recorded in the manifest first; written with ``mode="a"`` (which creates and never
@@ -391,7 +394,7 @@ def _write_empty(study, p, attrs, group=None) -> None:
                         compressors=None,  # FLAG_CODECS: 8 raw bytes per block, read without zarr by `tubeid status`
                         dimension_names=_flag_dims(study),
                         attributes={"long_name": "block completion flag: 0 = not written, else the block's checksum"})
-    _consolidate(p, group)
+    _consolidate(p, group, root=root)
 
 
 def init_pipeline_store(pipeline, path, *, source: str, study_hash: str, study_file: str = "", overrides=None) -> None:
@@ -405,11 +408,12 @@ def init_pipeline_store(pipeline, path, *, source: str, study_hash: str, study_f
 
 
 def init_stage(study, path, name: str, *, pipeline_name: str, pipeline_hash: str, stage_hash: str,
-               references: str = "") -> None:
+               references: str = "", root: bool = True) -> None:
     """Create (or replace) the group of stage ``name``: the layout of a study store, stage provenance.
 
     A stage group already there (e.g. from a run stopped while creating it) is removed first, only
-    what the manifest says tubeid wrote.
+    what the manifest says tubeid wrote. ``root=False``: the root's consolidated metadata is left
+    for the caller's next change of the root (see :func:`_consolidate`).
     """
     p = pathlib.Path(path)
     nodes = {n: k for n, k in _read_manifest(p).items() if n == name or n.startswith(name + "/")}
@@ -436,7 +440,7 @@ def init_stage(study, path, name: str, *, pipeline_name: str, pipeline_hash: str
         "runs": [t],
         "finished": "",
     }
-    _write_empty(study, p, attrs, group=name)
+    _write_empty(study, p, attrs, group=name, root=root)
 
 
 def check_stage(path, name: str, stage_hash: str) -> str:
@@ -457,17 +461,21 @@ def check_stage(path, name: str, stage_hash: str) -> str:
     return "resume"
 
 
-def update_attrs(path, group=None, **attrs) -> None:
-    """Update the attributes (provenance) of the root or of ``group`` and re-consolidate the metadata."""
+def update_attrs(path, group=None, *, add_history: str = "", root: bool = True, **attrs) -> None:
+    """Update the attributes (provenance) of the root or of ``group``, with ``add_history`` (if any)
+    a new line of its CF ``history``, in one write; then re-consolidate the metadata (of the group
+    only with ``root=False``: the caller changes the root next, see :func:`_consolidate`)."""
     g = _group(path, group, mode="r+", consolidated=False)
+    if add_history:
+        old = g.attrs.get("history", "")
+        attrs["history"] = (old + "\n" if old else "") + history_line(add_history)
     g.attrs.update(attrs)
-    _consolidate(path, group)
+    _consolidate(path, group, root=root)
 
 
 def append_history(path, group=None, what: str = "") -> None:
     """Add a line to the CF ``history`` of the root or of ``group``."""
-    old = read_attrs(path, group).get("history", "")
-    update_attrs(path, group, history=(old + "\n" if old else "") + history_line(what))
+    update_attrs(path, group, add_history=what)
 
 
 def read_attrs(path, group=None) -> dict:

@@ -392,6 +392,10 @@ class Study(Parameterised):
         CF ``references`` attribute (e.g. the paper).
     warmup : Warmup, optional
         Work needed once per machine before the first block.
+    in_process : bool
+        Run the blocks in the runner's own process, not on the cluster: for a study whose whole
+        work costs less than a round trip to the workers (e.g. a pipeline stage's placeholder).
+        The values do not depend on it (it is not part of :meth:`fingerprint`).
     """
 
     name: str
@@ -412,6 +416,7 @@ class Study(Parameterised):
     long_names: Mapping[str, str] = dataclasses.field(default_factory=dict)
     references: str = ""
     warmup: Warmup | None = None
+    in_process: bool = False
 
     def __post_init__(self):
         from tubeid import config
@@ -488,6 +493,8 @@ class Study(Parameterised):
             raise SpecificationError("axes", RESERVED, "is reserved for the store's bookkeeping")
         if not isinstance(self.references, str):
             raise SpecificationError("references", self.references, "must be a string")
+        if not isinstance(self.in_process, bool):
+            raise SpecificationError("in_process", self.in_process, "must be True or False")
         if self.warmup is not None and not isinstance(self.warmup, Warmup):
             raise SpecificationError("warmup", self.warmup, "must be a tubeid.runner.Warmup")
         self._check_signature()
