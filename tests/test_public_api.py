@@ -38,8 +38,8 @@ PINNED = {
         "delta_f_likelihood",
     ],
     "tubeid.measured": ["read_measurements", "write_measurements", "validate_measurements"],
-    "tubeid.diagnose": ["diagnose", "DiagnoseSettings", "Diagnosis", "detection_test", "Detection", "CATALOG", "Candidate",
-                        "LOAD_MODELS", "MAX_EFFECTS"],
+    "tubeid.diagnose": ["diagnose", "DiagnoseSettings", "Diagnosis", "detection_test", "Detection", "Observations",
+                        "STATISTICS", "MODEL_FORMS", "CATALOG", "Candidate", "LOAD_MODELS", "MAX_EFFECTS"],
     "tubeid.runner": [
         "Study", "Output", "Parameter", "pointwise", "load_study", "run", "open_results", "RunReport", "RngFactory",
         "store_status", "Pipeline", "PipelineReport", "open_pipeline", "pipeline_status", "Warmup", "verify",

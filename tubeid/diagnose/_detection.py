@@ -1,9 +1,14 @@
 """Detection as a calibrated test: is the held-out record a realisation of the declared model?
 
-H0: the held-out auto-PSDs of the record (F frequencies × m sensors) are one more realisation of
-the declared stochastic model, whose R realisations (same block layout, same estimator) are given.
-Three statistics look for what the model lacks, each computed for every one of the N = R + 1
-samples (the record and the R realisations) against the *other* N − 1 samples only:
+H0: the held-out record is one more realisation of the declared stochastic model, whose R
+realisations (same block layout, same estimators) are given. Each statistic of :data:`STATISTICS`
+looks for one kind of departure; each is computed for every one of the N = R + 1 samples (the record
+and the R realisations) against the *other* N − 1 samples only. What the samples carry
+(:class:`Observations`, sample axis first): auto-PSDs at the test's Welch segment (``psd``) and at a
+finer one (``fine``), the conditional PSD of each sensor given the others (``residual``,
+1/[S⁻¹]_ii of the PSD matrix S), and the time statistics (RMS, skewness, excess kurtosis).
+
+Statistics that take the declared model's spectral *shape* as right (``model_form="exact"``):
 
 ``scan``       the largest, over frequencies, of the mean over sensors of z², with z the
                standardised residual of log10 PSD (per bin: minus the others' mean, divided by
@@ -17,48 +22,182 @@ samples (the record and the R realisations) against the *other* N − 1 samples 
                ±``smooth_bins`` bins: sharper or blunter resonances (damping) change it, whereas a
                random shift of the resonances (what δ does) does not.
 
-The level is removed from every sample because it is what the load identification fits (r) and
-carries its error; the statistics see the spectra's shape. Each statistic's p-value is the
-fraction of the N samples whose statistic is at least the record's; the three are combined by the
-largest of their log values standardised (again against the other samples): p is that combined
-statistic's rank. Every statistic of sample i is a fixed function of sample i and of the *set* of
-the others, so under H0 (the N samples exchangeable) the record's rank is uniform on 1..N and
-P(p ≤ α) = ⌊αN⌋/N ≤ α exactly, whatever the statistics' distributions — no Gaussian or
-independence assumption, a Monte Carlo (conformal) test. With R = 39, α = 0.05: exactly 5 %.
+Statistics that a *simplified* declared model can be trusted for (``model_form="simplified"``):
+its random subsystem B moves and scales resonances (what δ covers), but a coarser or homogenised B
+also misses modes and mis-shapes the spectrum in ways no draw of B reproduces (measured with
+``paper-simplified`` against reference records: ``scan``, ``gof`` and ``sharpness`` then alarm on
+6 of 10 effect-free records). These four look only at what such a model still gets right — the
+non-linear tube, its sensors and its declared damping — each through a local or scale-free feature
+(:func:`features`), and each points to the catalog effect that can explain it (``effects``):
+
+``line``       fine resolution (``fine``): the prominence of log10 PSD over a ring of bins 4–8
+               bins away (a Hann line stays within ±2 bins, a resonance of the declared damping
+               spreads over the ring); the largest, over frequencies, of the mean over sensors of
+               the positive part of its standardised residual squared (a scale floor of 0.1 decade).
+               → ``tone``.
+``floor``      the conditional PSD of each sensor given the others is the part no other sensor
+               explains; above the load's band (from band + 4 bins to Nyquist) only the stops'
+               impacts drive the structure, whose response there is nearly coherent between
+               sensors and leaves it deep and uneven, whereas white sensor noise fills it to a flat
+               level N. The feature per sensor is the spread (standard deviation over those bins)
+               of its log10; the statistic is the mean over sensors of its standardised log,
+               one-sided (flatter). Left out of the test when the record has fewer than
+               :data:`FLOOR_MIN_BINS` such bins (Nyquist too close to the band). → ``sensor_noise``.
+``kurtosis``   the excess kurtosis of each sensor's record (a stop clips the motion near it):
+               the largest over sensors of its standardised residual squared. → ``stop``.
+``resonance``  fine resolution: log roughness (as ``sharpness``, running mean over ±2 Hz) per
+               4·``band_width_hz`` chunk in the load band, the first chunk left out (the lowest
+               modes are B's, the most uncertain), lines left out (bins within ±2 Hz of a
+               prominence above :data:`LINE_MASK_DECADES`: a tone is the line statistic's); the
+               absolute mean over chunks and sensors of its standardised residual (sharper or
+               blunter resonances everywhere). → ``damping``.
+
+Each statistic's p-value is the fraction of the N samples whose statistic is at least the record's;
+the statistics of the test (:data:`MODEL_FORMS`) are combined by the largest of their log values
+standardised (again against the other samples): p is that combined statistic's rank. Every statistic
+of sample i is a fixed function of sample i and of the *set* of the others, so under H0 (the N
+samples exchangeable) the record's rank is uniform on 1..N and P(p ≤ α) = ⌊αN⌋/N ≤ α exactly,
+whatever the statistics' distributions — no Gaussian or independence assumption, a Monte Carlo
+(conformal) test. With R = 39, α = 0.05: exactly 5 %.
 
 What H0 does not cover: the load level r and δ_F are identified on the fitting blocks of the same
 record, so the record is exchangeable with the realisations only up to that fit (the level is
 removed; the shape's dependence on r through the stop is second order); a given δ larger than the
-truth makes the test conservative (fewer false alarms than stated), a smaller one anti-conservative.
+truth makes the test conservative (fewer false alarms than stated), a smaller one anti-conservative;
+with a simplified model, the record is not a realisation of the model at all, and the size of the
+``simplified`` statistics is what they measure on effect-free records of the structure, stated in
+the README, not exactly α.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.ndimage import uniform_filter1d
+from scipy.ndimage import convolve1d, maximum_filter1d, uniform_filter1d
 
-from tubeid._validation import integer, open_unit, positive
+from tubeid._validation import integer, one_of, open_unit, positive
 from tubeid.diagnose._spectra import analysis_bins, log10
 from tubeid.errors import Described, SpecificationError
 
-__all__ = ["Detection", "detection_test", "band_moments", "STATISTICS"]
+__all__ = ["Detection", "Observations", "Statistic", "detection_test", "band_moments", "features", "STATISTICS",
+           "MODEL_FORMS", "LINE_RING_BINS", "SCALE_FLOOR"]
 
-#: The statistics of the test, in the order they are reported.
-STATISTICS = ("scan", "gof", "sharpness")
+#: The ring of the line prominence, in fine bins: (inner, outer) distance from the bin.
+LINE_RING_BINS = (4, 8)
+#: Smallest standard deviation [decades] a prominence is standardised by (the ring's own mean
+#: makes some bins nearly constant over the samples).
+SCALE_FLOOR = 0.1
+#: A fine bin whose prominence exceeds this [decades] is a line: the ``resonance`` roughness leaves
+#: out the bins within its smoothing half width of it (resonances of the declared damping stay
+#: below it above 20 Hz).
+LINE_MASK_DECADES = 1.0
+#: Fewest bins above the load's band the ``floor`` statistic needs.
+FLOOR_MIN_BINS = 8
+#: Half width of the running mean behind the ``resonance`` roughness [Hz].
+RESONANCE_SMOOTH_HZ = 2.0
+
+
+@dataclass(frozen=True)
+class Observations:
+    """What the statistics read of N samples (sample axis first; the record is sample 0 in a test).
+    Fields a statistic does not need may be None (``psd`` too, outside a test).
+
+    Parameters
+    ----------
+    frequency : numpy.ndarray
+        (F,) [Hz], uniform from 0 to Nyquist.
+    psd : numpy.ndarray or None
+        (N, F, m) auto-PSD [m²/Hz, two-sided].
+    frequency_fine : numpy.ndarray or None
+        (F',) [Hz] of ``fine``.
+    fine : numpy.ndarray or None
+        (N, F', m) auto-PSD at a finer Welch segment [m²/Hz].
+    residual : numpy.ndarray or None
+        (N, F, m) conditional PSD of each sensor given the others [m²/Hz].
+    stats : numpy.ndarray or None
+        (N, m, 3) RMS [m], skewness, excess kurtosis.
+    band_hz : float or None
+        The load's band [Hz].
+    """
+
+    frequency: np.ndarray
+    psd: np.ndarray | None = None
+    frequency_fine: np.ndarray | None = None
+    fine: np.ndarray | None = None
+    residual: np.ndarray | None = None
+    stats: np.ndarray | None = None
+    band_hz: float | None = None
+
+    @property
+    def n(self) -> int:
+        """The number of samples."""
+        return next(int(a.shape[0]) for a in (self.psd, self.fine, self.residual, self.stats) if a is not None)
+
+    def stacked(self, others: "Observations") -> "Observations":
+        """These samples followed by ``others``' (same frequencies and sensors).
+
+        Parameters
+        ----------
+        others : Observations
+
+        Returns
+        -------
+        Observations
+        """
+        def cat(a, b):
+            return None if a is None or b is None else np.concatenate([a, b])
+
+        return Observations(self.frequency, cat(self.psd, others.psd), self.frequency_fine, cat(self.fine, others.fine),
+                            cat(self.residual, others.residual), cat(self.stats, others.stats), self.band_hz)
+
+
+@dataclass(frozen=True)
+class Statistic:
+    """One statistic of the test: ``compute(obs, band_width_hz, smooth_bins) -> (N,)`` values, large
+    = departure; ``needs``: the :class:`Observations` fields it reads besides ``psd``; ``robust``:
+    trusted with a simplified declared model (module docstring); ``effects``: the catalog effects
+    whose absence it points to (empty: any); ``peak``: its frequency of largest excess for the
+    record, or None; ``applies(obs) -> bool``: whether the observations hold what it reads (None:
+    always), else the test leaves it out."""
+
+    compute: Callable
+    needs: tuple[str, ...] = ()
+    robust: bool = False
+    effects: tuple[str, ...] = ()
+    peak: Callable | None = None
+    applies: Callable | None = None
 
 
 @dataclass(frozen=True)
 class Detection:
     """The result of :func:`detection_test`.
 
-    ``p_value``: the combined test's p-value; ``detected``: ``p_value`` ≤ ``false_alarm``;
-    ``size``: the exact false-alarm rate ⌊αN⌋/N; ``p_values``, ``statistics`` (the record's) and
-    ``null_median`` (the realisations'): per statistic of :data:`STATISTICS`;
-    ``scan_frequency_hz``: where the record's scan statistic peaks; ``z`` (F, m): the record's
-    standardised residual against all R realisations (level removed; 0 at DC and Nyquist);
-    ``n_realisations``: R.
+    Parameters
+    ----------
+    p_value : float
+        The combined test's p-value.
+    detected : bool
+        ``p_value`` ≤ ``false_alarm``.
+    false_alarm : float
+        The stated rate α.
+    size : float
+        The exact false-alarm rate ⌊αN⌋/N under H0.
+    p_values, values, null_median, excess : dict
+        Per statistic combined (those of ``model_form`` whose ``applies`` holds: the
+        :attr:`statistics`): its p-value, the record's value, the realisations' median, the
+        record's standardised log value (what the combination takes the largest of).
+    scan_frequency_hz : float
+        Where the record's line evidence peaks [Hz] (the ``scan``'s, else the ``line``'s; NaN when
+        neither is used).
+    n_realisations : int
+        R.
+    model_form : str
+        The form whose statistics were combined (:data:`MODEL_FORMS`).
+    z : numpy.ndarray
+        (F, m) the record's standardised log10 PSD residual against all R realisations (level
+        removed; 0 at DC and Nyquist).
     """
 
     p_value: float
@@ -66,18 +205,49 @@ class Detection:
     false_alarm: float
     size: float
     p_values: dict
-    statistics: dict
+    values: dict
     null_median: dict
+    excess: dict
     scan_frequency_hz: float
     n_realisations: int
-    z: np.ndarray = field(repr=False)
+    model_form: str = "exact"
+    z: np.ndarray = field(default=None, repr=False)
+
+    @property
+    def statistics(self) -> tuple[str, ...]:
+        return tuple(self.p_values)
+
+    def strongest(self) -> str:
+        """The statistic with the largest excess: the departure the combined test sees most.
+
+        Returns
+        -------
+        str
+        """
+        return max(self.excess, key=lambda k: self.excess[k])
+
+    def pointed_effects(self) -> tuple[str, ...] | None:
+        """The catalog effects the :meth:`strongest` statistic points to (the strongest departure is
+        explained first).
+
+        Returns
+        -------
+        tuple of str or None
+            None when that statistic points to any effect (the exact form's).
+        """
+        return STATISTICS[self.strongest()].effects or None
 
     def to_dict(self) -> dict:
-        """Plain values for report.json (without ``z``)."""
+        """Plain values for report.json (without ``z``).
+
+        Returns
+        -------
+        dict
+        """
         return {"p_value": self.p_value, "detected": self.detected, "false_alarm": self.false_alarm,
-                "size": self.size, "p_values": dict(self.p_values), "statistics": dict(self.statistics),
-                "null_median": dict(self.null_median), "scan_frequency_hz": self.scan_frequency_hz,
-                "n_realisations": self.n_realisations}
+                "size": self.size, "model_form": self.model_form, "p_values": dict(self.p_values),
+                "statistics": dict(self.values), "null_median": dict(self.null_median), "excess": dict(self.excess),
+                "scan_frequency_hz": self.scan_frequency_hz, "n_realisations": self.n_realisations}
 
 
 def band_moments(samples) -> tuple[np.ndarray, np.ndarray]:
@@ -87,9 +257,10 @@ def band_moments(samples) -> tuple[np.ndarray, np.ndarray]:
     return L.mean(axis=0), L.std(axis=0, ddof=1)
 
 
-def _loo_z(X: np.ndarray, level_free: bool) -> np.ndarray:
+def _loo_z(X: np.ndarray, level_free: bool, floor: float = 0.0) -> np.ndarray:
     """X (N, ...) → z (N, ...): each sample standardised by the mean and std (ddof 1) of the
-    others, after removing its own mean offset from them when ``level_free``."""
+    others (the std at least ``floor``), after removing its own mean offset from them when
+    ``level_free``."""
     N = X.shape[0]
     X = X - X.mean(axis=0)  # shift-invariant; keeps the sums well conditioned
     s1, s2 = X.sum(axis=0), (X**2).sum(axis=0)
@@ -98,7 +269,7 @@ def _loo_z(X: np.ndarray, level_free: bool) -> np.ndarray:
     d = X - mu
     if level_free:
         d = d - d.reshape(N, -1).mean(axis=1).reshape((N,) + (1,) * (X.ndim - 1))
-    return d / np.sqrt(np.maximum(var, 1e-30))
+    return d / np.sqrt(np.maximum(var, max(floor**2, 1e-30)))
 
 
 def _bands(f: np.ndarray, width: float) -> np.ndarray:
@@ -117,14 +288,195 @@ def _rank_p(T: np.ndarray) -> float:
     return float(np.mean(T >= T[0] - 1e-12 * abs(T[0])))
 
 
-def detection_test(psd, samples, frequency, *, false_alarm: float = 0.05, band_width_hz: float = 5.0,
-                   smooth_bins: int = 4) -> Detection:
+# -- the features (what each robust statistic standardises; also what the selection fits) --------------
+
+
+def _log_psd(obs: Observations) -> tuple[np.ndarray, np.ndarray]:
+    sel = analysis_bins(obs.frequency)
+    return log10(obs.psd)[:, sel], obs.frequency[sel]
+
+
+def _line_bins(obs: Observations) -> np.ndarray:
+    """Fine bins the prominence is read on: from 2 Hz, away from the band edge and Nyquist by the ring."""
+    f = obs.frequency_fine
+    df = f[1] - f[0]
+    outer = LINE_RING_BINS[1] * df
+    sel = (f >= 2.0) & (f <= f[-1] - outer - 1e-9)
+    if obs.band_hz is not None:
+        sel &= np.abs(f - obs.band_hz) > outer + 2 * df
+    return sel
+
+
+def _ring_prominence(L: np.ndarray) -> np.ndarray:
+    """log10 PSD (N, F, m) minus its mean over the ring of :data:`LINE_RING_BINS` [decades]."""
+    inner, outer = LINE_RING_BINS
+    kernel = np.zeros(2 * outer + 1)
+    kernel[: outer - inner + 1] = kernel[-(outer - inner + 1):] = 1.0
+    return L - convolve1d(L, kernel / kernel.sum(), axis=1, mode="nearest")
+
+
+def _prominence(obs: Observations) -> np.ndarray:
+    """The fine PSD's ring prominence on :func:`_line_bins` (N, F'', m) [decades]."""
+    return _ring_prominence(log10(obs.fine))[:, _line_bins(obs)]
+
+
+def _floor_bins(obs: Observations) -> np.ndarray:
+    """Analysis bins above the load's band by 4 bins (all analysis bins when the band is unknown)."""
+    f = obs.frequency
+    sel = analysis_bins(f)
+    if obs.band_hz is not None:
+        sel &= f > obs.band_hz + 4 * (f[1] - f[0])
+    return sel
+
+
+def _floor_spread(obs: Observations) -> np.ndarray:
+    """Per sensor, the standard deviation over :func:`_floor_bins` of log10 of the conditional PSD (N, m)."""
+    return log10(obs.residual[:, _floor_bins(obs)]).std(axis=1)
+
+
+def _floor_level(obs: Observations) -> np.ndarray:
+    """Per sensor, the 10th percentile over :func:`_floor_bins` of log10 of the conditional PSD (N, m)."""
+    return np.percentile(log10(obs.residual[:, _floor_bins(obs)]), 10, axis=1)
+
+
+def _roughness_chunks(obs: Observations, band_width_hz: float) -> np.ndarray:
+    """log10 of the mean square of fine log10 PSD minus its running mean (±RESONANCE_SMOOTH_HZ), per
+    4·band_width chunk inside the load band, the first chunk left out, lines left out (the bins
+    within the half width of a prominence above :data:`LINE_MASK_DECADES`; the running mean over the
+    others) (N, C, m)."""
+    f = obs.frequency_fine
+    h = max(1, int(round(RESONANCE_SMOOTH_HZ / (f[1] - f[0]))))
+    sel = analysis_bins(f)
+    L = log10(obs.fine)[:, sel]
+    fs = f[sel]
+    keep_bin = ~(maximum_filter1d((_ring_prominence(L) > LINE_MASK_DECADES).astype(np.int8), 2 * h + 1, axis=1) > 0)
+    w = keep_bin.astype(float)
+    running = uniform_filter1d(L * w, 2 * h + 1, axis=1, mode="nearest") / np.maximum(
+        uniform_filter1d(w, 2 * h + 1, axis=1, mode="nearest"), 1e-12)
+    rough = w * (L - running) ** 2
+    width = 4.0 * band_width_hz
+    top = obs.band_hz if obs.band_hz is not None else fs[-1]
+    idx = _bands(fs, width)
+    keep = (idx >= 1) & ((idx + 1) * width <= top + 1e-9)
+    if not np.any(keep):  # a band narrower than two chunks: every whole chunk in the band
+        keep = (idx + 1) * width <= top + 1e-9
+    num, den = _group_mean(rough[:, keep], idx[keep]), _group_mean(w[:, keep], idx[keep])
+    return np.log10(np.maximum(num / np.maximum(den, 1e-12), 1e-300))
+
+
+def features(name: str, obs: Observations, band_width_hz: float = 5.0) -> np.ndarray:
+    """The feature a robust statistic standardises, per sample (N, ...): what the selection fits an
+    effect to when the declared model is simplified (``line``: prominence (N, F'', m) [decades];
+    ``floor``: level and spread of log10 conditional PSD (N, 2, m) [decades]; ``kurtosis``: excess
+    kurtosis (N, m); ``resonance``: log roughness (N, C, m))."""
+    if name == "line":
+        return _prominence(obs)
+    if name == "floor":
+        return np.stack([_floor_level(obs), _floor_spread(obs)], axis=1)
+    if name == "kurtosis":
+        return obs.stats[:, :, 2]
+    if name == "resonance":
+        return _roughness_chunks(obs, band_width_hz)
+    raise SpecificationError("statistic", name, f"has no feature; one of {[k for k, s in STATISTICS.items() if s.robust]}")
+
+
+# -- the statistics --------------------------------------------------------------------------------------
+
+
+def _scan(obs, band_width_hz, smooth_bins):
+    L, _ = _log_psd(obs)
+    return np.mean(_loo_z(L, level_free=True) ** 2, axis=2).max(axis=1)
+
+
+def _scan_peak(obs, band_width_hz, smooth_bins):
+    L, fs = _log_psd(obs)
+    return float(fs[int(np.argmax(np.mean(_loo_z(L, level_free=True)[0] ** 2, axis=1)))])
+
+
+def _gof(obs, band_width_hz, smooth_bins):
+    L, fs = _log_psd(obs)
+    B = np.log10(np.maximum(_group_mean(10.0**L, _bands(fs, band_width_hz)), 1e-300))
+    return np.mean(_loo_z(B, level_free=True) ** 2, axis=(1, 2))
+
+
+def _sharpness(obs, band_width_hz, smooth_bins):
+    L, fs = _log_psd(obs)
+    rough = (L - uniform_filter1d(L, 2 * smooth_bins + 1, axis=1, mode="nearest")) ** 2
+    Q = np.log10(np.maximum(_group_mean(rough, _bands(fs, 4 * band_width_hz)), 1e-300))
+    return np.mean(_loo_z(Q, level_free=False) ** 2, axis=(1, 2))
+
+
+def _line_per_f(obs):
+    z = _loo_z(_prominence(obs), level_free=False, floor=SCALE_FLOOR)
+    return np.mean(np.clip(z, 0.0, None) ** 2, axis=2)
+
+
+def _line(obs, band_width_hz, smooth_bins):
+    return _line_per_f(obs).max(axis=1)
+
+
+def _line_peak(obs, band_width_hz, smooth_bins):
+    return float(obs.frequency_fine[_line_bins(obs)][int(np.argmax(_line_per_f(obs)[0]))])
+
+
+def _floor(obs, band_width_hz, smooth_bins):
+    z = _loo_z(np.log(np.maximum(_floor_spread(obs), 1e-300)), level_free=False)
+    return np.exp(-z.mean(axis=1))
+
+
+def _kurtosis(obs, band_width_hz, smooth_bins):
+    return (_loo_z(obs.stats[:, :, 2], level_free=False) ** 2).max(axis=1)
+
+
+def _resonance(obs, band_width_hz, smooth_bins):
+    return np.exp(np.abs(_loo_z(_roughness_chunks(obs, band_width_hz), level_free=False).mean(axis=(1, 2))))
+
+
+#: The statistics, by name (variants as data, as scipy's ``METHODS``).
+STATISTICS: dict[str, Statistic] = {
+    "scan": Statistic(_scan, peak=_scan_peak),
+    "gof": Statistic(_gof),
+    "sharpness": Statistic(_sharpness),
+    "line": Statistic(_line, needs=("fine",), robust=True, effects=("tone",), peak=_line_peak),
+    "floor": Statistic(_floor, needs=("residual",), robust=True, effects=("sensor_noise",),
+                       applies=lambda obs: int(np.sum(_floor_bins(obs))) >= FLOOR_MIN_BINS),
+    "kurtosis": Statistic(_kurtosis, needs=("stats",), robust=True, effects=("stop",)),
+    "resonance": Statistic(_resonance, needs=("fine",), robust=True, effects=("damping",)),
+}
+
+#: The statistics a test combines, by what the declared model is taken to be.
+MODEL_FORMS: dict[str, tuple[str, ...]] = {
+    "exact": ("scan", "gof", "sharpness"),
+    "simplified": ("line", "floor", "kurtosis", "resonance"),
+}
+
+
+def _as_observations(psd, samples, frequency) -> Observations:
+    if isinstance(psd, Observations):
+        if samples is not None or frequency is not None:
+            raise SpecificationError("samples", Described("arrays beside Observations"),
+                                     "give either Observations (record first) or psd, samples and frequency")
+        return psd
+    P0 = np.asarray(psd, dtype=float)
+    S = np.asarray(samples, dtype=float)
+    f = np.asarray(frequency, dtype=float)
+    if P0.ndim != 2 or S.ndim != 3 or S.shape[1:] != P0.shape or f.shape != (P0.shape[0],):
+        raise SpecificationError("samples", Described(f"arrays of shapes {P0.shape}, {S.shape}, {f.shape}"),
+                                 "must be psd (F, m), samples (R, F, m) and frequency (F,)")
+    return Observations(f, np.concatenate([P0[None], S]))
+
+
+def detection_test(psd: np.ndarray | Observations, samples: np.ndarray | None = None,
+                   frequency: np.ndarray | None = None, *, false_alarm: float = 0.05, band_width_hz: float = 5.0,
+                   smooth_bins: int = 4, model_form: str = "exact") -> Detection:
     """The calibrated test of the module docstring.
 
     Parameters
     ----------
-    psd : array (F, m)
-        The record's held-out auto-PSD [m²/Hz, two-sided], on ``frequency``.
+    psd : array (F, m) or Observations
+        The record's held-out auto-PSD [m²/Hz, two-sided], on ``frequency``; or
+        :class:`Observations` of the record (sample 0) and the realisations, carrying what the
+        statistics of ``model_form`` need (then ``samples`` and ``frequency`` are not given).
     samples : array (R, F, m)
         The same estimator on R realisations of the declared stochastic model (R ≥ 9).
     frequency : array (F,)
@@ -132,9 +484,11 @@ def detection_test(psd, samples, frequency, *, false_alarm: float = 0.05, band_w
     false_alarm : float
         The stated rate α in (0, 1): ``detected`` when ``p_value`` ≤ α.
     band_width_hz : float
-        Width of the bands of the goodness-of-fit [Hz] (the sharpness uses 4 × this).
+        Width of the bands of the goodness-of-fit [Hz] (the sharpness and resonance chunks: 4 × this).
     smooth_bins : int
         Half width of the running mean behind the sharpness [bins].
+    model_form : str
+        ``"exact"`` or ``"simplified"``: the statistics combined (:data:`MODEL_FORMS`).
 
     Returns
     -------
@@ -143,40 +497,31 @@ def detection_test(psd, samples, frequency, *, false_alarm: float = 0.05, band_w
     alpha = open_unit("false_alarm", false_alarm)
     width = positive("band_width_hz", band_width_hz, "Hz")
     h = integer("smooth_bins", smooth_bins, minimum=1)
-    P0 = np.asarray(psd, dtype=float)
-    S = np.asarray(samples, dtype=float)
-    f = np.asarray(frequency, dtype=float)
-    if P0.ndim != 2 or S.ndim != 3 or S.shape[1:] != P0.shape or f.shape != (P0.shape[0],):
-        raise SpecificationError("samples", Described(f"arrays of shapes {P0.shape}, {S.shape}, {f.shape}"),
-                                 "must be psd (F, m), samples (R, F, m) and frequency (F,)")
-    if S.shape[0] < 9:
-        raise SpecificationError("samples", Described(f"{S.shape[0]} realisations"), "need at least 9")
-    sel = analysis_bins(f)
-    N = S.shape[0] + 1
-    L = log10(np.concatenate([P0[None], S]))[:, sel]          # (N, F', m)
-    fs = f[sel]
-    # scan: narrow lines
-    z = _loo_z(L, level_free=True)
-    per_f = np.mean(z**2, axis=2)                                # (N, F')
-    scan = per_f.max(axis=1)
-    # gof: log band energies
-    idx = _bands(fs, width)
-    B = np.log10(np.maximum(_group_mean(10.0**L, idx), 1e-300))
-    gof = np.mean(_loo_z(B, level_free=True) ** 2, axis=(1, 2))
-    # sharpness: log roughness per chunk of 4 bands
-    rough = (L - uniform_filter1d(L, 2 * h + 1, axis=1, mode="nearest")) ** 2
-    Q = np.log10(np.maximum(_group_mean(rough, _bands(fs, 4 * width)), 1e-300))
-    sharp = np.mean(_loo_z(Q, level_free=False) ** 2, axis=(1, 2))
-    T = {"scan": scan, "gof": gof, "sharpness": sharp}
-    U = np.stack([_loo_z(np.log(T[k])[:, None], level_free=False)[:, 0] for k in STATISTICS], axis=1)
+    obs = _as_observations(psd, samples, frequency)
+    names = tuple(k for k in MODEL_FORMS[one_of("model_form", model_form, MODEL_FORMS)]
+                  if STATISTICS[k].applies is None or STATISTICS[k].applies(obs))
+    N = obs.n
+    if N < 10:
+        raise SpecificationError("samples", Described(f"{N - 1} realisations"), "need at least 9")
+    for name in names:
+        for need in STATISTICS[name].needs + (("frequency_fine",) if "fine" in STATISTICS[name].needs else ()):
+            if getattr(obs, need) is None:
+                raise SpecificationError("samples", Described(f"observations without {need}"),
+                                         f"the {name!r} statistic of the {model_form!r} test needs them")
+    T = {k: np.asarray(STATISTICS[k].compute(obs, width, h), dtype=float) for k in names}
+    U = np.stack([_loo_z(np.log(np.maximum(T[k], 1e-300))[:, None], level_free=False)[:, 0] for k in names], axis=1)
     p = _rank_p(U.max(axis=1))
+    peak = next((STATISTICS[k].peak for k in names if STATISTICS[k].peak is not None), None)
     # the record's residual against all R realisations, for the figure and the signatures
-    mu, sd = L[1:].mean(axis=0), L[1:].std(axis=0, ddof=1)
-    d = L[0] - mu
-    z_all = np.zeros(P0.shape)
+    L = log10(obs.psd)
+    sel = analysis_bins(obs.frequency)
+    mu, sd = L[1:, sel].mean(axis=0), L[1:, sel].std(axis=0, ddof=1)
+    d = L[0, sel] - mu
+    z_all = np.zeros(obs.psd.shape[1:])
     z_all[sel] = (d - d.mean()) / np.maximum(sd, 1e-15)
     return Detection(
         p_value=p, detected=bool(p <= alpha), false_alarm=alpha, size=int(alpha * N + 1e-9) / N,
-        p_values={k: _rank_p(T[k]) for k in STATISTICS}, statistics={k: float(T[k][0]) for k in STATISTICS},
-        null_median={k: float(np.median(T[k][1:])) for k in STATISTICS},
-        scan_frequency_hz=float(fs[int(np.argmax(per_f[0]))]), n_realisations=N - 1, z=z_all)
+        p_values={k: _rank_p(T[k]) for k in names}, values={k: float(T[k][0]) for k in names},
+        null_median={k: float(np.median(T[k][1:])) for k in names}, excess={k: float(U[0, i]) for i, k in enumerate(names)},
+        scan_frequency_hz=float("nan") if peak is None else peak(obs, width, h), n_realisations=N - 1,
+        model_form=model_form, z=z_all)

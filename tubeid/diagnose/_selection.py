@@ -14,9 +14,12 @@ large, e.g. near resonances that the random stiffness of B moves) a misfit weigh
 line in a quiet part of the spectrum weighs a lot.
 
 **The choice** (:func:`choose`): among the candidates fitted at a step, the one with the lowest
-*penalised* held-out error, error × (1 − penalty)^−k for an effect with k parameters, if it lies
-below the current model's held-out error; else no effect is added. The best one — not the first
-that improves.
+*penalised* held-out error relative to the current model's, error / current × (1 − penalty)^−k for
+an effect with k parameters, if that lies below 1; else no effect is added. The best one — not the
+first that improves. When every candidate is judged by the same error (the spectrum's), this is
+the lowest penalised error below the current one; when the declared model is simplified, each
+candidate is judged by its own feature's error and compared with the current model's in that
+feature (:mod:`tubeid.diagnose.stages`), so the ratio puts them on one scale.
 """
 
 from __future__ import annotations
@@ -33,12 +36,14 @@ __all__ = ["Scored", "level_offset", "prediction_error", "choose", "line_minimum
 @dataclass(frozen=True)
 class Scored:
     """A fitted candidate at one step: its ``name``, parameter count ``k``, its best trial's
-    fitting-block error ``fit_error`` and its held-out error ``held_out_error``."""
+    fitting-block error ``fit_error`` and its held-out error ``held_out_error``, and the current
+    model's held-out error in the same terms ``current`` (None: the one :func:`choose` is given)."""
 
     name: str
     k: int
     fit_error: float
     held_out_error: float
+    current: float | None = None
 
     def penalised(self, penalty: float) -> float:
         """held_out_error × (1 − penalty)^−k."""
@@ -60,17 +65,18 @@ def prediction_error(measured, model, sigma, f, offset: float = 0.0) -> float:
 
 
 def choose(scored, current: float, penalty: float) -> Scored | None:
-    """The candidate with the lowest penalised held-out error if it is below ``current`` (the
-    held-out error of the model so far), else None. Ties go to the fewer parameters, then the
-    catalog order of ``scored``."""
+    """The candidate with the lowest penalised held-out error relative to the current model's (its
+    own ``current``, else ``current``: the held-out error of the model so far) if that ratio is
+    below 1, else None. Ties go to the fewer parameters, then the catalog order of ``scored``."""
     best = None
     for s in scored:
-        if not np.isfinite(s.held_out_error):
+        now = current if s.current is None else s.current
+        if not (np.isfinite(s.held_out_error) and np.isfinite(now) and now > 0):
             continue
-        key = (s.penalised(penalty), s.k)
+        key = (s.penalised(penalty) / now, s.k)
         if best is None or key < best[0]:
             best = (key, s)
-    if best is None or not best[0][0] < current:
+    if best is None or not best[0][0] < 1.0:
         return None
     return best[1]
 

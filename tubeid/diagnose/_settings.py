@@ -5,17 +5,27 @@ from __future__ import annotations
 import dataclasses
 import json
 from dataclasses import dataclass
+from typing import Any
 
 from tubeid import _validation as v
 from tubeid.errors import SpecificationError
 
-__all__ = ["DiagnoseSettings", "LOAD_MODELS", "MAX_EFFECTS"]
+__all__ = ["DiagnoseSettings", "LOAD_MODELS", "MAX_EFFECTS", "MODEL_FORM_CHOICES"]
 
 #: Identification load models: ``distributed`` — the declared model's force points on the
 #: non-linear tube with the paper's coherence exp(−|Δx|/λ) (λ = ``correlation_length``), one
 #: parameter r = S_ii [N²/Hz]; ``force_and_moment`` — the paper's §3.4 model T, M at ``load_x``,
 #: r = (r1 [N²/Hz], r2 [(N·m)²/Hz]).
 LOAD_MODELS = ("distributed", "force_and_moment")
+
+#: What the declared model is taken to be (``model_form``): ``exact`` — the structure up to its random
+#: subsystem B (the test combines the statistics that read the spectrum's shape); ``simplified`` —
+#: a simplification of the structure (the test and the selection read only the features a
+#: simplified model is trusted for; :mod:`tubeid.diagnose._detection`).
+MODEL_FORM_CHOICES = ("exact", "simplified")
+
+#: R of the simplified model form's test when ``realisations`` is not given.
+SIMPLIFIED_REALISATIONS = 79
 
 #: The most effects one diagnosis selects (the pipeline holds this many selection steps).
 MAX_EFFECTS = 3
@@ -28,45 +38,91 @@ class DiagnoseSettings:
     """Sizes and rules of a diagnosis (seconds, Hz, counts, decades). Every field is checked here,
     before any computation; a bad value is refused naming the field, the value and the rule.
 
-    Split and spectra
-        ``blocks``: the record is cut into this many equal time blocks, the even ones fit, the odd
-        ones are held out (≥ 2). ``segment_seconds`` [s]: Welch segment (Hann, 50 % overlap).
-    Detection (the calibrated test, :func:`tubeid.diagnose.detection_test`)
-        ``realisations`` R: records of the declared stochastic model shaped like the held-out set;
-        the test is exact at level ⌊α(R+1)⌋/(R+1) (R = 39, α = 0.05: exactly 5 %).
-        ``false_alarm`` α: the stated false-alarm rate. ``band_width_hz`` [Hz]: the bands of the
-        goodness-of-fit of log band energies. ``level``: probability of the band drawn in
-        residual.png (display only).
-    Model uncertainty
-        ``delta``: dispersion δ of subsystem B's stiffness, given; ``delta_reference``: a model
-        (built-in name or specification file) from which δ is identified instead, by the paper's
-        maximum likelihood of J (``delta_realisations`` Monte Carlo records per δ).
-    Load
-        ``load`` (:data:`LOAD_MODELS`), ``correlation_length`` [m], ``load_x`` [m]; ``r0``: the
-        start of the trial method (default: the paper's levels), ``r_points`` and ``r_step``
-        [decades] its coarse grid, ``r_fine_points`` and ``r_fine_span`` [decades] its fine grid.
-        ``load_dispersion``: δ_F given; ``None`` identifies it by maximum likelihood of J_s when
-        the record has at least ``delta_f_min_blocks`` fitting blocks (one J_s observation each;
-        fewer cannot identify a dispersion), else the band uses ``delta_f_fallback`` and says so.
-        ``delta_f_grid`` (``None``: log-spaced up to 0.9 δ_max(m)), ``delta_f_realisations``,
-        ``n_bootstrap``.
-    Selection
-        ``max_effects``: effects selected at most (0: detection only). ``candidates``: catalog
-        names considered (``None``: the whole catalog). ``fit_realisations``: records of the mean
-        model per trial. ``grid_points``: points per parameter of a trial grid. ``penalty``: an
-        effect with k parameters must bring the held-out error below the current one × (1 −
+    Parameters
+    ----------
+    blocks : int
+        The record is cut into this many equal time blocks; the even ones fit, the odd ones are
+        held out (≥ 2).
+    segment_seconds : float
+        Welch segment [s] (Hann, 50 % overlap) of the spectra the errors and the exact test read.
+    fine_segment_seconds : float
+        The finer segment [s] of the line and resonance statistics (at most half a block).
+    realisations : int or None
+        R, the records of the declared stochastic model shaped like the held-out set; the test is
+        exact at level ⌊α(R+1)⌋/(R+1) (R = 39, α = 0.05: exactly 5 %). ``None``: 39 for the exact
+        model form, :data:`SIMPLIFIED_REALISATIONS` for the simplified one (its four statistics
+        have heavy tails under a strongly random B; 1/(R+1) resolves the smallest p-value).
+    false_alarm : float
+        α, the stated false-alarm rate of the test, in (0, 0.5).
+    band_width_hz : float
+        Width [Hz] of the bands of the goodness-of-fit of log band energies (chunks of the
+        sharpness and resonance statistics: 4 × this).
+    level : float
+        Probability of the band drawn in residual.png (display only).
+    model_form : str or None
+        What the declared model is taken to be (:data:`MODEL_FORM_CHOICES`); ``None`` takes
+        ``simplified`` when δ is identified against a reference model (``delta_reference``: the
+        declared model is then a simplification of it), else ``exact``.
+    delta : float
+        Dispersion δ of subsystem B's stiffness, given.
+    delta_reference : str or None
+        A model (built-in name or specification file) against which δ is identified instead, by
+        the paper's maximum likelihood of J.
+    delta_realisations : int
+        Monte Carlo records of J per δ of that identification.
+    load : str
+        The identification load model (:data:`LOAD_MODELS`).
+    correlation_length : float
+        λ [m] of the distributed load's coherence exp(−|Δx|/λ).
+    load_x : float
+        Position [m] of the force-and-moment load.
+    r0 : tuple of float or None
+        Start of the trial method of r (default: the paper's levels).
+    r_points, r_step : int, float
+        Points per component and spacing [decades] of the coarse grid of r.
+    r_fine_points, r_fine_span : int, float
+        Points per component and half span [decades] of the fine grid of r.
+    load_dispersion : float or None
+        δ_F given; ``None`` identifies it by maximum likelihood of J_s when the record has at
+        least ``delta_f_min_blocks`` fitting blocks (one J_s observation each), else the band uses
+        ``delta_f_fallback`` and says so.
+    delta_f_min_blocks : int
+        Fewest fitting blocks that identify δ_F.
+    delta_f_grid : tuple of float or None
+        Grid of δ_F (``None``: log-spaced up to 0.9 δ_max(m)).
+    delta_f_realisations : int
+        Monte Carlo records per δ_F.
+    delta_f_fallback : float
+        The δ_F of the band when δ_F is not identified.
+    n_bootstrap : int
+        Bootstrap replicates of the likelihoods.
+    max_effects : int
+        Effects selected at most (0: detection only; at most :data:`MAX_EFFECTS`).
+    candidates : tuple of str or None
+        Catalog names considered (``None``: the whole catalog).
+    fit_realisations : int
+        Records of the mean model per trial.
+    grid_points : int
+        Points per parameter of a trial grid.
+    penalty : float
+        An effect with k parameters must bring the held-out error below the current one × (1 −
         penalty)^k.
-    Simulation
-        ``discard`` [s]: transient dropped; ``dt_load_max`` [s]: load sampling bound; ``seed``: all
-        random streams (common random numbers across trials).
+    discard : float
+        Transient dropped from every simulated record [s].
+    dt_load_max : float
+        Bound on the load's sampling step [s].
+    seed : int
+        Seed of all random streams (common random numbers across trials).
     """
 
     blocks: int = 4
     segment_seconds: float = 2.0
-    realisations: int = 39
+    fine_segment_seconds: float = 8.0
+    realisations: int | None = None
     false_alarm: float = 0.05
     band_width_hz: float = 5.0
     level: float = 0.95
+    model_form: str | None = None
     delta: float = 0.2
     delta_reference: str | None = None
     delta_realisations: int = 200
@@ -101,7 +157,8 @@ class DiagnoseSettings:
         f = "settings."
         v.one_of(f + "load", self.load, LOAD_MODELS)
         v.integer(f + "blocks", self.blocks, minimum=2)
-        v.integer(f + "realisations", self.realisations, minimum=9)
+        if self.realisations is not None:
+            v.integer(f + "realisations", self.realisations, minimum=9)
         v.integer(f + "fit_realisations", self.fit_realisations, minimum=1)
         v.integer(f + "delta_realisations", self.delta_realisations, minimum=10)
         v.integer(f + "delta_f_realisations", self.delta_f_realisations, minimum=5)
@@ -112,15 +169,17 @@ class DiagnoseSettings:
         v.integer(f + "max_effects", self.max_effects, minimum=0, maximum=MAX_EFFECTS)
         v.integer(f + "grid_points", self.grid_points, minimum=2)
         v.seed(f + "seed", self.seed)
-        for name in ("segment_seconds", "load_x", "dt_load_max", "correlation_length", "r_step", "r_fine_span",
+        if self.model_form is not None:
+            v.one_of(f + "model_form", self.model_form, MODEL_FORM_CHOICES)
+        for name in ("segment_seconds", "fine_segment_seconds", "load_x", "dt_load_max", "correlation_length", "r_step", "r_fine_span",
                      "band_width_hz"):
             v.positive(f + name, getattr(self, name))
         v.open_unit(f + "level", self.level)
         v.real(f + "false_alarm", self.false_alarm, low=0.0, high=0.5, low_open=True, high_open=True)
-        if self.false_alarm * (self.realisations + 1) < 1:
+        if self.false_alarm * (self.n_realisations + 1) < 1:
             raise SpecificationError(f + "false_alarm", self.false_alarm,
-                                     f"needs realisations + 1 >= 1/false_alarm: with {self.realisations} realisations "
-                                     f"the smallest p-value is 1/{self.realisations + 1}")
+                                     f"needs realisations + 1 >= 1/false_alarm: with {self.n_realisations} realisations "
+                                     f"the smallest p-value is 1/{self.n_realisations + 1}")
         v.real(f + "delta", self.delta, low=0.0, high=1.0, high_open=True)
         if self.delta_reference is not None and (not isinstance(self.delta_reference, str) or not self.delta_reference):
             raise SpecificationError(f + "delta_reference", self.delta_reference,
@@ -153,20 +212,60 @@ class DiagnoseSettings:
         return (18.0, 20.0) if self.load == "force_and_moment" else (1.3,)
 
     @property
+    def form(self) -> str:
+        """The model form in effect: ``model_form``, or the rule of ``None`` (see the class docstring)."""
+        if self.model_form is not None:
+            return self.model_form
+        return "exact" if self.delta_reference is None else "simplified"
+
+    @property
+    def n_realisations(self) -> int:
+        """R in effect: ``realisations``, else 39 (exact form) or :data:`SIMPLIFIED_REALISATIONS`."""
+        if self.realisations is not None:
+            return self.realisations
+        return SIMPLIFIED_REALISATIONS if self.form == "simplified" else 39
+
+    @property
     def test_size(self) -> float:
         """The exact size of the detection test: ⌊α(R+1)⌋/(R+1) ≤ α."""
-        n = self.realisations + 1
+        n = self.n_realisations + 1
         return int(self.false_alarm * n + 1e-9) / n
 
-    def replace(self, **changes) -> "DiagnoseSettings":
-        """New, validated settings with some fields changed."""
+    def replace(self, **changes: Any) -> "DiagnoseSettings":
+        """New, validated settings with some fields changed.
+
+        Parameters
+        ----------
+        **changes : Any
+            Field names and their new values.
+
+        Returns
+        -------
+        DiagnoseSettings
+        """
         return dataclasses.replace(self, **changes)
 
     def to_json(self) -> str:
-        """Canonical JSON (sorted keys): the settings' identity in a diagnosis store."""
+        """Canonical JSON (sorted keys): the settings' identity in a diagnosis store.
+
+        Returns
+        -------
+        str
+        """
         return json.dumps(dataclasses.asdict(self), sort_keys=True)
 
     @classmethod
     def from_json(cls, text: str) -> "DiagnoseSettings":
+        """Settings from :meth:`to_json`'s text (validated).
+
+        Parameters
+        ----------
+        text : str
+            JSON of the fields.
+
+        Returns
+        -------
+        DiagnoseSettings
+        """
         d = json.loads(text)
         return cls(**{k: (tuple(x) if k in _TUPLE_FIELDS and x is not None else x) for k, x in d.items()})

@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 from tubeid.diagnose._settings import DiagnoseSettings
-from tubeid.diagnose._spectra import MeasuredSpectra, auto_psd, time_statistics
+from tubeid.diagnose._spectra import MeasuredSpectra, block_observations
 from tubeid.dynamics.response import ResponseSettings, simulate_responses
 from tubeid.errors import SpecificationError
 from tubeid.mechanics.effects import apply_effects
@@ -83,10 +83,12 @@ def simulate_series(spec: BundleSpec, r, effects, meas: MeasuredSpectra, n_sampl
 
 def simulate_blocks(spec: BundleSpec, r, effects, meas: MeasuredSpectra, n_blocks: int, realisations,
                     settings: DiagnoseSettings, *, delta: float = 0.0, load_dispersion: float = 0.0,
-                    rngs=None, contact: bool = False):
-    """Model records cut like the data: auto-PSD per realisation (R, F, m) [m²/Hz] averaged over
-    ``n_blocks`` blocks of the data's block length, and time statistics (R, m, 3) (and, with
-    ``contact``, the stops' contact fraction (R,), see :func:`simulate_series`).
+                    rngs=None) -> dict:
+    """Model records cut like the data, per realisation (R of them), each quantity averaged over
+    ``n_blocks`` blocks of the data's block length (:func:`~tubeid.diagnose._spectra.block_observations`):
+    ``psd`` (R, F, m) and ``residual`` (R, F, m) [m²/Hz], ``fine`` (R, F', m) [m²/Hz] at the data's
+    fine segment, ``stats`` (R, m, 3), and ``contact`` (R,), the stops' contact fraction (see
+    :func:`simulate_series`).
 
     The mean model (``delta`` = ``load_dispersion`` = 0) has one structure and one load spectrum:
     its R "realisations" are then consecutive stretches of one record of the first realisation's
@@ -105,5 +107,5 @@ def simulate_blocks(spec: BundleSpec, r, effects, meas: MeasuredSpectra, n_block
         y = y.reshape(R, n_blocks * meas.block_samples, y.shape[2])
         cf = np.repeat(cf, R)
     blocks = y.reshape(y.shape[0], n_blocks, meas.block_samples, y.shape[2])
-    _, P = auto_psd(blocks, meas.dt, settings.segment_seconds)
-    return (P.mean(axis=1), time_statistics(y)) + ((cf,) if contact else ())
+    out = block_observations(blocks, meas.dt, settings.segment_seconds, meas.fine_seconds)
+    return {k: out[k] for k in ("psd", "fine", "residual", "stats")} | {"contact": cf}

@@ -10,7 +10,8 @@ import xarray as xr
 from tubeid.dynamics.spectra import psd_matrix
 from tubeid.errors import SpecificationError
 
-__all__ = ["MeasuredSpectra", "measured_spectra", "time_statistics", "auto_psd", "analysis_bins", "log10"]
+__all__ = ["MeasuredSpectra", "measured_spectra", "time_statistics", "auto_psd", "analysis_bins", "log10",
+           "conditional_psd", "block_observations", "fine_segment"]
 
 
 def log10(P) -> np.ndarray:
@@ -33,7 +34,9 @@ class MeasuredSpectra:
     set; ``fit_cross`` (n_fit, F, m, m) complex PSD matrix per fitting block (for J_s); ``stats``,
     ``fit_stats`` (m, 3): RMS [m], skewness, excess kurtosis of the held-out resp. fitting
     samples; ``dt`` [s]; ``block_samples``: samples per block; ``sensors``: names; ``x`` [m] and
-    ``tube`` per sensor.
+    ``tube`` per sensor; ``frequency_fine`` (F',) [Hz], ``fit_fine``, ``held_out_fine`` (F', m):
+    auto-PSDs at the fine segment ``fine_seconds`` [s]; ``fit_residual``, ``held_out_residual`` (F, m):
+    conditional PSDs (:func:`conditional_psd`) of the set's block-averaged PSD matrix.
     """
 
     frequency: np.ndarray
@@ -49,10 +52,46 @@ class MeasuredSpectra:
     sensors: tuple
     x: tuple
     tube: tuple
+    fine_seconds: float = 0.0
+    frequency_fine: np.ndarray | None = None
+    fit_fine: np.ndarray | None = None
+    held_out_fine: np.ndarray | None = None
+    fit_residual: np.ndarray | None = None
+    held_out_residual: np.ndarray | None = None
 
     @property
     def block_seconds(self) -> float:
         return self.block_samples * self.dt
+
+
+def conditional_psd(S: np.ndarray) -> np.ndarray:
+    """Conditional PSD of each channel given the others, 1/[S⁻¹]_ii, of Hermitian PSD matrices S
+    (..., m, m) → (..., m) [m²/Hz]: the part of channel i no linear combination of the others
+    explains (S_ii for one channel). Eigenvalues are floored at 1e-300 of the largest (a singular
+    matrix gives a tiny, not an infinite, value)."""
+    w, V = np.linalg.eigh(np.asarray(S))
+    w = np.maximum(w, 1e-300 * np.maximum(w[..., -1:], 1e-300))
+    return 1.0 / np.einsum("...ik,...k->...i", np.abs(V) ** 2, 1.0 / w)
+
+
+def fine_segment(block_seconds: float, fine_seconds: float) -> float:
+    """The fine Welch segment [s] used on blocks of ``block_seconds``: ``fine_seconds``, at most half
+    a block (so each block holds at least three half-overlapping segments)."""
+    return min(float(fine_seconds), 0.5 * float(block_seconds))
+
+
+def block_observations(blocks: np.ndarray, dt: float, segment_seconds: float, fine_seconds: float) -> dict:
+    """What the test's statistics read of records cut into blocks (..., n_blocks, L, m), each
+    quantity averaged over the blocks: ``psd`` (..., F, m) and ``residual`` (..., F, m) [m²/Hz] at
+    ``segment_seconds`` (the residual from the block-averaged PSD matrix), ``fine`` (..., F', m) at
+    ``fine_seconds``, ``stats`` (..., m, 3) of all the blocks' samples, and the frequencies
+    ``frequency`` (F,), ``frequency_fine`` (F',) [Hz]."""
+    f, S = psd_matrix(blocks, dt, segment_seconds=segment_seconds)
+    S = S.mean(axis=-4)
+    ff, Pf = auto_psd(blocks, dt, fine_seconds)
+    y = blocks.reshape(blocks.shape[:-3] + (-1, blocks.shape[-1]))
+    return {"frequency": f, "psd": np.real(np.diagonal(S, axis1=-2, axis2=-1)), "residual": conditional_psd(S),
+            "frequency_fine": ff, "fine": Pf.mean(axis=-3), "stats": time_statistics(y)}
 
 
 def auto_psd(blocks: np.ndarray, dt: float, segment_seconds: float) -> tuple[np.ndarray, np.ndarray]:
@@ -79,8 +118,9 @@ def _split(y: np.ndarray, blocks: int) -> tuple[np.ndarray, np.ndarray, int]:
     return cut[0::2], cut[1::2], L
 
 
-def measured_spectra(data: xr.Dataset, blocks: int, segment_seconds: float) -> MeasuredSpectra:
-    """Fitting and held-out spectra of a validated record (``displacement`` (time, sensor) [m])."""
+def measured_spectra(data: xr.Dataset, blocks: int, segment_seconds: float, fine_seconds: float = 8.0) -> MeasuredSpectra:
+    """Fitting and held-out spectra of a validated record (``displacement`` (time, sensor) [m]);
+    the fine segment is :func:`fine_segment` of the block length and ``fine_seconds``."""
     y = np.asarray(data["displacement"].transpose("time", "sensor").values, dtype=float)
     t = np.asarray(data["time"].values, dtype=float)
     dt = float((t[-1] - t[0]) / (t.size - 1))
@@ -92,12 +132,15 @@ def measured_spectra(data: xr.Dataset, blocks: int, segment_seconds: float) -> M
             f"too short: each of the {blocks} blocks ({L * dt:.4g} s) must hold at least 2 Welch segments "
             f"of {segment_seconds} s (record >= {2 * need * blocks * dt:.4g} s)")
     fit, held, L = _split(y, blocks)
+    fine = fine_segment(L * dt, fine_seconds)
     f, S_fit = psd_matrix(fit, dt, segment_seconds=segment_seconds)
-    P_fit = np.real(np.diagonal(S_fit, axis1=-2, axis2=-1))
-    _, P_held = auto_psd(held, dt, segment_seconds)
+    o_fit = block_observations(fit, dt, segment_seconds, fine)
+    o_held = block_observations(held, dt, segment_seconds, fine)
     return MeasuredSpectra(
-        frequency=f, fit=P_fit.mean(axis=0), held_out=P_held.mean(axis=0), fit_cross=S_fit,
+        frequency=f, fit=o_fit["psd"], held_out=o_held["psd"], fit_cross=S_fit,
         stats=time_statistics(held.reshape(-1, y.shape[1])), fit_stats=time_statistics(fit.reshape(-1, y.shape[1])),
         dt=dt, block_samples=L, n_fit_blocks=fit.shape[0], n_held_out_blocks=held.shape[0],
         sensors=tuple(str(s) for s in data["sensor"].values), x=tuple(float(x) for x in data["x"].values),
-        tube=tuple(str(x) for x in data["tube"].values))
+        tube=tuple(str(x) for x in data["tube"].values), fine_seconds=fine, frequency_fine=o_fit["frequency_fine"],
+        fit_fine=o_fit["fine"], held_out_fine=o_held["fine"], fit_residual=o_fit["residual"],
+        held_out_residual=o_held["residual"])

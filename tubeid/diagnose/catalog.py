@@ -48,7 +48,11 @@ class Evidence:
     kurtosis against the realisations; ``rms`` (m,): the fitting blocks' RMS [m]; ``spec``: the
     declared model with the data's sensors and the effects chosen so far; ``surrogate``:
     its :class:`~tubeid.diagnose._surrogate.LinearSurrogate` at the current r; ``band_hz``: the
-    load's band (the surrogate is zero above it).
+    load's band (the surrogate is zero above it). When the declared model is simplified (``form``),
+    the spectrum's residual mixes the effect with the model's own errors, so the signatures read
+    the robust test instead where they can: ``line_frequency_hz``, where its line statistic peaks
+    [Hz], and ``floor_level``, the record's noise-floor level [m²/Hz] (the median over sensors of
+    the 10th percentile of the conditional PSD).
     """
 
     frequency: np.ndarray
@@ -60,6 +64,9 @@ class Evidence:
     spec: BundleSpec
     surrogate: object
     band_hz: float
+    form: str = "exact"
+    line_frequency_hz: float | None = None
+    floor_level: float | None = None
     _base: np.ndarray | None = field(default=None, repr=False)
 
     @property
@@ -144,51 +151,179 @@ class Candidate:
     exact_from_baseline: ClassVar[bool] = False
 
     def n_parameters(self, spec: BundleSpec) -> int:
-        """The parameter count the selection penalises."""
+        """The parameter count the selection penalises.
+
+        Parameters
+        ----------
+        spec : BundleSpec
+            The declared model (its tubes: a placement on one of several is a parameter).
+
+        Returns
+        -------
+        int
+        """
         return sum(1 for _, fitted in self.parameters.values() if fitted)
 
     def signature(self, ev: Evidence) -> dict:
-        """{"score": float in [0, 1], "estimate": {...}} (plain values)."""
+        """The effect's cheap score and first estimate.
+
+        Parameters
+        ----------
+        ev : Evidence
+
+        Returns
+        -------
+        dict
+            {"score": float in [0, 1], "estimate": {...}} (plain values).
+        """
         raise NotImplementedError
 
-    def trials(self, estimate: dict, ev_spec: BundleSpec, points: int, *, rms=None) -> list:
-        """The trial effects around ``estimate``."""
+    def trials(self, estimate: dict, ev_spec: BundleSpec, points: int, *, rms: np.ndarray | None = None) -> list:
+        """The trial effects around ``estimate``.
+
+        Parameters
+        ----------
+        estimate : dict
+            The signature's estimate.
+        ev_spec : BundleSpec
+            The declared model with the data's sensors.
+        points : int
+            Points per parameter (``grid_points``).
+        rms : numpy.ndarray, optional
+            The record's RMS per sensor [m] (unused by the catalog's entries).
+
+        Returns
+        -------
+        list
+            Effects of :mod:`tubeid.mechanics.effects`.
+        """
         raise NotImplementedError
 
-    def refine(self, effect, spec: BundleSpec, surrogate=None) -> dict:
-        """{parameter: (values, log, [effects])}: lines of 3 effects around ``effect``, one per
-        fitted continuous parameter (the middle one is ``effect``); ``surrogate``: the
-        :class:`~tubeid.diagnose._surrogate.LinearSurrogate` at the current point."""
+    def refine(self, effect: object, spec: BundleSpec, surrogate: object = None) -> dict:
+        """Lines of 3 effects around ``effect`` for the joint re-fit, one per fitted continuous
+        parameter (the middle one is ``effect``).
+
+        Parameters
+        ----------
+        effect : object
+            A fitted effect of this entry's type.
+        spec : BundleSpec
+            The declared model with the data's sensors.
+        surrogate : LinearSurrogate, optional
+            The :class:`~tubeid.diagnose._surrogate.LinearSurrogate` at the current point.
+
+        Returns
+        -------
+        dict
+            {parameter: (values, log, [effects])}.
+        """
         raise NotImplementedError
 
-    def combine(self, effect, best: dict, spec: BundleSpec, surrogate=None):
-        """The effect at the lines' minimisers ``best`` ({parameter: value})."""
+    def combine(self, effect: object, best: dict, spec: BundleSpec, surrogate: object = None) -> object:
+        """The effect at the lines' minimisers.
+
+        Parameters
+        ----------
+        effect : object
+            The effect the lines were drawn around.
+        best : dict
+            {parameter: value}, the lines' minimisers.
+        spec : BundleSpec
+            The declared model with the data's sensors.
+        surrogate : LinearSurrogate, optional
+            The surrogate at the lines' centre.
+
+        Returns
+        -------
+        object
+            The effect with those values.
+        """
         for par, value in best.items():
             effect = self.with_value(effect, par, value)
         return effect
 
-    def with_value(self, effect, parameter: str, value: float):
-        """``effect`` with one parameter changed."""
+    def with_value(self, effect: object, parameter: str, value: float) -> object:
+        """``effect`` with one parameter changed.
+
+        Parameters
+        ----------
+        effect : object
+        parameter : str
+        value : float
+
+        Returns
+        -------
+        object
+        """
         import dataclasses
 
         return dataclasses.replace(effect, **{parameter: value})
 
-    def describe(self, effect) -> dict:
-        """{parameter: {"value", "units", "fitted"}} of an effect, as reported."""
+    def describe(self, effect: object) -> dict:
+        """An effect's parameters as reported.
+
+        Parameters
+        ----------
+        effect : object
+
+        Returns
+        -------
+        dict
+            {parameter: {"value", "units", "fitted"}}.
+        """
         return {p: {"value": getattr(effect, p), "units": u, "fitted": bool(fitted)}
                 for p, (u, fitted) in self.parameters.items()}
 
-    def from_baseline(self, effect, baseline_psd, remove: bool = False):
-        """The PSD (F, m) of the baseline's model with ``effect`` added (or, with ``remove``,
-        taken away), when that is exact (``exact_from_baseline``)."""
+    def from_baseline(self, effect: object, baseline_psd: np.ndarray, remove: bool = False) -> np.ndarray:
+        """The auto-PSD of the baseline's model with ``effect`` added (or taken away), when that
+        is exact (``exact_from_baseline``).
+
+        Parameters
+        ----------
+        effect : object
+        baseline_psd : numpy.ndarray
+            (F, m) [m²/Hz].
+        remove : bool
+            Take the effect away instead.
+
+        Returns
+        -------
+        numpy.ndarray
+            (F, m) [m²/Hz].
+        """
         raise NotImplementedError(f"{self.name} trials are simulated")
 
-    def variants(self, effect, psd, baseline_psd, frequency) -> list:
-        """Trials derived from a simulated one without simulation: [(effect, psd (F, m))]. Default
-        none."""
+    def variants(self, effect: object, psd: np.ndarray, baseline_psd: np.ndarray, frequency: np.ndarray) -> list:
+        """Trials derived from a simulated one without simulation (default: none).
+
+        Parameters
+        ----------
+        effect : object
+            The simulated trial's effect.
+        psd, baseline_psd : numpy.ndarray
+            (F, m) PSDs [m²/Hz] of that trial and of the same model without the effect.
+        frequency : numpy.ndarray
+            (F,) [Hz].
+
+        Returns
+        -------
+        list
+            [(effect, psd (F, m))].
+        """
         return []
 
     def assumptions(self, spec: BundleSpec) -> list[str]:
+        """What the entry fixes because the data cannot say (listed in report.md).
+
+        Parameters
+        ----------
+        spec : BundleSpec
+            The declared model with the data's sensors.
+
+        Returns
+        -------
+        list of str
+        """
         return []
 
 
@@ -204,7 +339,8 @@ class ToneCandidate(Candidate):
     |H| from every tube at half-element steps, by the cosine of their angle), amplitude from the
     line's power (|H|² A²/4 per side). Trials: the four best positions at least an element apart
     (a few sensors leave the pattern ambiguous), each simulated at its estimated amplitude and
-    profiled over ±0.5 decades of amplitude without simulation (:meth:`variants`)."""
+    profiled over ±0.5 decades of amplitude without simulation (:meth:`variants`). With a
+    simplified model the line's bin is where the test's line statistic peaks."""
 
     name = "tone"
     effect_type = Tone
@@ -215,7 +351,10 @@ class ToneCandidate(Candidate):
         z = ev.residual() / ev.sigma
         z = z - np.mean(z[sel])
         per_f = np.where(sel, np.sum(np.clip(z, 0, None) ** 2, axis=1), -np.inf)
-        k = int(np.argmax(per_f))
+        if ev.line_frequency_hz is not None and np.isfinite(ev.line_frequency_hz):
+            k = int(np.argmin(np.abs(f - ev.line_frequency_hz)))
+        else:
+            k = int(np.argmax(per_f))
         win = slice(max(1, k - 2), min(f.size - 1, k + 3))
         excess = np.clip(ev.fit[win] - 10.0 ** ev.mu[win], 0.0, None)          # (5, m)
         tot = excess.sum(axis=1)
@@ -301,9 +440,11 @@ class ToneCandidate(Candidate):
 
 class StopCandidate(Candidate):
     """An added (or changed) symmetric elastic stop at a node of the non-linear tube. Node: the
-    surrogate's best grounded spring (stiffness 1e6, 1e7, 1e8 N/m) against the residual; gap:
-    the record's RMS at the nearest sensor × 4^[−1.5, 0.5]. Trials: that node and its neighbours
-    × ``points`` gaps. Stiffness: the declared stop's (not fitted)."""
+    surrogate's best grounded spring (stiffness 1e6, 1e7, 1e8 N/m) against the residual — with a
+    simplified model, the node nearest the sensor whose excess kurtosis departs most from the
+    model's (a stop clips the motion near it); gap: the record's RMS at the nearest sensor ×
+    4^[−1.5, 0.5]. Trials: that node and its neighbours × ``points`` gaps. Stiffness: the declared
+    stop's (not fitted)."""
 
     name = "stop"
     effect_type = ExtraStop
@@ -325,6 +466,10 @@ class StopCandidate(Candidate):
                     best = (s, x, float(k))
         xs = ev.sensor_x
         on = [i for i, t in enumerate(ev.sensor_tube) if t == tube] or list(range(len(xs)))
+        if ev.form == "simplified":
+            j = on[int(np.argmax(np.abs(ev.z_stats[on, 2])))]
+            nodes = np.array(_interior_nodes(ev.spec, tube))
+            best = (best[0], float(nodes[int(np.argmin(np.abs(nodes - xs[j])))]), best[2])
         j = on[int(np.argmin(np.abs(xs[on] - best[1])))]
         return {"score": best[0], "estimate": {"tube": tube, "x": best[1], "spring": best[2],
                                                "rms_nearest": float(ev.rms[j])}}
@@ -420,7 +565,9 @@ class DampingCandidate(_TubeFactor):
     tube and the direction (more or less damping than declared) but not the size (measured: 0.2
     for a true 0.06, the declared 0.02 × 3), so the trials on each tube are ``points`` ratios
     log-spaced from the declared ratio × 1.5 to the surrogate's × 1.7 (or from its ÷ 1.7 to the
-    declared ÷ 1.5), never only around the surrogate's value."""
+    declared ÷ 1.5), never only around the surrogate's value. With a simplified model the
+    surrogate's direction is not trusted (the residual mixes the model's own errors): 2 ×
+    ``points`` ratios log-spaced from the declared ÷ 3 to × 3."""
 
     name = "damping"
     effect_type = Damping
@@ -442,12 +589,19 @@ class DampingCandidate(_TubeFactor):
             return np.geomspace(declared * 1.5, max(estimated, declared * 1.5) * 1.7, points)
         return np.geomspace(max(min(estimated, declared / 1.5) / 1.7, 1e-4), declared / 1.5, points)
 
+    def signature(self, ev: Evidence) -> dict:
+        out = super().signature(ev)
+        out["estimate"]["both_sides"] = ev.form == "simplified"
+        return out
+
     def trials(self, estimate, spec, points, *, rms=None) -> list:
         out = []
         for e in (estimate, estimate.get("second")):
             if e:
                 declared = spec.tube(e["tube"]).damping_ratio
-                out += [self._effect(e["tube"], v) for v in self._between(declared, e[self.value_name], points)]
+                values = (declared * np.geomspace(1 / 3, 3, 2 * points) if estimate.get("both_sides")
+                          else self._between(declared, e[self.value_name], points))
+                out += [self._effect(e["tube"], v) for v in values]
         return out
 
     def assumptions(self, spec) -> list[str]:
@@ -456,8 +610,9 @@ class DampingCandidate(_TubeFactor):
 
 class SensorNoiseCandidate(Candidate):
     """White measurement noise, the same two-sided level on every sensor. First level: the best
-    floor added to the band's mean (41 levels from its lowest bin to the record's highest);
-    trials: ``points`` levels over ×/÷ 4. Exact from the baseline: S + level."""
+    floor added to the band's mean (41 levels from its lowest bin to the record's highest) — with a
+    simplified model, the record's noise-floor level (:class:`Evidence`); trials: ``points``
+    levels over ×/÷ 4. Exact from the baseline: S + level (auto-PSDs)."""
 
     name = "sensor_noise"
     effect_type = SensorNoise
@@ -473,6 +628,8 @@ class SensorNoiseCandidate(Candidate):
             s = ev.removed(mu=log10(med + N))
             if s > best[0]:
                 best = (s, float(N))
+        if ev.form == "simplified" and ev.floor_level is not None:
+            best = (ev.removed(mu=log10(med + ev.floor_level)), float(ev.floor_level))
         return {"score": best[0], "estimate": {"level": best[1]}}
 
     def trials(self, estimate, spec, points, *, rms=None) -> list:

@@ -20,7 +20,7 @@ def _settings(args):
                             ("segment_seconds", args.segment_seconds), ("delta", args.delta),
                             ("delta_reference", args.delta_reference), ("load_dispersion", args.load_dispersion),
                             ("load", args.load), ("false_alarm", args.false_alarm), ("max_effects", args.max_effects),
-                            ("seed", args.seed)) if v is not None}
+                            ("seed", args.seed), ("model_form", args.model_form)) if v is not None}
     fields = {f.name for f in dataclasses.fields(DiagnoseSettings)}
     for name, value in args.settings:
         if name not in fields:
@@ -41,8 +41,8 @@ def _cmd_diagnose(args) -> int:
         return 130
     rep = result.report
     det = rep["detection"]
-    print(f"test: p = {det['p_value']:.3g} (false-alarm rate {det['false_alarm']:g}): "
-          + ("departure detected" if det["detected"] else "nothing detected"))
+    print(f"test ({det['model_form']} model form: {', '.join(det['p_values'])}): p = {det['p_value']:.3g} "
+          f"(false-alarm rate {det['false_alarm']:g}): " + ("departure detected" if det["detected"] else "nothing detected"))
     for e in rep["effects"]:
         params = ", ".join(f"{k} = {v['value']:.4g} {v['units']}".rstrip() if isinstance(v["value"], float) else f"{k} = {v['value']}"
                            for k, v in e["parameters"].items())
@@ -96,6 +96,10 @@ def register(subparsers) -> None:
                    help="impose δ_F (default: identified by maximum likelihood of J_s when there are enough blocks)")
     p.add_argument("--load", choices=("distributed", "force_and_moment"), default=None,
                    help="identification load model (default distributed)")
+    p.add_argument("--model-form", choices=("exact", "simplified"), default=None,
+                   help="what the declared model is: 'exact' (the structure up to its random B: the test reads the "
+                        "spectrum's shape) or 'simplified' (the test reads only lines, the incoherent floor, kurtosis and "
+                        "resonance sharpness); default: simplified when --delta-reference is given, else exact")
     p.add_argument("--max-effects", type=int, default=None, help="effects selected at most (0: the test only; default 3)")
     p.add_argument("--seed", type=int, default=None, help="seed of all random streams (default 0)")
     p.add_argument("--set", dest="settings", action="append", type=_setting, default=[], metavar="NAME=VALUE",

@@ -14,15 +14,22 @@ resumable); this module holds the context every stage reads and assembles the re
    δ fitted to them would absorb the very effect the diagnosis looks for.
 3. **Load** on the fitting blocks: r by a coarse-then-fine trial method, δ_F by maximum likelihood
    of J_s when there are enough fitting blocks (:mod:`tubeid.diagnose._load`).
-4. **Detection**: the held-out spectra against R realisations of the declared stochastic model at
-   (δ, δ_F, r): a Monte Carlo test of three statistics (a scan for lines, a goodness-of-fit of log
-   band energies, the sharpness of resonances), exact at the stated false-alarm rate
-   (:mod:`tubeid.diagnose._detection`). Not detected: the answer is ``none``.
+4. **Detection**: the held-out record against R realisations of the declared stochastic model at
+   (δ, δ_F, r): a Monte Carlo test, exact at the stated false-alarm rate
+   (:mod:`tubeid.diagnose._detection`). Its statistics depend on what the declared model is taken
+   to be (``model_form``): *exact* — a scan for lines, a goodness-of-fit of log band energies, the
+   sharpness of resonances; *simplified* (the default when δ is identified against a reference
+   model) — only what a simplified model is trusted for: lines at a fine resolution, the flatness
+   of the sensors' incoherent floor, the kurtosis of each sensor, the sharpness of the in-band
+   resonances; each of these points to the catalog effect that can explain it. Not detected:
+   the answer is ``none``.
 5. **Forward selection** (:mod:`tubeid.diagnose._selection`): at each step every catalog effect not
    yet chosen (:mod:`tubeid.diagnose.catalog`) is placed and sized from its signature, fitted by a
    trial grid of the mean model on the fitting blocks (the chosen effects held, the level
    profiled), and judged by its held-out error; the best penalised one is added if it improves on
-   the current model; then all chosen effects and r are **re-fitted jointly** (one cross-design
+   the current model (with a simplified model: only the effects the firing statistics point to,
+   each judged by its statistic's feature instead of the whole spectrum, relative to the current
+   model's error in that feature, r held); then all chosen effects and r are **re-fitted jointly** (one cross-design
    sweep: each parameter and r along a line of 3 trials around the current point, the others
    held; each moved to its line's parabola vertex; the moved point is then evaluated, and if its
    fitting-block error is worse than the best point the lines evaluated — the moves overshoot when
@@ -41,6 +48,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -120,9 +128,16 @@ class DiagnoseContext:
 
     @property
     def candidate_names(self) -> tuple[str, ...]:
+        """The catalog effects considered: ``settings.candidates`` (default all); with the simplified
+        form, only those a robust statistic points to (the others have no feature to be fitted to)."""
+        from tubeid.diagnose._detection import STATISTICS
         from tubeid.diagnose.catalog import CATALOG
 
-        return self.settings.candidates or tuple(CATALOG)
+        names = self.settings.candidates or tuple(CATALOG)
+        if self.settings.form == "simplified":
+            seen = {e for st in STATISTICS.values() if st.robust for e in st.effects}
+            names = tuple(n for n in names if n in seen)
+        return names
 
 
 def _context(data: xr.Dataset, spec0: BundleSpec, settings: DiagnoseSettings) -> DiagnoseContext:
@@ -130,7 +145,7 @@ def _context(data: xr.Dataset, spec0: BundleSpec, settings: DiagnoseSettings) ->
     dt = float((t[-1] - t[0]) / (t.size - 1))
     if 1.0 / (2.0 * dt) < spec0.band_hz:
         raise SpecificationError("data dt", dt, f"the Nyquist frequency 1/(2 dt) must reach the model band {spec0.band_hz} Hz")
-    meas = measured_spectra(data, settings.blocks, settings.segment_seconds)
+    meas = measured_spectra(data, settings.blocks, settings.segment_seconds, settings.fine_segment_seconds)
     spec = spec_for(spec0, meas.sensors, meas.tube, meas.x)
     m = load_dimension(spec, settings)
     dmax = delta_max(m)
@@ -186,10 +201,24 @@ def load_context(data: str, data_sha256: str, model: str, settings: str) -> Diag
 
 @dataclass
 class Diagnosis:
-    """Result of :func:`diagnose`. ``report`` is what report.json holds; ``frequency`` (F,) Hz,
-    ``measured`` (the held-out PSD (F, m) [m²/Hz]), ``bands`` ({label: (lower, upper)} of the
-    model's band before and after, at ``settings.level``) feed the figure; ``store``: the pipeline
-    store (None when it lived in a temporary directory)."""
+    """Result of :func:`diagnose`.
+
+    Parameters
+    ----------
+    report : dict
+        What report.json holds (module docstring).
+    frequency : numpy.ndarray
+        (F,) [Hz], the Welch bins of the spectra.
+    measured : numpy.ndarray
+        (F, m) the record's held-out auto-PSD [m²/Hz, two-sided].
+    sensors : tuple
+        The sensors' names (m).
+    bands : dict
+        {label: (lower, upper)} of the model's band before and after, each (F, m), at
+        ``settings.level`` (the figure's).
+    store : pathlib.Path or None
+        The pipeline store (None when it lived in a temporary directory).
+    """
 
     report: dict
     frequency: np.ndarray
@@ -206,10 +235,21 @@ class Diagnosis:
     def effects(self) -> list[str]:
         return [e["name"] for e in self.report["effects"]]
 
-    def write(self, out) -> Path:
+    def write(self, out: str | os.PathLike) -> Path:
         """Write report.json, report.md, residual.png (and delta_f.png when δ_F was identified)
         into directory ``out`` (through its manifest: a file tubeid did not write is never
-        replaced)."""
+        replaced).
+
+        Parameters
+        ----------
+        out : str or os.PathLike
+            The output directory.
+
+        Returns
+        -------
+        pathlib.Path
+            The directory written.
+        """
         from tubeid.diagnose.report import write_files
 
         return write_files(self, out)
@@ -275,7 +315,8 @@ def _check_outputs(outdir: OutputDir, names) -> None:
                                      f"move it or choose another {outdir.field}")
 
 
-def diagnose(data, model="paper-simplified", settings: DiagnoseSettings = DiagnoseSettings(), *, out=None,
+def diagnose(data: xr.Dataset | str | os.PathLike, model: str | BundleSpec = "paper-simplified",
+             settings: DiagnoseSettings = DiagnoseSettings(), *, out: str | os.PathLike | None = None,
              workers: int | None = 0, scheduler: str | None = None, overwrite: bool = False,
              progress: bool | None = False, quiet: bool = True) -> Diagnosis:
     """Run the loop of the module docstring.

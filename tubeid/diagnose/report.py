@@ -103,7 +103,7 @@ def assemble(store, ctx):
         "error_before": error_before,
         "error_after": error_before if final is None else final["held_out_error"],
         "metric": ERROR_METRIC + f"; {meas.n_held_out_blocks} held-out blocks of {meas.block_seconds:.4g} s not used for "
-                  f"fitting; sigma from {s.realisations} realisations",
+                  f"fitting; sigma from {s.n_realisations} realisations",
         "detection": det0,
         "detection_after": det_last,
         "explained_before": not det0["detected"],
@@ -116,6 +116,7 @@ def assemble(store, ctx):
                            "held-out error; then r and every chosen effect's parameters are re-fitted jointly and the "
                            "augmented model is tested again"),
         "model": ctx.spec0.name,
+        "model_form": s.form,
         "load": _load(ctx, results, r_before, r_after),
         "delta": {k: results["delta_ml"].attrs[k] for k in results["delta_ml"].attrs.get("summary_keys", [])},
         "assumptions": _assumptions(ctx),
@@ -161,6 +162,18 @@ def _assumptions(ctx) -> list[str]:
                                                    f"identified by maximum likelihood of J against {s.delta_reference}"),
            "δ_F (load dispersion) is not re-fitted with the effects",
            "effects of one kind are chosen at most once"]
+    if s.form == "simplified":
+        from tubeid.diagnose._detection import STATISTICS
+
+        unseen = [n for n in (s.candidates or tuple(CATALOG)) if n not in ctx.candidate_names]
+        out += ["model form: simplified" + (" (δ identified against another model)" if s.model_form is None else " (given)")
+                + ": the test reads only lines, the incoherent floor's flatness, kurtosis and in-band resonance "
+                "sharpness, each fitted effect is judged by its own statistic's feature, r is held at its identification"
+                + (f"; not testable against a simplified model (no statistic it is trusted for sees them): {unseen}"
+                   if unseen else "")]
+    else:
+        out += ["model form: exact (the declared model is the structure up to its random B): the test reads the "
+                "spectrum's shape; if the model simplifies the structure, set model_form=simplified"]
     for n in ctx.candidate_names:
         out += CATALOG[n].assumptions(ctx.spec)
     return out
@@ -216,7 +229,8 @@ def _delta_f_lines(load: dict) -> list[str]:
 def markdown(rep: dict) -> str:
     """The report.md of a report dict."""
     names = ", ".join(f"`{e['name']}`" for e in rep["effects"]) or "`none`"
-    lines = [f"# Diagnosis of measured data against `{rep['model']}`", "", f"**Effects: {names}**", ""]
+    lines = [f"# Diagnosis of measured data against `{rep['model']}` (model form: {rep['model_form']})", "",
+             f"**Effects: {names}**", ""]
     if not rep["explained_after"]:
         lines += ["**Warning:** the test still detects a departure from the model after the selection "
                   f"({rep['stop_reason']}): the residual is not fully explained by the catalog — consider the model "
@@ -240,10 +254,11 @@ def markdown(rep: dict) -> str:
     for step in rep["steps"]:
         lines += [f"## Step {step['step']}: {('`' + step['chosen'] + '` added') if step['chosen'] else 'nothing added'}", "",
                   f"Held-out error of the model so far: {step['error_current']:.4g}.", "",
-                  "| candidate | signature | k | fit error | held-out error | penalised |", "|---|---|---|---|---|---|"]
+                  "| candidate | judged on | signature | k | fit error | held-out error | current | penalised |",
+                  "|---|---|---|---|---|---|---|---|"]
         for c in step["candidates"]:
-            lines.append(f"| {c['name']} | {c['signature_score']:.3f} | {c['k']} | {c['fit_error']:.4g} | "
-                         f"{c['held_out_error']:.4g} | {c['penalised']:.4g} |")
+            lines.append(f"| {c['name']} | {c['feature']} | {c['signature_score']:.3f} | {c['k']} | {c['fit_error']:.4g} | "
+                         f"{c['held_out_error']:.4g} | {c['current']:.4g} | {c['penalised']:.4g} |")
         if "error_after" in step:
             lines += ["", f"After the joint re-fit: held-out error {step['error_after']:.4g}, test p = "
                           f"{step['detection_after']['p_value']:.3g}."]

@@ -32,7 +32,8 @@ import json
 
 import numpy as np
 
-from tubeid.diagnose._detection import band_moments, detection_test
+from tubeid.diagnose._detection import SCALE_FLOOR, STATISTICS as TEST_STATISTICS, Observations, band_moments, \
+    detection_test, features
 from tubeid.diagnose._load import delta_f_identification, grid_minimum, r_coarse_grid, r_distance, r_fine_grid, scaled_r
 from tubeid.diagnose._selection import Scored, choose, keeps_moved_point, level_offset, line_minimum, prediction_error
 from tubeid.diagnose._settings import MAX_EFFECTS, DiagnoseSettings
@@ -83,11 +84,53 @@ def _psd_output(what: str, *, finite: bool = True) -> Output:
                   finite=finite)
 
 
+def _mean_model(ctx, r, effects, gen) -> dict:
+    """The mean model on the fitting layout, ``fit_realisations`` records (:func:`simulate_blocks`)."""
+    s, meas = ctx.settings, ctx.meas
+    return simulate_blocks(ctx.spec, r, effects, meas, meas.n_fit_blocks, range(s.fit_realisations), s, rngs=[gen])
+
+
 def _mean_psd(ctx, r, effects, gen) -> np.ndarray:
     """Mean-model auto-PSD (F, m) on the fitting layout, averaged over ``fit_realisations`` records."""
-    s, meas = ctx.settings, ctx.meas
-    P, _ = simulate_blocks(ctx.spec, r, effects, meas, meas.n_fit_blocks, range(s.fit_realisations), s, rngs=[gen])
-    return P.mean(axis=0)
+    return _mean_model(ctx, r, effects, gen)["psd"].mean(axis=0)
+
+
+def _simplified(ctx) -> bool:
+    """The declared model is taken as a simplification: the robust statistics and their features."""
+    return ctx.settings.form == "simplified"
+
+
+#: The observations the simplified form's statistics read beyond the auto-PSD and time statistics.
+OBSERVED = ("fine", "residual")
+
+
+def _observation_outputs(ctx, what: str, per: tuple = ()) -> dict:
+    """The outputs of :data:`OBSERVED` over the extra dims ``per`` (none for the exact form)."""
+    if not _simplified(ctx):
+        return {}
+    return {"fine": Output(dims=per + ("frequency_fine", "sensor"), units="m^2/Hz", finite=False,
+                           long_name=f"auto-PSD at the sensors, two-sided, fine Welch segment: {what}"),
+            "residual": Output(dims=per + ("frequency", "sensor"), units="m^2/Hz", finite=False,
+                               long_name=f"conditional PSD of each sensor given the others, two-sided: {what}")}
+
+
+def _observation_coords(ctx, per_record: bool = False) -> tuple[dict, dict]:
+    """Coordinates and units of :func:`_observation_outputs`' dims (``per_record``: with the
+    ``fit_realisation`` dim of the trials)."""
+    if not _simplified(ctx):
+        return {}, {}
+    coords = {"frequency_fine": ctx.meas.frequency_fine}
+    if per_record:
+        coords["fit_realisation"] = list(range(ctx.settings.fit_realisations))
+    return coords, {"frequency_fine": "Hz", **({"fit_realisation": "1"} if per_record else {})}
+
+
+def record_observations(ctx, which: str) -> Observations:
+    """The record's ``"fit"`` or ``"held_out"`` blocks as one sample."""
+    m = ctx.meas
+    return Observations(m.frequency, getattr(m, which)[None], m.frequency_fine, getattr(m, f"{which}_fine")[None],
+                        getattr(m, f"{which}_residual")[None], getattr(m, f"{which}_stats" if which == "fit" else "stats")[None],
+                        ctx.spec.band_hz)
 
 
 def _realisation_chunk(delta: float, n: int) -> int:
@@ -285,20 +328,20 @@ def band_block(block, rng, *, data, data_sha256, model, settings, r, effects, de
     s, meas = ctx.settings, ctx.meas
     eff = method.effects_from_json(effects)
     reals = [int(k) for k in block["realisation"]]
-    P = np.empty((len(reals), meas.frequency.size, len(meas.sensors)))
-    stats = np.empty((len(reals), len(meas.sensors), 3))
-    cf = np.empty(len(reals))
+    keys = ("psd", "stats", "contact") + (OBSERVED if _simplified(ctx) else ())
+    out = {}
     mean = [i for i, k in enumerate(reals) if k == MEAN_MODEL]
     rest = [i for i, k in enumerate(reals) if k != MEAN_MODEL]
     for i in mean:  # the mean model's prediction, fitting layout, fit_realisations records
-        Pm, sm, cm = simulate_blocks(ctx.spec, r, eff, meas, meas.n_fit_blocks, range(s.fit_realisations), s,
-                                     rngs=[rng(s.seed, realisation=MEAN_MODEL)], contact=True)
-        P[i], stats[i], cf[i] = Pm.mean(axis=0), sm.mean(axis=0), cm.mean()
+        o = _mean_model(ctx, r, eff, rng(s.seed, realisation=MEAN_MODEL))
+        for k in keys:
+            out.setdefault(k, np.empty((len(reals),) + o[k].shape[1:]))[i] = o[k].mean(axis=0)
     if rest:
-        P[rest], stats[rest], cf[rest] = simulate_blocks(
-            ctx.spec, r, eff, meas, meas.n_held_out_blocks, [reals[i] for i in rest], s, delta=delta,
-            load_dispersion=load_dispersion, rngs=[rng(s.seed, realisation=reals[i]) for i in rest], contact=True)
-    return {"psd": P, "stats": stats, "contact": cf}
+        o = simulate_blocks(ctx.spec, r, eff, meas, meas.n_held_out_blocks, [reals[i] for i in rest], s, delta=delta,
+                            load_dispersion=load_dispersion, rngs=[rng(s.seed, realisation=reals[i]) for i in rest])
+        for k in keys:
+            out.setdefault(k, np.empty((len(reals),) + o[k].shape[1:]))[rest] = o[k]
+    return out
 
 
 def band_samples(ds) -> tuple[np.ndarray, np.ndarray]:
@@ -308,13 +351,23 @@ def band_samples(ds) -> tuple[np.ndarray, np.ndarray]:
             b["stats"].transpose("realisation", "sensor", "statistic").values)
 
 
+def band_observations(ctx, ds) -> Observations:
+    """The stochastic model's realisations of a band stage as :class:`Observations` (R samples)."""
+    b = ds.sel(realisation=ds["realisation"].values[ds["realisation"].values != MEAN_MODEL])
+    P, stats = band_samples(ds)
+    get = (lambda k, d: b[k].transpose("realisation", d, "sensor").values if k in b else None)
+    return Observations(ctx.meas.frequency, P, ctx.meas.frequency_fine, get("fine", "frequency_fine"),
+                        get("residual", "frequency"), stats, ctx.spec.band_hz)
+
+
 def mean_prediction(ds) -> np.ndarray:
     """The mean model's prediction (F, m) stored in a band stage."""
     return ds["psd"].sel(realisation=MEAN_MODEL).transpose("frequency", "sensor").values
 
 
-def evidence(ctx, ds) -> Evidence:
-    """The :class:`~tubeid.diagnose.catalog.Evidence` of a band stage (its model, r and realisations)."""
+def evidence(ctx, ds, detection=None) -> Evidence:
+    """The :class:`~tubeid.diagnose.catalog.Evidence` of a band stage (its model, r and realisations;
+    with the simplified form, where the test's ``detection`` saw a line and the record's noise floor)."""
     from tubeid.diagnose._detection import band_moments as moments
     from tubeid.diagnose._surrogate import LinearSurrogate
 
@@ -325,8 +378,13 @@ def evidence(ctx, ds) -> Evidence:
     mu, sd = moments(P)
     z = (ctx.meas.fit_stats - stats.mean(axis=0)) / np.maximum(stats.std(axis=0, ddof=1), 1e-300)
     sur = LinearSurrogate(spec, load_spectrum(spec, p["r"], ctx.settings), ctx.meas.frequency)
+    robust = {}
+    if _simplified(ctx):
+        level = features("floor", record_observations(ctx, "fit"))[0, 0]
+        robust = {"form": "simplified", "floor_level": float(10.0 ** np.median(level)),
+                  "line_frequency_hz": None if detection is None else float(detection.scan_frequency_hz)}
     ev = Evidence(frequency=ctx.meas.frequency, fit=ctx.meas.fit, mu=mu, sigma=np.maximum(sd, 1e-6), z_stats=z,
-                  rms=ctx.meas.fit_stats[:, 0], spec=spec, surrogate=sur, band_hz=ctx.spec.band_hz)
+                  rms=ctx.meas.fit_stats[:, 0], spec=spec, surrogate=sur, band_hz=ctx.spec.band_hz, **robust)
     sur.contact = float(np.mean(ds["contact"].sel(realisation=ds["realisation"].values >= 0).values))
     return ev
 
@@ -337,13 +395,14 @@ def summarize_band(ds):
     p = _params(ds)
     ctx = _ctx(p)
     s = ctx.settings
-    det = detection_test(ctx.meas.held_out, band_samples(ds)[0], ctx.meas.frequency, false_alarm=s.false_alarm,
-                         band_width_hz=s.band_width_hz)
+    obs = record_observations(ctx, "held_out").stacked(band_observations(ctx, ds))
+    det = detection_test(obs, false_alarm=s.false_alarm, band_width_hz=s.band_width_hz, model_form=s.form)
     out = {"detection": json.dumps(det.to_dict(), sort_keys=True), "detected": det.detected, "p_value": det.p_value}
     chosen = [e["kind"] for e in json.loads(p["effects"])]
-    remaining = [n for n in ctx.candidate_names if n not in chosen]
+    pointed = det.pointed_effects()
+    remaining = [n for n in ctx.candidate_names if n not in chosen and (pointed is None or n in pointed)]
     if det.detected and p["step"] < s.max_effects and remaining:
-        ev = evidence(ctx, ds)
+        ev = evidence(ctx, ds, det)
         screen = {n: CATALOG[n].signature(ev) for n in remaining}
         out["screen"] = json.dumps(screen, sort_keys=True, default=float)
         out["contact_weight"] = ev.surrogate.contact
@@ -352,16 +411,19 @@ def summarize_band(ds):
 
 def _band_study(name, base, ctx, r, effects, delta, dF, step, what) -> Study:
     s = ctx.settings
+    obs_coords, obs_units = _observation_coords(ctx)
     return Study(
         name=name, seed=SEED,
         description=f"{what}: stochastic model at delta = {delta:.4g}, delta_F = {dF:.4g}, r = {list(r)}, held-out layout",
-        axes={"realisation": [MEAN_MODEL, *range(s.realisations)]},
-        chunks={"realisation": _realisation_chunk(delta, s.realisations + 1)}, task=band_block, coords={**_spectral_coords(ctx), "statistic": STATISTICS},
+        axes={"realisation": [MEAN_MODEL, *range(s.n_realisations)]},
+        chunks={"realisation": _realisation_chunk(delta, s.n_realisations + 1)}, task=band_block,
+        coords={**_spectral_coords(ctx), "statistic": STATISTICS, **obs_coords},
         outputs={"psd": _psd_output("stochastic model, averaged over the held-out layout's blocks (realisation -1: the "
                                     "mean model's prediction, fitting layout)"),
                  "stats": Output(dims=("sensor", "statistic"), units="m | 1 | 1", long_name="RMS [m], skewness, excess kurtosis"),
-                 "contact": Output(units="1", long_name="fraction of time the stops are closed (mean over the stops)")},
-        units={"frequency": "Hz"},
+                 "contact": Output(units="1", long_name="fraction of time the stops are closed (mean over the stops)"),
+                 **_observation_outputs(ctx, "stochastic model, held-out layout (realisation -1: mean model, fitting layout)")},
+        units={"frequency": "Hz", **obs_units},
         parameters={**base, "r": [float(v) for v in r], "effects": effects, "delta": float(delta),
                     "load_dispersion": float(dF), "step": int(step)},
         summarize=summarize_band)
@@ -414,21 +476,91 @@ def trial_block(block, rng, *, data, data_sha256, model, settings, trials, lines
     ctx = method.load_context(data, data_sha256, model, settings)
     trials = json.loads(trials)
     meas = ctx.meas
-    out = np.full((len(block["trial"]), meas.frequency.size, len(meas.sensors)), np.nan)
+    n, R = len(block["trial"]), ctx.settings.fit_realisations
+    out = {"psd": np.full((n, meas.frequency.size, len(meas.sensors)), np.nan)}
+    if _simplified(ctx):
+        out |= {"fine": np.full((n, R, meas.frequency_fine.size, len(meas.sensors)), np.nan),
+                "residual": np.full((n, R, meas.frequency.size, len(meas.sensors)), np.nan),
+                "stats": np.full((n, R, len(meas.sensors), 3), np.nan)}
     for i, k in enumerate(block["trial"]):
         t = trials[int(k)]
         if not t.get("analytic"):
-            out[i] = _mean_psd(ctx, t["r"], [effect_from_dict(e) for e in t["effects"]], rng(ctx.settings.seed))
-    return {"psd": out}
+            o = _mean_model(ctx, t["r"], [effect_from_dict(e) for e in t["effects"]], rng(ctx.settings.seed))
+            out["psd"][i] = o["psd"].mean(axis=0)
+            for key in set(out) - {"psd"}:
+                out[key][i] = o[key]
+    return out
 
 
 def _trial_study(name, base, ctx, trials, what) -> Study:
+    obs_coords, obs_units = _observation_coords(ctx, per_record=True)
+    per = ("fit_realisation",)
+    outputs = {"psd": _psd_output("mean model with the trial's effects, fitting layout (NaN: derived exactly from "
+                                  "another trial)", finite=False),
+               **_observation_outputs(ctx, "mean model with the trial's effects, per fitting-layout record", per)}
+    if _simplified(ctx):
+        outputs["stats"] = Output(dims=per + ("sensor", "statistic"), units="m | 1 | 1", finite=False,
+                                  long_name="RMS [m], skewness, excess kurtosis per fitting-layout record")
+        obs_coords["statistic"] = STATISTICS
     return Study(
         name=name, seed=SEED, description=what, axes={"trial": range(len(trials))}, chunks={"trial": 1}, seed_axes=(),
-        task=trial_block, coords=_spectral_coords(ctx),
-        outputs={"psd": _psd_output("mean model with the trial's effects, fitting layout (NaN: derived exactly from "
-                                    "another trial)", finite=False)},
-        units={"frequency": "Hz"}, parameters={**base, "trials": json.dumps(trials, sort_keys=True)})
+        task=trial_block, coords={**_spectral_coords(ctx), **obs_coords}, outputs=outputs,
+        units={"frequency": "Hz", **obs_units}, parameters={**base, "trials": json.dumps(trials, sort_keys=True)})
+
+
+def trial_observations(ctx, ds, trials) -> list[Observations]:
+    """Per trial of a simplified-form trial stage, its fitting-layout records as :class:`Observations`."""
+    get = {k: ds[k].transpose("trial", "fit_realisation", d, "sensor").values
+           for k, d in (("fine", "frequency_fine"), ("residual", "frequency"), ("stats", "statistic"))}
+    get["stats"] = ds["stats"].transpose("trial", "fit_realisation", "sensor", "statistic").values
+    return [Observations(ctx.meas.frequency, None, ctx.meas.frequency_fine, get["fine"][i], get["residual"][i],
+                         get["stats"][i], ctx.spec.band_hz) for i in range(len(trials))]
+
+
+def feature_name(candidate: str) -> str:
+    """The robust statistic whose feature a candidate is fitted to with the simplified form."""
+    return next(k for k, st in TEST_STATISTICS.items() if st.robust and candidate in st.effects)
+
+
+#: With the simplified form, the line's error is read where the record or the trial has a line: bins
+#: whose prominence stands this many band standard deviations from the band's mean.
+LINE_EXCESS_Z = 3.0
+
+
+class FeatureErrors:
+    """Errors of the simplified form: for a robust statistic's feature φ (:func:`features`), the
+    mean of ((φ(record) − φ̄(trial)) / σ)², φ̄ the mean over the trial's fitting-layout records and σ
+    the standard deviation of φ over the realisations of the band before any effect (at least
+    :data:`SCALE_FLOOR` for the line's prominence), on the record's fitting or held-out blocks. The
+    line's mean is over the bins where the record or the trial stands :data:`LINE_EXCESS_Z` from the
+    band's mean (a line touches a few of a thousand bins; all of them when none does)."""
+
+    def __init__(self, ctx, results):
+        self.ctx = ctx
+        self.band = band_observations(ctx, results["band"])
+        self.record = {w: record_observations(ctx, w) for w in ("fit", "held_out")}
+        self._cache = {}
+
+    def _unit(self, name):
+        if name not in self._cache:
+            w = self.ctx.settings.band_width_hz
+            phi = features(name, self.band, w)
+            sd = np.maximum(phi.std(axis=0, ddof=1), SCALE_FLOOR if name == "line" else 1e-6)
+            self._cache[name] = (phi.mean(axis=0), sd, {k: features(name, o, w)[0] for k, o in self.record.items()})
+        return self._cache[name]
+
+    def __call__(self, name: str, obs: Observations) -> tuple[float, float]:
+        """(fitting-block error, held-out error) of a trial's observations in feature ``name``."""
+        mu, sd, rec = self._unit(name)
+        phi = features(name, obs, self.ctx.settings.band_width_hz).mean(axis=0)
+        out = []
+        for k in ("fit", "held_out"):
+            z2 = ((rec[k] - phi) / sd) ** 2
+            if name == "line":
+                mask = (np.abs(rec[k] - mu) > LINE_EXCESS_Z * sd) | (np.abs(phi - mu) > LINE_EXCESS_Z * sd)
+                z2 = z2[mask] if np.any(mask) else z2
+            out.append(float(np.mean(z2)))
+        return tuple(out)
 
 
 def _trials(k, results, base):
@@ -444,9 +576,15 @@ def _trials(k, results, base):
         cand = CATALOG[n]
         for e in cand.trials(sig["estimate"], ctx.spec, s.grid_points):
             trials.append({"candidate": n, "effects": held + [effect_to_dict(e)], "r": st["r"],
-                           "analytic": cand.exact_from_baseline})
+                           "analytic": _analytic(ctx, cand)})
     return _trial_study(name, base, ctx, trials,
                         f"step {k}: trial grids of {sorted(st['screen'])} (mean model, fitting blocks, chosen effects held)")
+
+
+def _analytic(ctx, cand) -> bool:
+    """Whether a candidate's trials are derived from another trial's PSD instead of simulated: exact
+    for the auto-PSDs only, so never with the simplified form (its features need the records)."""
+    return cand.exact_from_baseline and not _simplified(ctx)
 
 
 def _trial_psds(ds, trials, centre=0) -> np.ndarray:
@@ -467,36 +605,58 @@ def _trial_psds(ds, trials, centre=0) -> np.ndarray:
     return psd
 
 
-def selection(ctx, results, k: int) -> dict:
-    """The choice of step k from its trials (see :mod:`tubeid.diagnose._selection`): {"current"
-    (the held-out error of the model so far), "candidates" ([{name, k, fit_error, held_out_error,
-    penalised, trials, effect, offset}]), "chosen" (name or ""), "effects" (JSON list with the
-    chosen effect), "r" (levelled by the chosen trial's offset)}."""
-    s = ctx.settings
-    ds = results[f"step{k}_trials"]
-    trials = json.loads(_params(ds)["trials"])
-    psd = _trial_psds(ds, trials)
-    sigma = _sigma(results)
-    # derived trials (a tone's amplitude profile): appended, with their effect
-    trials, psd = list(trials), list(psd)
+def _variants(ctx, trials, psd, obs) -> None:
+    """Append the derived trials (a tone's amplitude profile) to ``trials``, ``psd`` and, with the
+    simplified form, ``obs`` (the fine PSD of each record scaled the same way), in place."""
     for i in range(1, len(trials)):
         t = trials[i]
         effect = effect_from_dict(t["effects"][-1])
-        for e, q in CATALOG[t["candidate"]].variants(effect, psd[i], psd[0], ctx.meas.frequency):
+        cand = CATALOG[t["candidate"]]
+        derived = cand.variants(effect, psd[i], psd[0], ctx.meas.frequency)
+        if obs is not None and derived:
+            ff = ctx.meas.frequency_fine
+            per = [cand.variants(effect, obs[i].fine[j], obs[0].fine[j], ff) for j in range(obs[i].n)]
+        for v, (e, q) in enumerate(derived):
             trials.append({**t, "effects": t["effects"][:-1] + [effect_to_dict(e)], "derived": i})
             psd.append(q)
-    errs = [_errors(ctx, p, sigma) for p in psd]
-    current = errs[0][2]
+            if obs is not None:
+                obs.append(dataclasses.replace(obs[i], fine=np.stack([p[v][1] for p in per])))
+
+
+def selection(ctx, results, k: int) -> dict:
+    """The choice of step k from its trials (see :mod:`tubeid.diagnose._selection`): {"current"
+    (the held-out error of the model so far), "candidates" ([{name, k, fit_error, held_out_error,
+    current, penalised, trials, effect, offset, feature}]), "chosen" (name or ""), "effects" (JSON list with
+    the chosen effect), "r" (levelled by the chosen trial's offset)}.
+
+    Exact form: every error is the spectrum's (:func:`_errors`). Simplified form: a candidate's
+    errors, and the current model's it is compared with, are those of the feature of the robust
+    statistic that points to it (:class:`FeatureErrors`); r is not levelled."""
+    s = ctx.settings
+    ds = results[f"step{k}_trials"]
+    trials = list(json.loads(_params(ds)["trials"]))
+    psd = list(_trial_psds(ds, trials))
+    obs = trial_observations(ctx, ds, trials) if _simplified(ctx) else None
+    _variants(ctx, trials, psd, obs)
+    sigma = _sigma(results)
+    spectrum = [_errors(ctx, p, sigma) for p in psd]
+    fe = FeatureErrors(ctx, results) if obs is not None else None
     scored, info = [], []
     for n in dict.fromkeys(t["candidate"] for t in trials[1:]):
         idx = [i for i, t in enumerate(trials) if t["candidate"] == n]
+        if fe is None:
+            errs, feat = {j: spectrum[j] for j in [0, *idx]}, "spectrum"
+        else:
+            feat = feature_name(n)
+            errs = {j: (0.0, *fe(feat, obs[j])) for j in [0, *idx]}
         i = min(idx, key=lambda j: errs[j][1])
         kk = CATALOG[n].n_parameters(ctx.spec)
-        sc = Scored(n, kk, errs[i][1], errs[i][2])
+        sc = Scored(n, kk, errs[i][1], errs[i][2], errs[0][2])
         scored.append(sc)
-        info.append({"name": n, "k": kk, "fit_error": errs[i][1], "held_out_error": errs[i][2],
-                     "penalised": sc.penalised(s.penalty), "trials": len(idx), "effect": trials[i]["effects"][-1],
-                     "offset": errs[i][0], "trial": i})
+        info.append({"name": n, "k": kk, "feature": feat, "fit_error": errs[i][1], "held_out_error": errs[i][2],
+                     "current": errs[0][2], "penalised": sc.penalised(s.penalty), "trials": len(idx),
+                     "effect": trials[i]["effects"][-1], "offset": errs[i][0], "trial": i})
+    current = spectrum[0][2]
     c = choose(scored, current, s.penalty)
     out = {"current": current, "candidates": info, "chosen": "" if c is None else c.name}
     if c is not None:
@@ -530,7 +690,7 @@ def _refit(k, results, base):
     r = [float(v) for v in sel["r"]]
     centre = {"effects": [effect_to_dict(e) for e in effects], "r": r}
     trials, lines = [dict(centre)], []
-    for j in range(len(r)):
+    for j in range(0 if _simplified(ctx) else len(r)):  # simplified: r held (the features are level-free)
         values = [r[j] * 10.0**u for u in (-0.1, 0.0, 0.1)]
         idx = []
         for v in values:
@@ -553,7 +713,7 @@ def _refit(k, results, base):
                     continue
                 eff = list(centre["effects"])
                 eff[i] = effect_to_dict(ev)
-                trials.append({"effects": eff, "r": r, "analytic": cand.exact_from_baseline})
+                trials.append({"effects": eff, "r": r, "analytic": _analytic(ctx, cand)})
                 idx.append(len(trials) - 1)
             lines.append({"what": "effect", "index": i, "parameter": par, "log": log, "values": [float(v) for v in values],
                           "trials": idx})
@@ -561,16 +721,25 @@ def _refit(k, results, base):
     return dataclasses.replace(st, parameters={**st.parameters, "lines": json.dumps(lines, sort_keys=True)})
 
 
+def fit_errors(ctx, results, ds) -> list[float]:
+    """The fitting-block error of every trial of a re-fit or check stage: the spectrum's (exact form),
+    else the sum over the trial's effects of their features' errors (:class:`FeatureErrors`)."""
+    trials = json.loads(_params(ds)["trials"])
+    if not _simplified(ctx):
+        return [prediction_error(ctx.meas.fit, q, _sigma(results), ctx.meas.frequency) for q in _trial_psds(ds, trials)]
+    fe = FeatureErrors(ctx, results)
+    names = list(dict.fromkeys(feature_name(e["kind"]) for e in trials[0]["effects"]))
+    return [sum(fe(n, o)[0] for n in names) for o in trial_observations(ctx, ds, trials)]
+
+
 def refit_result(ctx, results, k: int) -> dict:
     """The joint re-fit of step k: each line's minimiser (fitting blocks, no level profiling: r is
-    one of the lines) → {"effects" (JSON), "r", "lines" ([{what, parameter, values, errors, best}])}."""
+    one of the lines, exact form) → {"effects" (JSON), "r", "lines" ([{what, parameter, values,
+    errors, best}])}."""
     ds = results[f"step{k}_refit"]
     p = _params(ds)
     trials, lines = json.loads(p["trials"]), json.loads(p["lines"])
-    psd = _trial_psds(ds, trials)
-    sigma = _sigma(results)
-    f = ctx.meas.frequency
-    fit_err = [prediction_error(ctx.meas.fit, q, sigma, f) for q in psd]
+    fit_err = fit_errors(ctx, results, ds)
     effects = [effect_from_dict(e) for e in trials[0]["effects"]]
     r = list(trials[0]["r"])
     report, best_of = [], {}
@@ -611,9 +780,7 @@ def refit_point(ctx, results, k: int, rf: dict | None = None) -> dict:
     worse than the best point the re-fit evaluated, else that point → {"effects" (JSON), "r",
     "moved_fit_error", "best_fit_error", "fallback" (bool)}. ``rf``: :func:`refit_result` if at hand."""
     rf = refit_result(ctx, results, k) if rf is None else rf
-    ds = results[f"step{k}_check"]
-    moved = prediction_error(ctx.meas.fit, _trial_psds(ds, json.loads(_params(ds)["trials"]))[0], _sigma(results),
-                             ctx.meas.frequency)
+    moved = fit_errors(ctx, results, results[f"step{k}_check"])[0]
     best = rf["best_trial"]
     fallback = not keeps_moved_point(moved, best["fit_error"])
     chosen = best if fallback else {"effects": rf["effects"], "r": rf["r"]}
