@@ -128,7 +128,6 @@ def _check_the_open_pipeline_example(tmp_path):
     assert list(root.attrs["stages_complete"]) == ["delta", "response"]
 
 
-@pytest.mark.slow  # the same path (a user's LocalCluster client) is in test_runner_distributed.py's default tests
 def test_the_notebook_example_runs_on_its_client(tmp_path):
     (block,) = [b for b in _blocks("python") if "LocalCluster" in b]
     shutil.copytree(REPO / "studies", tmp_path / "studies")
