@@ -330,6 +330,15 @@ def test_the_embedded_cluster_admits_only_its_own_client(study, tmp_path):
         assert client.submit(lambda: 1, pure=False).result() == 1  # still serving its own client
 
 
+def test_the_embedded_workers_leave_ctrl_c_to_the_runner():
+    """A terminal's Ctrl-C reaches the embedded worker processes too: they ignore it (the runner stops them)."""
+    from tubeid.runner.execute import _client
+
+    with _client(2, None, None, True) as (client, _):
+        handlers = client.run(lambda: signal.getsignal(signal.SIGINT) is signal.SIG_IGN)
+    assert len(handlers) == 2 and all(handlers.values()), handlers
+
+
 def test_a_users_client_is_used_and_never_closed(study, reference, tmp_path, capsys):
     """run(client=...) and, without client/workers/scheduler, distributed.default_client(): the user's
     LocalCluster runs the blocks (identical store) and stays open."""
@@ -390,3 +399,4 @@ def test_warmup_runs_once_per_machine_before_the_blocks_and_says_so(tmp_path, wo
     assert len((mark / "log").read_text().split()) == 1  # one machine: once, whatever the worker count
     second = _run([path, "--store", tmp_path / "b.zarr", "--workers", workers])
     assert "compiling" not in second.stderr and len((mark / "log").read_text().split()) == 1
+

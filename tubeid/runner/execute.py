@@ -350,7 +350,8 @@ def _client(workers: int | None, scheduler: str | None, client, quiet: bool):
                                    processes=True, host=config.get("runner.host", "127.0.0.1"),
                                    dashboard_address=config.get("runner.dashboard-address", "127.0.0.1:0"),
                                    silence_logs=logging.CRITICAL, security=security,
-                                   protocol="tls://" if security is not None else None)
+                                   protocol="tls://" if security is not None else None,
+                                   preload=["tubeid.runner._embedded_worker"])  # Ctrl-C is the runner's to answer
         except Exception as exc:
             script = _main_script()
             if script is None:
