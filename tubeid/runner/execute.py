@@ -400,7 +400,14 @@ def _warm_up(client, warmup, quiet) -> float:
         _log(f"tubeid: {warmup.message} ({len(todo)} of {len(chosen)} machines)", quiet)
         futures = [client.submit(_call_pickled, cloudpickle.dumps(warmup.run), workers=[a], allow_other_workers=False, pure=False,
                                  key=f"tubeid-warmup-{i}-{time.time_ns()}") for i, a in enumerate(todo)]
-        client.gather(futures)
+        try:
+            # each future awaited alone, not client.gather: an interrupted gather (Ctrl-C) orphans
+            # distributed's inner waits, which print "Task exception was never retrieved ... AllExit"
+            for fut in futures:
+                fut.result()
+        except BaseException:
+            client.cancel(futures)  # an interrupted (or failed) warm-up is not left running on the cluster
+            raise
     dt = time.perf_counter() - t0
     if dt > 0.05:
         _log(f"tubeid: warm-up done in {dt:.1f} s", quiet)
