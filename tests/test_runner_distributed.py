@@ -330,6 +330,15 @@ def test_the_embedded_cluster_admits_only_its_own_client(study, tmp_path):
         assert client.submit(lambda: 1, pure=False).result() == 1  # still serving its own client
 
 
+def test_the_embedded_workers_leave_ctrl_c_to_the_runner():
+    """A terminal's Ctrl-C reaches the embedded worker processes too: they ignore it (the runner stops them)."""
+    from tubeid.runner.execute import _client
+
+    with _client(2, None, None, True) as (client, _):
+        handlers = client.run(lambda: signal.getsignal(signal.SIGINT) is signal.SIG_IGN)
+    assert len(handlers) == 2 and all(handlers.values()), handlers
+
+
 def test_a_users_client_is_used_and_never_closed(study, reference, tmp_path, capsys):
     """run(client=...) and, without client/workers/scheduler, distributed.default_client(): the user's
     LocalCluster runs the blocks (identical store) and stays open."""
@@ -390,3 +399,47 @@ def test_warmup_runs_once_per_machine_before_the_blocks_and_says_so(tmp_path, wo
     assert len((mark / "log").read_text().split()) == 1  # one machine: once, whatever the worker count
     second = _run([path, "--store", tmp_path / "b.zarr", "--workers", workers])
     assert "compiling" not in second.stderr and len((mark / "log").read_text().split()) == 1
+
+
+SLOW_WARM = """
+import pathlib, time
+import numpy as np
+from tubeid.runner.study import Output, Study, Warmup
+
+def slow_warmup():
+    pathlib.Path("MARKFILE").write_text("started")
+    time.sleep(120)  # interrupted long before
+
+def task(block, rng):
+    return {"u": np.asarray(block["r"], float)}
+
+study = Study(name="slow-warm", seed=0, axes={"r": range(4)}, chunks={"r": 2}, task=task, outputs={"u": Output()},
+              warmup=Warmup("a slow warm-up", run=slow_warmup, needed=lambda: True))
+"""
+
+
+def test_ctrl_c_during_the_warmup_is_a_clean_exit(tmp_path):
+    """Ctrl-C while one worker warms up and the other waits: exit 130 with the resume hint and nothing else
+    (no asyncio "Task exception was never retrieved", no worker process's KeyboardInterrupt traceback)."""
+    mark = tmp_path / "warming"
+    path = tmp_path / "slow.py"
+    path.write_text(SLOW_WARM.replace("MARKFILE", str(mark)))
+    proc = subprocess.Popen(RUNNER + [str(path), "--store", str(tmp_path / "s.zarr"), "--workers", "2", "--no-progress"],
+                            env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    try:
+        t0 = time.monotonic()
+        while not mark.exists():  # the warm-up has started on a worker: the runner waits for it
+            assert proc.poll() is None, f"runner ended before the warm-up: {proc.communicate()[1]}"
+            assert time.monotonic() - t0 < 60, "the warm-up did not start"
+            time.sleep(0.02)
+        children = psutil.Process(proc.pid).children(recursive=True)
+        os.killpg(proc.pid, signal.SIGINT)  # a terminal's Ctrl-C reaches the whole foreground group
+        _, err = proc.communicate(timeout=60)
+        _, alive = psutil.wait_procs(children, timeout=20)
+        assert not [p for p in alive if p.status() != psutil.STATUS_ZOMBIE]
+    finally:
+        _stop(proc)
+    assert proc.returncode == 130, err
+    assert "tubeid: a slow warm-up" in err and "rerun the same command to resume" in err
+    assert "Traceback" not in err and "never retrieved" not in err, f"Ctrl-C during the warm-up is not clean:\n{err}"

@@ -1,7 +1,9 @@
 """The README's runner sections tell the truth: the example files it shows exist under those names with
 that content, every `tubeid run/status/show` command (and the `python -c` line) of those sections runs
-as written from a fresh directory, and the notebook example runs on a real LocalCluster client."""
+as written from a fresh directory, the `open_pipeline` example reads the store those commands made as
+its comments say, and the notebook example runs on a real LocalCluster client."""
 
+import ast
 import math
 import os
 import pathlib
@@ -89,9 +91,43 @@ def test_every_command_of_the_runner_sections_runs(tmp_path):
         "stages complete, complete" in outputs["tubeid status results/two-stage.zarr"]
     assert "stage delta" in outputs["tubeid show results/two-stage.zarr --stage delta"]
     assert "stage response" not in outputs["tubeid show results/two-stage.zarr --stage delta"]
+    _check_the_open_pipeline_example(tmp_path)
 
 
-@pytest.mark.slow  # the same path (a user's LocalCluster client) is in test_runner_distributed.py's default tests
+def _values_of_the_block(block: str, cwd: pathlib.Path) -> tuple[dict, list]:
+    """Run a README block in ``cwd`` as written; return its names and the value of each bare expression line."""
+    tree = ast.parse(block)
+    for i, stmt in enumerate(tree.body):  # `expr` -> `_values.append(expr)`: the same line, its value kept
+        if isinstance(stmt, ast.Expr):
+            call = ast.Call(ast.Attribute(ast.Name("_values", ast.Load()), "append", ast.Load()), [stmt.value], [])
+            tree.body[i] = ast.copy_location(ast.Expr(call), stmt)
+    namespace: dict = {"_values": []}
+    here = os.getcwd()
+    os.chdir(cwd)
+    try:
+        exec(compile(ast.fix_missing_locations(tree), "README.md (open_pipeline example)", "exec"), namespace)
+    finally:
+        os.chdir(here)
+    return namespace, namespace["_values"]
+
+
+def _check_the_open_pipeline_example(tmp_path):
+    """The `open_pipeline` block, run on the store the section's commands made, gives what its comments say."""
+    (block,) = [b for b in _blocks("python") if "open_pipeline" in b]
+    names, (delta_opt, delta, root) = _values_of_the_block(block, tmp_path)
+    res = names["res"]
+    assert list(res) == ["delta", "response"], list(res)                             # {"delta": ..., "response": ...}
+    assert delta_opt == res["delta"].attrs["delta_opt"] and 0.05 <= delta_opt <= 0.85  # the stage's summary
+    import xarray as xr
+    plain = xr.open_zarr(tmp_path / "results/two-stage.zarr", group="delta")         # = xarray.open_zarr(..., group=)
+    assert set(delta.data_vars) == set(plain.data_vars) == {"J"}, \
+        f"the README's open_results(..., group=...) line gives {set(delta.data_vars)}, not the delta stage's J"
+    assert (delta.J.values == plain.J.values).all()
+    for key in ("study_hash", "tubeid_version", "stage_blocks", "stages_complete"):  # provenance and the summary
+        assert key in root.attrs, f"root summary lacks {key}"
+    assert list(root.attrs["stages_complete"]) == ["delta", "response"]
+
+
 def test_the_notebook_example_runs_on_its_client(tmp_path):
     (block,) = [b for b in _blocks("python") if "LocalCluster" in b]
     shutil.copytree(REPO / "studies", tmp_path / "studies")

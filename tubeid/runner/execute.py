@@ -350,7 +350,8 @@ def _client(workers: int | None, scheduler: str | None, client, quiet: bool):
                                    processes=True, host=config.get("runner.host", "127.0.0.1"),
                                    dashboard_address=config.get("runner.dashboard-address", "127.0.0.1:0"),
                                    silence_logs=logging.CRITICAL, security=security,
-                                   protocol="tls://" if security is not None else None)
+                                   protocol="tls://" if security is not None else None,
+                                   preload=["tubeid.runner._embedded_worker"])  # Ctrl-C is the runner's to answer
         except Exception as exc:
             script = _main_script()
             if script is None:
@@ -399,7 +400,14 @@ def _warm_up(client, warmup, quiet) -> float:
         _log(f"tubeid: {warmup.message} ({len(todo)} of {len(chosen)} machines)", quiet)
         futures = [client.submit(_call_pickled, cloudpickle.dumps(warmup.run), workers=[a], allow_other_workers=False, pure=False,
                                  key=f"tubeid-warmup-{i}-{time.time_ns()}") for i, a in enumerate(todo)]
-        client.gather(futures)
+        try:
+            # each future awaited alone, not client.gather: an interrupted gather (Ctrl-C) orphans
+            # distributed's inner waits, which print "Task exception was never retrieved ... AllExit"
+            for fut in futures:
+                fut.result()
+        except BaseException:
+            client.cancel(futures)  # an interrupted (or failed) warm-up is not left running on the cluster
+            raise
     dt = time.perf_counter() - t0
     if dt > 0.05:
         _log(f"tubeid: warm-up done in {dt:.1f} s", quiet)
