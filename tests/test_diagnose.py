@@ -174,6 +174,19 @@ def test_the_simplified_test_sees_each_departure_with_the_statistic_built_for_it
         assert d.scan_frequency_hz == pytest.approx(rec.frequency_fine[201], abs=0)
 
 
+def test_the_strongest_departure_points_to_the_effect_explained_first():
+    """A line and sharper resonances at once (a strong tone also sharpens the spectrum through the
+    stop): both statistics fire, the line's excess is the larger, so only the tone is a candidate
+    of the first step; the exact form's statistics point to every effect (None)."""
+    rng = np.random.default_rng(8)
+    obs = _observations(rng, 1, line=201, sharp=1.5).stacked(_observations(rng, 19))
+    d = detection_test(obs, model_form="simplified")
+    assert d.p_values["line"] == d.p_values["resonance"] == 0.05, d.p_values
+    assert d.strongest() == "line" and d.pointed_effects() == ("tone",), d.excess
+    f, P = _spectra(rng, 20, line=29)
+    assert detection_test(P[0], P[1:], f).pointed_effects() is None
+
+
 def test_the_floor_is_left_out_without_bins_above_the_band():
     """A record whose Nyquist frequency is the band's: the floor statistic has nothing to read and
     the simplified test combines the three others."""
