@@ -227,6 +227,17 @@ def test_tls_cluster_from_the_cluster_settings(study, reference, tmp_path):
         assert not [pid for p in procs for pid in _session_alive(p.pid)]
 
 
+def _ctrl_c(proc) -> str:
+    """Send a terminal's Ctrl-C to the runner's whole process group (SIGINT reaches every process
+    of the foreground group); wait for it and check no process of it is left. Its stderr."""
+    children = psutil.Process(proc.pid).children(recursive=True)
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    _, alive = psutil.wait_procs(children, timeout=20)
+    assert not [p for p in alive if p.status() != psutil.STATUS_ZOMBIE]
+    return err
+
+
 def test_ctrl_c_stops_cleanly_and_resumes(study, reference, tmp_path):
     store = tmp_path / "interrupted.zarr"
     proc = subprocess.Popen(RUNNER + [str(study), "--store", str(store), "--workers", "2", "--no-progress"],
@@ -234,11 +245,7 @@ def test_ctrl_c_stops_cleanly_and_resumes(study, reference, tmp_path):
                             start_new_session=True)
     try:
         _wait_flags(store, 2, proc)
-        children = psutil.Process(proc.pid).children(recursive=True)
-        os.killpg(proc.pid, signal.SIGINT)  # a terminal's Ctrl-C reaches the whole foreground group
-        _, err = proc.communicate(timeout=60)
-        _, alive = psutil.wait_procs(children, timeout=20)
-        assert not [p for p in alive if p.status() != psutil.STATUS_ZOMBIE]
+        err = _ctrl_c(proc)
     finally:
         _stop(proc)
     assert proc.returncode == 130 and "rerun the same command to resume" in err
@@ -433,11 +440,7 @@ def test_ctrl_c_during_the_warmup_is_a_clean_exit(tmp_path):
             assert proc.poll() is None, f"runner ended before the warm-up: {proc.communicate()[1]}"
             assert time.monotonic() - t0 < 60, "the warm-up did not start"
             time.sleep(0.02)
-        children = psutil.Process(proc.pid).children(recursive=True)
-        os.killpg(proc.pid, signal.SIGINT)  # a terminal's Ctrl-C reaches the whole foreground group
-        _, err = proc.communicate(timeout=60)
-        _, alive = psutil.wait_procs(children, timeout=20)
-        assert not [p for p in alive if p.status() != psutil.STATUS_ZOMBIE]
+        err = _ctrl_c(proc)
     finally:
         _stop(proc)
     assert proc.returncode == 130, err
