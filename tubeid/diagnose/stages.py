@@ -128,9 +128,9 @@ def _observation_coords(ctx, per_record: bool = False) -> tuple[dict, dict]:
 def record_observations(ctx, which: str) -> Observations:
     """The record's ``"fit"`` or ``"held_out"`` blocks as one sample."""
     m = ctx.meas
+    stats = {"fit": m.fit_stats, "held_out": m.stats}[which]
     return Observations(m.frequency, getattr(m, which)[None], m.frequency_fine, getattr(m, f"{which}_fine")[None],
-                        getattr(m, f"{which}_residual")[None], getattr(m, f"{which}_stats" if which == "fit" else "stats")[None],
-                        ctx.spec.band_hz)
+                        getattr(m, f"{which}_residual")[None], stats[None], ctx.spec.band_hz)
 
 
 def _realisation_chunk(delta: float, n: int) -> int:
@@ -487,7 +487,7 @@ def trial_block(block, rng, *, data, data_sha256, model, settings, trials, lines
         if not t.get("analytic"):
             o = _mean_model(ctx, t["r"], [effect_from_dict(e) for e in t["effects"]], rng(ctx.settings.seed))
             out["psd"][i] = o["psd"].mean(axis=0)
-            for key in set(out) - {"psd"}:
+            for key in ("fine", "residual", "stats") if "fine" in out else ():
                 out[key][i] = o[key]
     return out
 
@@ -510,11 +510,11 @@ def _trial_study(name, base, ctx, trials, what) -> Study:
 
 def trial_observations(ctx, ds, trials) -> list[Observations]:
     """Per trial of a simplified-form trial stage, its fitting-layout records as :class:`Observations`."""
-    get = {k: ds[k].transpose("trial", "fit_realisation", d, "sensor").values
-           for k, d in (("fine", "frequency_fine"), ("residual", "frequency"), ("stats", "statistic"))}
-    get["stats"] = ds["stats"].transpose("trial", "fit_realisation", "sensor", "statistic").values
-    return [Observations(ctx.meas.frequency, None, ctx.meas.frequency_fine, get["fine"][i], get["residual"][i],
-                         get["stats"][i], ctx.spec.band_hz) for i in range(len(trials))]
+    fine, residual, stats = (ds[k].transpose("trial", "fit_realisation", *dims).values for k, dims in
+                             (("fine", ("frequency_fine", "sensor")), ("residual", ("frequency", "sensor")),
+                              ("stats", ("sensor", "statistic"))))
+    return [Observations(ctx.meas.frequency, None, ctx.meas.frequency_fine, fine[i], residual[i], stats[i],
+                         ctx.spec.band_hz) for i in range(len(trials))]
 
 
 def feature_name(candidate: str) -> str:
