@@ -333,6 +333,26 @@ def test_noise_signature_and_exact_trials():
     np.testing.assert_allclose(CATALOG["sensor_noise"].from_baseline(e, fit + 2e-18, remove=True), fit, rtol=1e-12)
 
 
+def test_a_stop_is_placed_by_the_sensor_whose_kurtosis_departs_most():
+    """A record whose spectrum matches the model but whose kurtosis at the sensor at 10 m lies 5 band
+    standard deviations below the model's: the stop's trials sit at the node of that sensor and its
+    neighbours (8, 10, 12 m), whatever the surrogate's spring fit of a flat residual says; with a
+    departure below 3 standard deviations the exact form keeps the surrogate's placement, the
+    simplified one the kurtosis's."""
+    spec = builtin_spec("paper-reference").replace(sensors=sensors(XS))
+    mu = np.log10(1e-14 * np.exp(-np.arange(334) / 30.0))[:, None] * np.ones(3)
+    ev = _evidence(spec, 10.0**mu, mu)
+    ev.z_stats[2, 2] = -5.0
+    est = CATALOG["stop"].signature(ev)["estimate"]
+    assert est["x"] == 10.0
+    assert sorted({t.x for t in CATALOG["stop"].trials(est, spec, 3)}) == [8.0, 10.0, 12.0]
+    weak = _evidence(spec, 10.0**mu, mu)
+    weak.z_stats[2, 2] = -2.0
+    assert CATALOG["stop"].signature(dataclasses.replace(weak, form="simplified"))["estimate"]["x"] == 10.0
+    surrogate_x = CATALOG["stop"].signature(_evidence(spec, 10.0**mu, mu))["estimate"]["x"]
+    assert surrogate_x != 10.0 and CATALOG["stop"].signature(weak)["estimate"]["x"] == surrogate_x
+
+
 def test_tone_variants_scale_the_line_power_with_the_amplitude_squared():
     """Derived tone trials: within ±2 bins of f0 the excess over the baseline × k² (power ∝ A²),
     the rest of the spectrum as simulated."""

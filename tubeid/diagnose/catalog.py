@@ -439,15 +439,17 @@ class ToneCandidate(Candidate):
 
 
 class StopCandidate(Candidate):
-    """An added (or changed) symmetric elastic stop at a node of the non-linear tube. Node: the
-    surrogate's best grounded spring (stiffness 1e6, 1e7, 1e8 N/m) against the residual — with a
-    simplified model, the node nearest the sensor whose excess kurtosis departs most from the
-    model's (a stop clips the motion near it); gap: the record's RMS at the nearest sensor ×
-    4^[−1.5, 0.5]. Trials: that node and its neighbours × ``points`` gaps. Stiffness: the declared
-    stop's (not fitted)."""
+    """An added (or changed) symmetric elastic stop at a node of the non-linear tube. Node: the node
+    nearest the sensor whose excess kurtosis departs most from the model's (a stop clips the
+    motion near it) when that departure is clear (|z| ≥ :attr:`KURTOSIS_Z`) or the declared model
+    is simplified, else the surrogate's best grounded spring (stiffness 1e6, 1e7, 1e8 N/m) against
+    the residual; gap: the record's RMS at the nearest sensor × 4^[−1.5, 0.5]. Trials: that node
+    and its neighbours × ``points`` gaps. Stiffness: the declared stop's (not fitted)."""
 
     name = "stop"
     effect_type = ExtraStop
+    #: A sensor's kurtosis this many band standard deviations from the model's places the stop.
+    KURTOSIS_Z = 3.0
     parameters = {"tube": ("", False), "x": ("m", True), "gap": ("m", True), "stiffness": ("N/m", False)}
 
     def _tube(self, spec):
@@ -466,8 +468,8 @@ class StopCandidate(Candidate):
                     best = (s, x, float(k))
         xs = ev.sensor_x
         on = [i for i, t in enumerate(ev.sensor_tube) if t == tube] or list(range(len(xs)))
-        if ev.form == "simplified":
-            j = on[int(np.argmax(np.abs(ev.z_stats[on, 2])))]
+        j = on[int(np.argmax(np.abs(ev.z_stats[on, 2])))]
+        if ev.form == "simplified" or abs(ev.z_stats[j, 2]) >= self.KURTOSIS_Z:
             nodes = np.array(_interior_nodes(ev.spec, tube))
             best = (best[0], float(nodes[int(np.argmin(np.abs(nodes - xs[j])))]), best[2])
         j = on[int(np.argmin(np.abs(xs[on] - best[1])))]
