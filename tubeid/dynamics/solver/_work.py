@@ -11,7 +11,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from tubeid.dynamics.solver._regimes import ExactTables
+from tubeid.dynamics.solver._regimes import ExactTables, aligned
 
 __all__ = ["Work", "make_work", "XL", "X0", "XE", "XS", "F0", "F1", "FS", "DF", "U_START", "UD_START", "U_END",
            "UD_END", "U_CROSS", "UD_CROSS", "N_STATS", "FLAGGED_STEPS", "SWITCHES", "RESCANS", "EVALUATIONS",
@@ -61,8 +61,9 @@ class Work(NamedTuple):
 
 
 def make_work(T: ExactTables, n_obs: int) -> Work:
-    """Zeroed scratch for tables T and n_obs outputs."""
-    z = np.zeros
+    """Zeroed scratch for tables T and n_obs outputs (aligned like the tables)."""
+    def z(shape):
+        return aligned(np.zeros(shape))
     return Work(X=z((4, T.block_rows.shape[2])), L=z((4, T.slope_rows.shape[1])), U=z((6, T.gaps.shape[0])),
                 col=z(T.block_rows.shape[1]), y=z(n_obs), ev=z(max(T.stop_rows.shape[1], 4)), eval_tau=z(1),
                 E=z((2, T.lam_re.shape[1])), A=z((T.gaps.shape[0], 6, T.lam_re.shape[1])), QS=z((T.gaps.shape[0], 4)))
