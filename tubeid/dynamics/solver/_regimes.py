@@ -38,8 +38,8 @@ FINE = 64
 BLOCK_MAX = 16
 #: Safety factor on the Hermite-error margin of the event pre-check.
 MARGIN_SAFETY = 4.0
-#: Byte alignment of every array the kernels read or write: rows are multiples of 8 doubles, so a
-#: 512-bit vector load of a row never spans two cache lines.
+#: Byte alignment of every array the kernels read or write: the rows they load as vectors are
+#: multiples of 8 doubles, so a 512-bit load of such a row never spans two cache lines.
 ALIGN = 64
 
 
