@@ -2,7 +2,7 @@
 
 The solver's kernels are compiled by numba on first use and cached on disk (``cache=True``; in the
 package's ``__pycache__``, or numba's user-wide cache directory when that is not writable, or
-``NUMBA_CACHE_DIR``). A cold cache costs about 40 s of CPU in the first call; a study whose
+``NUMBA_CACHE_DIR``). A cold cache costs about 55 s of CPU in the first call; a study whose
 tasks call the solver declares a :class:`tubeid.runner.Warmup` made of these two functions, so
 the runner compiles once per machine, saying so, before the first block instead of sitting at
 0 blocks done (``studies/paper.py``)::
@@ -14,7 +14,7 @@ from __future__ import annotations
 
 __all__ = ["cache_is_cold", "compile_solver", "MESSAGE"]
 
-MESSAGE = "compiling the solver, once per machine, ~40 s"
+MESSAGE = "compiling the solver, once per machine, ~55 s"
 
 
 def _kernels():

@@ -295,7 +295,7 @@ class Warmup:
     Parameters
     ----------
     message : str
-        What the runner prints before doing it, e.g. "compiling the solver, once per machine, ~40 s".
+        What the runner prints before doing it, e.g. "compiling the solver, once per machine, ~55 s".
     run : callable
         ``run()`` does the work in a worker process (idempotent; its result is ignored).
     needed : callable

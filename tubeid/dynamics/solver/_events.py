@@ -334,13 +334,14 @@ def _first_crossing(T, W, r, m, t0, code, side, s, sigma, d0, dd0, d1, dd1, scan
     return tc
 
 
-@numba.njit(cache=True, _nrt=False, fastmath=_FM)
+@numba.njit(cache=True, _nrt=False, fastmath=_FM, inline="always")
 def event_step(T, W, r, m, count, contact_time, n_events, refine_all, stats):
     """Integrate one sub-step [0, h] exactly from ζ = W.X[XL, :nx] in regime r with event location;
     returns the final regime and leaves ζ at h in W.X[XL, :nx]. The load over the sub-step is
     W.L[FS] + W.L[F1] t (m loads). On entry W.U holds u, u' at 0 (rows U_START, UD_START) and at h
     (U_END, UD_END, from the fast path's rows); on return U_END, UD_END hold u, u' at h. ``count``:
-    add contact time and contact events (the sub-step is inside the kept window)."""
+    add contact time and contact events (the sub-step is inside the kept window). Inlined into the
+    main loop: a call would pass every table and scratch array of T and W."""
     S = T.gaps.shape[0]
     h = T.h
     nx = 2 * T.lam_re.shape[1]

@@ -17,7 +17,7 @@ import numba
 
 from tubeid.dynamics.solver._events import event_step, hermite_flag
 from tubeid.dynamics.solver._modal import _FM, block_advance, rows, rows8, set_load, slope_update
-from tubeid.dynamics.solver._work import DF, F0, F1, FLAGGED_STEPS, FS, U_END, U_START, UD_END, UD_START, XL
+from tubeid.dynamics.solver._work import DF, F0, F1, FLAGGED_STEPS, FN, FS, U_END, U_START, UD_END, UD_START, XL
 
 __all__ = ["run_exact"]
 
@@ -51,10 +51,12 @@ def run_exact(loads, dt_load, ns, out_every, j0, r0, T, W, y_out, sumsq, contact
     f1 = W.L[F1]
     fs = W.L[FS]
     df = W.L[DF]
+    fnext = W.L[FN]
     r = r0
     q = T.basis[r]
     for l in range(m):
         f1[l] = (loads[1, l] - loads[0, l]) / dt_load
+        fnext[l] = f1[l]
     step = 0
     count_from = j0 * out_every
     to_out = out_every  # sub-steps to the next output sample
@@ -65,9 +67,11 @@ def run_exact(loads, dt_load, ns, out_every, j0, r0, T, W, y_out, sumsq, contact
     for k in range(n_int):
         for l in range(m):
             f0[l] = loads[k, l]
-            f1n = (loads[k + 1, l] - loads[k, l]) / dt_load
-            df[l] = f1[l] - f1n
-            f1[l] = f1n
+            df[l] = f1[l] - fnext[l]
+            f1[l] = fnext[l]
+        if k + 1 < n_int:  # the next slope one interval ahead: its divisions overlap this interval's work
+            for l in range(m):
+                fnext[l] = (loads[k + 2, l] - loads[k + 1, l]) / dt_load
         if k > 0:
             slope_update(T.slope_rows, q, df, xl)
         j = 0

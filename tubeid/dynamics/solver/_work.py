@@ -11,9 +11,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from tubeid.dynamics.solver._regimes import ExactTables
+from tubeid.dynamics.solver._regimes import ExactTables, aligned
 
-__all__ = ["Work", "make_work", "XL", "X0", "XE", "XS", "F0", "F1", "FS", "DF", "U_START", "UD_START", "U_END",
+__all__ = ["Work", "make_work", "XL", "X0", "XE", "XS", "F0", "F1", "FS", "DF", "FN", "U_START", "UD_START", "U_END",
            "UD_END", "U_CROSS", "UD_CROSS", "N_STATS", "FLAGGED_STEPS", "SWITCHES", "RESCANS", "EVALUATIONS",
            "MAX_SWITCHES"]
 
@@ -27,6 +27,7 @@ F0 = 0  # load at the start of the current load interval
 F1 = 1  # its slope
 FS = 2  # load at the start of a flagged sub-step
 DF = 3  # f'_old - f'_new at a load sample
+FN = 4  # slope of the next load interval (computed one interval ahead)
 #: Rows of Work.U (one column per stop):
 U_START = 0  # u at the start of the current sub-step (fast path) or segment (event path)
 UD_START = 1  # u'
@@ -49,7 +50,7 @@ class Work(NamedTuple):
     """Scratch of the exact kernels (float64 arrays; S stops)."""
 
     X: np.ndarray  # (4, nxl) extended inputs, rows XL, X0, XE, XS
-    L: np.ndarray  # (4, m8) load vectors, rows F0, F1, FS, DF
+    L: np.ndarray  # (5, m8) load vectors, rows F0, F1, FS, DF, FN
     U: np.ndarray  # (6, S) u and u' of every stop, rows U_START ... UD_CROSS
     col: np.ndarray  # (ncp,) block rows · X[XL]: u, u' of every stop at the block's sub-step ends
     y: np.ndarray  # (n_obs,) outputs
@@ -61,8 +62,9 @@ class Work(NamedTuple):
 
 
 def make_work(T: ExactTables, n_obs: int) -> Work:
-    """Zeroed scratch for tables T and n_obs outputs."""
-    z = np.zeros
-    return Work(X=z((4, T.block_rows.shape[2])), L=z((4, T.slope_rows.shape[1])), U=z((6, T.gaps.shape[0])),
+    """Zeroed scratch for tables T and n_obs outputs (aligned like the tables)."""
+    def z(shape):
+        return aligned(np.zeros(shape))
+    return Work(X=z((4, T.block_rows.shape[2])), L=z((5, T.slope_rows.shape[1])), U=z((6, T.gaps.shape[0])),
                 col=z(T.block_rows.shape[1]), y=z(n_obs), ev=z(max(T.stop_rows.shape[1], 4)), eval_tau=z(1),
                 E=z((2, T.lam_re.shape[1])), A=z((T.gaps.shape[0], 6, T.lam_re.shape[1])), QS=z((T.gaps.shape[0], 4)))
