@@ -178,12 +178,18 @@ def _welch_parseval(y, nper):
 
 
 def test_long_run_psd_is_step_independent_and_parseval_holds():
-    """220 s at P_obs: band-averaged PSD (5 Hz bands, 0–100 Hz) within 2 % of a 4× smaller step.
+    """220 s at P_obs: band-averaged PSD (5 Hz bands, 0–100 Hz) at the default step against a 4×
+    smaller step.
 
     The stop makes two runs diverge after a fraction of a second (chaos), so the comparison is
     statistical: 4 realisations (random K and load), each run at both steps on the same load
-    history, PSDs averaged over the realisations. Measured: max band difference 0.5–1 % (a single
-    realisation alone scatters by 2–5 %, which is why one is not enough). Parseval: the Welch PSD
+    history, PSDs averaged over the realisations. The tolerances come from the scatter of this very
+    statistic, measured over 30 independent sets of 4 realisations (seeds other than these): the
+    largest of the 20 band differences had median 3.0 %, 90th percentile 6.3 %, maximum 9.4 %; the
+    mean over the bands of the relative difference (a bias of the step) had standard deviation
+    0.21 % and maximum 0.64 %. Asserted: every band within 15 %, the mean over bands within 1.5 %
+    (7 standard deviations). A tolerance of 2 % per band passed only for the seeds it was set on.
+    Parseval: the Welch PSD
     integrates exactly (round-off) to the mean over segments of the windowed mean square
     Σ w²y² / Σ w², computed here from the record with numpy (the discrete Parseval identity of a
     Welch estimate; the plain mean square of the record differs from it by its sampling error,
@@ -205,6 +211,7 @@ def test_long_run_psd_is_step_independent_and_parseval_holds():
             var = float(np.real(variance_from_psd(f, S)[0]))  # diagonal: one value per sensor
             assert var == pytest.approx(_welch_parseval(y[:, 0], 2 * (f.size - 1)), rel=1e-9, abs=0)
     coarse, fine = np.mean(P[0], axis=0), np.mean(P[1], axis=0)
-    for lo in range(0, 100, 5):
-        sel = (f >= lo) & (f < lo + 5)
-        assert coarse[sel].mean() == pytest.approx(fine[sel].mean(), rel=0.02, abs=0), lo
+    ratio = np.array([coarse[(f >= lo) & (f < lo + 5)].mean() / fine[(f >= lo) & (f < lo + 5)].mean()
+                      for lo in range(0, 100, 5)])
+    assert np.all(np.abs(ratio - 1) <= 0.15), ratio
+    assert abs(np.mean(ratio) - 1) <= 0.015, np.mean(ratio)
