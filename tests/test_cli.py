@@ -108,6 +108,18 @@ def test_status_and_show_report_the_store(store, capsys):
     assert "study tiny" in out and "y [m]:" in out and "(100% written)" in out
 
 
+def test_a_reader_that_goes_away_ends_the_command_quietly(store):
+    """``tubeid show STORE | head -1``: the pipe's reader exits after one line and the command's next
+    writes fail (EPIPE). No traceback, exit status 141 (as a process ended by SIGPIPE). The reader is
+    a process that closes the pipe at once; the command writes many lines."""
+    proc = subprocess.Popen([sys.executable, "-m", "tubeid", "show", str(store)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    proc.stdout.close()
+    err = proc.stderr.read()
+    assert proc.wait(timeout=60) == 141, err
+    assert "Traceback" not in err and "BrokenPipe" not in err, err
+
+
 def test_version_is_the_installed_distribution_version(capsys):
     with pytest.raises(SystemExit) as exit_:
         main(["--version"])

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 from collections.abc import Sequence
 from typing import NamedTuple
@@ -120,7 +121,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     int
         The exit status: 0 on success, 2 for a refused input (a ``SpecificationError``) or a
         missing optional dependency, both reported in one line on stderr; a command may return
-        others (130 when ``run`` is interrupted).
+        others (130 when ``run`` is interrupted; 141, silently, when the reader of its output went
+        away, as ``tubeid status STORE | head -1``).
     """
     argv = list(sys.argv[1:] if argv is None else argv)
     command = _chosen(argv)
@@ -156,3 +158,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             traceback.print_exception(exc.__cause__, file=sys.stderr)
         print(f"tubeid: error: {exc}", file=sys.stderr)
         return 1
+    except BrokenPipeError:  # the reader of stdout went away (`tubeid status STORE | head`): stop quietly
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at interpreter exit
+        return 128 + 13  # as a process ended by SIGPIPE
