@@ -110,11 +110,7 @@ def assemble(store, ctx):
         "explained_after": not det_last["detected"],
         "steps": steps,
         "stop_reason": stop_reason,
-        "selection_rule": ("at each step every catalog effect not yet chosen is fitted on the fitting blocks (the chosen "
-                           "effects held, the level profiled) and scored by its held-out error; the lowest held-out "
-                           f"error x (1 - {s.penalty})^-k (k parameters) is added if it is below the current model's "
-                           "held-out error; then r and every chosen effect's parameters are re-fitted jointly and the "
-                           "augmented model is tested again"),
+        "selection_rule": _selection_rule(s),
         "model": ctx.spec0.name,
         "model_form": s.form,
         "load": _load(ctx, results, r_before, r_after),
@@ -127,6 +123,20 @@ def assemble(store, ctx):
     if band_last is not results["band"]:
         bands["after"] = _band(band_last, s.level)
     return Diagnosis(report=report, frequency=meas.frequency, measured=meas.held_out, sensors=meas.sensors, bands=bands)
+
+
+def _selection_rule(s) -> str:
+    """The selection rule in effect, in one sentence (report.json and report.md)."""
+    if s.form == "simplified":
+        return ("at each step the catalog effects the strongest statistic of the test points to, not yet chosen, are "
+                "fitted on the fitting blocks (the chosen effects held) to that statistic's feature and scored by its "
+                "held-out error relative to the current model's in the same feature; the lowest ratio x "
+                f"(1 - {s.penalty})^-k (k parameters) is added if it is below 1; then every chosen effect's parameters "
+                "are re-fitted jointly on their features (r held) and the augmented model is tested again")
+    return ("at each step every catalog effect not yet chosen is fitted on the fitting blocks (the chosen effects "
+            "held, the level profiled) and scored by its held-out error; the lowest held-out error x "
+            f"(1 - {s.penalty})^-k (k parameters) is added if it is below the current model's held-out error; then r "
+            "and every chosen effect's parameters are re-fitted jointly and the augmented model is tested again")
 
 
 def _load(ctx, results, r_before, r_after) -> dict:
@@ -246,7 +256,10 @@ def markdown(rep: dict) -> str:
     lines += [_detection_line(rep["detection"], "before")]
     if rep["steps"] and "detection_after" in rep["steps"][-1]:
         lines.append(_detection_line(rep["detection_after"], "after"))
-    lines += [f"- held-out error before: {rep['error_before']:.4g}; after: {rep['error_after']:.4g} ({rep['stop_reason']})",
+    spectrum = " (the spectrum's; the effects were judged on their statistics' features, below)" \
+        if rep.get("model_form") == "simplified" else ""
+    lines += [f"- held-out error before: {rep['error_before']:.4g}; after: {rep['error_after']:.4g}{spectrum} "
+              f"({rep['stop_reason']})",
               f"- metric: {rep['metric']}",
               f"- load ({load['model']}): r before ({r_b}), after ({r_a})",
               f"- δ = {delta.get('delta', 'n/a'):.4g} ({delta.get('delta_source', '')})" if delta else "- δ: n/a",
