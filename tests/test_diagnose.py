@@ -196,6 +196,34 @@ def test_the_floor_is_left_out_without_bins_above_the_band():
     assert detection_test(obs, model_form="simplified").statistics == ("line", "kurtosis", "resonance")
 
 
+def test_what_a_simplified_test_cannot_read_is_left_out_not_a_crash():
+    """The floor needs bins above the band and at least 2 averaged segments per sensor; the
+    resonance a 4·band_width chunk inside the band after the first; the line fine bins. Each left
+    out when its observations cannot hold it; the test then combines the others. Observations
+    without ``psd`` (the simplified statistics do not read it) are tested too (no display residual)."""
+    rng = np.random.default_rng(9)
+    obs = _observations(rng, 20)
+    assert detection_test(dataclasses.replace(obs, segments=5), model_form="simplified").statistics == (
+        "line", "kurtosis", "resonance")  # 5 segments for 3 sensors
+    assert detection_test(dataclasses.replace(obs, segments=6), model_form="simplified").statistics == MODEL_FORMS["simplified"]
+    assert detection_test(obs, model_form="simplified", band_width_hz=30.0).statistics == ("line", "floor", "kurtosis")
+    d = detection_test(dataclasses.replace(obs, psd=None), model_form="simplified")
+    assert d.z is None and np.isfinite(d.p_value)
+
+
+def test_the_strongest_statistic_with_a_candidate_left_points():
+    """When the strongest departure's effect is chosen already (or not a candidate), the next
+    statistic by excess that points to an available effect decides; none left: ()."""
+    from tubeid.diagnose import Detection
+
+    d = Detection(p_value=0.05, detected=True, false_alarm=0.05, size=0.05, p_values={}, values={}, null_median={},
+                  excess={"line": 6.0, "kurtosis": 3.0, "floor": 1.0}, scan_frequency_hz=37.0, n_realisations=19,
+                  model_form="simplified")
+    assert d.pointed_effects() == ("tone",)
+    assert d.pointed_effects(("stop", "sensor_noise")) == ("stop",)
+    assert d.pointed_effects(("added_mass",)) == ()
+
+
 def test_conditional_psd_is_the_schur_complement():
     """1/[S⁻¹]_ii against S_ii − S_i,r S_r,r⁻¹ S_r,i computed directly, for random Hermitian
     positive-definite 4 × 4 matrices (and S_ii for one channel)."""
@@ -209,6 +237,17 @@ def test_conditional_psd_is_the_schur_complement():
             want = S[k, i, i] - S[k, i, r] @ np.linalg.solve(S[k][np.ix_(r, r)], S[k, r, i])
             assert got[k, i] == pytest.approx(want.real, rel=1e-9, abs=0)
     assert conditional_psd(S[:, :1, :1])[:, 0] == pytest.approx(S[:, 0, 0].real, rel=1e-12, abs=0)
+
+
+def test_conditional_psd_of_a_singular_matrix_is_small_and_finite():
+    """A rank-one PSD matrix (fewer averaged segments than channels): each channel is explained by
+    the others up to round-off, so its conditional PSD sits at the eigenvalue floor (1e-14 of the
+    largest), finite and positive — not 0, not an overflow; an all-zero matrix gives zeros."""
+    v = np.array([1.0, 2.0, 3.0]) * 1e-11
+    lam = float(v @ v)
+    r = conditional_psd(np.outer(v, v))
+    assert np.all(np.isfinite(r)) and np.all(r > 0) and np.all(r <= 1e-13 * lam), r / lam
+    assert np.all(conditional_psd(np.zeros((2, 3, 3))) == 0.0)
 
 
 # ------------------------------------------------------------------------------- the selection
@@ -351,6 +390,12 @@ def test_a_stop_is_placed_by_the_sensor_whose_kurtosis_departs_most():
     assert CATALOG["stop"].signature(dataclasses.replace(weak, form="simplified"))["estimate"]["x"] == 10.0
     surrogate_x = CATALOG["stop"].signature(_evidence(spec, 10.0**mu, mu))["estimate"]["x"]
     assert surrogate_x != 10.0 and CATALOG["stop"].signature(weak)["estimate"]["x"] == surrogate_x
+    # sensors on another tube only: their kurtosis says nothing of where on the stop's tube
+    other = builtin_spec("paper-reference").replace(sensors=sensors((3.0, 10.0, 14.0), tube="outer1"))
+    ev = _evidence(other, 10.0**mu, mu)
+    ev.z_stats[2, 2] = -9.0
+    est = CATALOG["stop"].signature(dataclasses.replace(ev, form="simplified"))["estimate"]
+    assert est["tube"] == "centre" and est["x"] == CATALOG["stop"].signature(_evidence(other, 10.0**mu, mu))["estimate"]["x"]
 
 
 def test_tone_variants_scale_the_line_power_with_the_amplitude_squared():
@@ -465,6 +510,28 @@ def test_bad_input_is_refused(tmp_path, capsys):
         diagnose(data, "paper-reference", DiagnoseSettings(delta_reference="no-such-model"))
     assert main(["diagnose", "nowhere.nc", "--set", "nonsense=1"]) == 2  # refused before reading anything
     assert "--set nonsense" in capsys.readouterr().err
+
+
+def test_the_simplified_form_refuses_what_it_cannot_do():
+    """A fine segment shorter than the test's, and candidates none of which a simplified model's
+    statistics point to, are refused by name before any computation."""
+    with pytest.raises(SpecificationError, match="settings.fine_segment_seconds"):
+        DiagnoseSettings(fine_segment_seconds=1.0)
+    data = record(duration=24.0)
+    with pytest.raises(SpecificationError, match="settings.candidates"):
+        diagnose(data, "paper-simplified", SIMPLIFIED.replace(candidates=("added_mass",)))
+
+
+def test_a_record_sampled_at_twice_the_band_is_diagnosed_without_the_floor():
+    """Sampled at 200 Hz (Nyquist = the 100 Hz band: no bins above it), a tone record against
+    ``paper-simplified`` in the simplified form: the floor is left out of the test and of the
+    signatures (it used to crash the noise signature), the tone is named."""
+    data = make_record(effects=HandEffects(tones=(("centre", 4.6, 29.0, 100.0),)), xs=SEVEN, duration=48.0, seed=11,
+                       dt=0.005)
+    rep = diagnose(data, "paper-simplified", SIMPLIFIED).report
+    assert "floor" not in rep["detection"]["p_values"] and rep["detection"]["detected"]
+    assert [e["name"] for e in rep["effects"]] == ["tone"], rep["steps"]
+    assert any("sensor_noise" in a for a in rep["assumptions"] if a.startswith("model form"))
 
 
 def test_context_reads_the_record_and_refuses_a_changed_one(tmp_path):

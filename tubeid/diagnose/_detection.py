@@ -42,7 +42,9 @@ non-linear tube, its sensors and its declared damping — each through a local o
                level N. The feature per sensor is the spread (standard deviation over those bins)
                of its log10; the statistic is the mean over sensors of its standardised log,
                one-sided (flatter). Left out of the test when the record has fewer than
-               :data:`FLOOR_MIN_BINS` such bins (Nyquist too close to the band). → ``sensor_noise``.
+               :data:`FLOOR_MIN_BINS` such bins (Nyquist too close to the band) or its estimate
+               averages fewer than 2 segments per sensor (its smallest eigenvalues are then
+               round-off). → ``sensor_noise``.
 ``kurtosis``   the excess kurtosis of each sensor's record (a stop clips the motion near it):
                the largest over sensors of its standardised residual squared. → ``stop``.
 ``resonance``  fine resolution: log roughness (as ``sharpness``, running mean over ±2 Hz) per
@@ -81,7 +83,7 @@ from tubeid._validation import integer, one_of, open_unit, positive
 from tubeid.diagnose._spectra import analysis_bins, log10
 from tubeid.errors import Described, SpecificationError
 
-__all__ = ["Detection", "Observations", "Statistic", "detection_test", "band_moments", "features", "STATISTICS",
+__all__ = ["Detection", "Observations", "Statistic", "detection_test", "band_moments", "features", "applicable", "STATISTICS",
            "MODEL_FORMS", "LINE_RING_BINS", "SCALE_FLOOR"]
 
 #: The ring of the line prominence, in fine bins: (inner, outer) distance from the bin.
@@ -120,6 +122,8 @@ class Observations:
         (N, m, 3) RMS [m], skewness, excess kurtosis.
     band_hz : float or None
         The load's band [Hz].
+    segments : int or None
+        Welch segments each sample's ``psd`` and ``residual`` average (all samples alike).
     """
 
     frequency: np.ndarray
@@ -129,6 +133,7 @@ class Observations:
     residual: np.ndarray | None = None
     stats: np.ndarray | None = None
     band_hz: float | None = None
+    segments: int | None = None
 
     @property
     def n(self) -> int:
@@ -150,7 +155,8 @@ class Observations:
             return None if a is None or b is None else np.concatenate([a, b])
 
         return Observations(self.frequency, cat(self.psd, others.psd), self.frequency_fine, cat(self.fine, others.fine),
-                            cat(self.residual, others.residual), cat(self.stats, others.stats), self.band_hz)
+                            cat(self.residual, others.residual), cat(self.stats, others.stats), self.band_hz,
+                            self.segments)
 
 
 @dataclass(frozen=True)
@@ -159,8 +165,8 @@ class Statistic:
     = departure; ``needs``: the :class:`Observations` fields it reads besides ``psd``; ``robust``:
     trusted with a simplified declared model (module docstring); ``effects``: the catalog effects
     whose absence it points to (empty: any); ``peak``: its frequency of largest excess for the
-    record, or None; ``applies(obs) -> bool``: whether the observations hold what it reads (None:
-    always), else the test leaves it out."""
+    record, or None; ``applies(obs, band_width_hz) -> bool``: whether the observations hold what it
+    reads (None: always), else the test leaves it out."""
 
     compute: Callable
     needs: tuple[str, ...] = ()
@@ -195,9 +201,9 @@ class Detection:
         R.
     model_form : str
         The form whose statistics were combined (:data:`MODEL_FORMS`).
-    z : numpy.ndarray
+    z : numpy.ndarray or None
         (F, m) the record's standardised log10 PSD residual against all R realisations (level
-        removed; 0 at DC and Nyquist).
+        removed; 0 at DC and Nyquist); None when the observations carry no ``psd``.
     """
 
     p_value: float
@@ -226,16 +232,30 @@ class Detection:
         """
         return max(self.excess, key=lambda k: self.excess[k])
 
-    def pointed_effects(self) -> tuple[str, ...] | None:
-        """The catalog effects the :meth:`strongest` statistic points to (the strongest departure is
-        explained first).
+    def pointed_effects(self, available: tuple[str, ...] | None = None) -> tuple[str, ...] | None:
+        """The catalog effects the strongest statistic points to (the strongest departure is
+        explained first), among ``available``: the statistics are taken by decreasing excess, and the
+        first that points to an available effect gives its available effects.
+
+        Parameters
+        ----------
+        available : tuple of str, optional
+            The effects that can still be chosen (None: all).
 
         Returns
         -------
         tuple of str or None
-            None when that statistic points to any effect (the exact form's).
+            None when that statistic points to any effect (the exact form's); () when no statistic
+            points to an available one.
         """
-        return STATISTICS[self.strongest()].effects or None
+        for name in sorted(self.excess, key=lambda k: -self.excess[k]):
+            eff = STATISTICS[name].effects
+            if not eff:
+                return None
+            eff = tuple(e for e in eff if available is None or e in available)
+            if eff:
+                return eff
+        return ()
 
     def to_dict(self) -> dict:
         """Plain values for report.json (without ``z``).
@@ -339,6 +359,17 @@ def _floor_level(obs: Observations) -> np.ndarray:
     return np.percentile(log10(obs.residual[:, _floor_bins(obs)]), 10, axis=1)
 
 
+def _chunks(obs: Observations, band_width_hz: float) -> tuple[np.ndarray, np.ndarray]:
+    """The fine analysis bins' 4·band_width chunk index and whether each bin is in a chunk the
+    ``resonance`` statistic reads (inside the load band, the first chunk left out)."""
+    f = obs.frequency_fine
+    fs = f[analysis_bins(f)]
+    width = 4.0 * band_width_hz
+    top = obs.band_hz if obs.band_hz is not None else fs[-1]
+    idx = _bands(fs, width)
+    return idx, (idx >= 1) & ((idx + 1) * width <= top + 1e-9)
+
+
 def _roughness_chunks(obs: Observations, band_width_hz: float) -> np.ndarray:
     """log10 of the mean square of fine log10 PSD minus its running mean (±RESONANCE_SMOOTH_HZ), per
     4·band_width chunk inside the load band, the first chunk left out, lines left out (the bins
@@ -346,22 +377,26 @@ def _roughness_chunks(obs: Observations, band_width_hz: float) -> np.ndarray:
     others) (N, C, m)."""
     f = obs.frequency_fine
     h = max(1, int(round(RESONANCE_SMOOTH_HZ / (f[1] - f[0]))))
-    sel = analysis_bins(f)
-    L = log10(obs.fine)[:, sel]
-    fs = f[sel]
+    L = log10(obs.fine)[:, analysis_bins(f)]
     keep_bin = ~(maximum_filter1d((_ring_prominence(L) > LINE_MASK_DECADES).astype(np.int8), 2 * h + 1, axis=1) > 0)
     w = keep_bin.astype(float)
     running = uniform_filter1d(L * w, 2 * h + 1, axis=1, mode="nearest") / np.maximum(
         uniform_filter1d(w, 2 * h + 1, axis=1, mode="nearest"), 1e-12)
     rough = w * (L - running) ** 2
-    width = 4.0 * band_width_hz
-    top = obs.band_hz if obs.band_hz is not None else fs[-1]
-    idx = _bands(fs, width)
-    keep = (idx >= 1) & ((idx + 1) * width <= top + 1e-9)
-    if not np.any(keep):  # a band narrower than two chunks: every whole chunk in the band
-        keep = (idx + 1) * width <= top + 1e-9
+    idx, keep = _chunks(obs, band_width_hz)
     num, den = _group_mean(rough[:, keep], idx[keep]), _group_mean(w[:, keep], idx[keep])
     return np.log10(np.maximum(num / np.maximum(den, 1e-12), 1e-300))
+
+
+def _sensors(obs: Observations) -> int:
+    return next(int(a.shape[-1]) for a in (obs.psd, obs.residual, obs.fine) if a is not None)
+
+
+def applicable(model_form: str, obs: Observations, band_width_hz: float = 5.0) -> tuple[str, ...]:
+    """The statistics of ``model_form`` (:data:`MODEL_FORMS`) whose ``applies`` holds for ``obs``
+    (only frequencies, the band, the segment count and the sensor count are read)."""
+    return tuple(k for k in MODEL_FORMS[model_form]
+                 if STATISTICS[k].applies is None or STATISTICS[k].applies(obs, band_width_hz))
 
 
 def features(name: str, obs: Observations, band_width_hz: float = 5.0) -> np.ndarray:
@@ -437,11 +472,14 @@ STATISTICS: dict[str, Statistic] = {
     "scan": Statistic(_scan, peak=_scan_peak),
     "gof": Statistic(_gof),
     "sharpness": Statistic(_sharpness),
-    "line": Statistic(_line, needs=("fine",), robust=True, effects=("tone",), peak=_line_peak),
+    "line": Statistic(_line, needs=("fine",), robust=True, effects=("tone",), peak=_line_peak,
+                      applies=lambda obs, width: bool(np.any(_line_bins(obs)))),
     "floor": Statistic(_floor, needs=("residual",), robust=True, effects=("sensor_noise",),
-                       applies=lambda obs: int(np.sum(_floor_bins(obs))) >= FLOOR_MIN_BINS),
+                       applies=lambda obs, width: int(np.sum(_floor_bins(obs))) >= FLOOR_MIN_BINS
+                       and (obs.segments is None or obs.segments >= 2 * _sensors(obs))),
     "kurtosis": Statistic(_kurtosis, needs=("stats",), robust=True, effects=("stop",)),
-    "resonance": Statistic(_resonance, needs=("fine",), robust=True, effects=("damping",)),
+    "resonance": Statistic(_resonance, needs=("fine",), robust=True, effects=("damping",),
+                           applies=lambda obs, width: bool(np.any(_chunks(obs, width)[1]))),
 }
 
 #: The statistics a test combines, by what the declared model is taken to be.
@@ -498,8 +536,10 @@ def detection_test(psd: np.ndarray | Observations, samples: np.ndarray | None = 
     width = positive("band_width_hz", band_width_hz, "Hz")
     h = integer("smooth_bins", smooth_bins, minimum=1)
     obs = _as_observations(psd, samples, frequency)
-    names = tuple(k for k in MODEL_FORMS[one_of("model_form", model_form, MODEL_FORMS)]
-                  if STATISTICS[k].applies is None or STATISTICS[k].applies(obs))
+    names = applicable(one_of("model_form", model_form, MODEL_FORMS), obs, width)
+    if not names:
+        raise SpecificationError("samples", Described(f"observations for the {model_form!r} test"),
+                                 "hold nothing any of its statistics can read (record too short or sampled too slowly)")
     N = obs.n
     if N < 10:
         raise SpecificationError("samples", Described(f"{N - 1} realisations"), "need at least 9")
@@ -513,12 +553,14 @@ def detection_test(psd: np.ndarray | Observations, samples: np.ndarray | None = 
     p = _rank_p(U.max(axis=1))
     peak = next((STATISTICS[k].peak for k in names if STATISTICS[k].peak is not None), None)
     # the record's residual against all R realisations, for the figure and the signatures
-    L = log10(obs.psd)
-    sel = analysis_bins(obs.frequency)
-    mu, sd = L[1:, sel].mean(axis=0), L[1:, sel].std(axis=0, ddof=1)
-    d = L[0, sel] - mu
-    z_all = np.zeros(obs.psd.shape[1:])
-    z_all[sel] = (d - d.mean()) / np.maximum(sd, 1e-15)
+    z_all = None
+    if obs.psd is not None:
+        L = log10(obs.psd)
+        sel = analysis_bins(obs.frequency)
+        mu, sd = L[1:, sel].mean(axis=0), L[1:, sel].std(axis=0, ddof=1)
+        d = L[0, sel] - mu
+        z_all = np.zeros(obs.psd.shape[1:])
+        z_all[sel] = (d - d.mean()) / np.maximum(sd, 1e-15)
     return Detection(
         p_value=p, detected=bool(p <= alpha), false_alarm=alpha, size=int(alpha * N + 1e-9) / N,
         p_values={k: _rank_p(T[k]) for k in names}, values={k: float(T[k][0]) for k in names},

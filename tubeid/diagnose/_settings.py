@@ -46,7 +46,8 @@ class DiagnoseSettings:
     segment_seconds : float
         Welch segment [s] (Hann, 50 % overlap) of the spectra the errors and the exact test read.
     fine_segment_seconds : float
-        The finer segment [s] of the line and resonance statistics (at most half a block).
+        The longer Welch segment [s] (finer resolution) of the line and resonance statistics, at
+        least ``segment_seconds``; on short records at most half a block (said in the report).
     realisations : int or None
         R, the records of the declared stochastic model shaped like the held-out set; the test is
         exact at level ⌊α(R+1)⌋/(R+1) (R = 39, α = 0.05: exactly 5 %). ``None``: 39 for the exact
@@ -176,6 +177,10 @@ class DiagnoseSettings:
             v.positive(f + name, getattr(self, name))
         v.open_unit(f + "level", self.level)
         v.real(f + "false_alarm", self.false_alarm, low=0.0, high=0.5, low_open=True, high_open=True)
+        if self.fine_segment_seconds < self.segment_seconds:
+            raise SpecificationError(f + "fine_segment_seconds", self.fine_segment_seconds,
+                                     f"must be at least segment_seconds = {self.segment_seconds} s (it is the finer "
+                                     "resolution: a longer Welch segment)")
         if self.false_alarm * (self.n_realisations + 1) < 1:
             raise SpecificationError(f + "false_alarm", self.false_alarm,
                                      f"needs realisations + 1 >= 1/false_alarm: with {self.n_realisations} realisations "

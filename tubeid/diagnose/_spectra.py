@@ -11,7 +11,7 @@ from tubeid.dynamics.spectra import psd_matrix
 from tubeid.errors import SpecificationError
 
 __all__ = ["MeasuredSpectra", "measured_spectra", "time_statistics", "auto_psd", "analysis_bins", "log10",
-           "conditional_psd", "block_observations", "fine_segment"]
+           "conditional_psd", "block_observations", "fine_segment", "welch_segments"]
 
 
 def log10(P) -> np.ndarray:
@@ -64,14 +64,30 @@ class MeasuredSpectra:
         return self.block_samples * self.dt
 
 
+#: Eigenvalues of a PSD matrix below this fraction of its largest are numerical zeros (round-off of
+#: the estimate): :func:`conditional_psd` floors them there.
+EIGEN_FLOOR = 1e-14
+
+
 def conditional_psd(S: np.ndarray) -> np.ndarray:
     """Conditional PSD of each channel given the others, 1/[S⁻¹]_ii, of Hermitian PSD matrices S
     (..., m, m) → (..., m) [m²/Hz]: the part of channel i no linear combination of the others
-    explains (S_ii for one channel). Eigenvalues are floored at 1e-300 of the largest (a singular
-    matrix gives a tiny, not an infinite, value)."""
+    explains (S_ii for one channel). Eigenvalues are floored at :data:`EIGEN_FLOOR` of the largest:
+    a singular matrix (fewer averaged segments than channels) gives values at that floor, not zero
+    or infinity; an all-zero matrix gives zeros."""
     w, V = np.linalg.eigh(np.asarray(S))
-    w = np.maximum(w, 1e-300 * np.maximum(w[..., -1:], 1e-300))
-    return 1.0 / np.einsum("...ik,...k->...i", np.abs(V) ** 2, 1.0 / w)
+    top = w[..., -1:]
+    floor = np.where(top > 0, EIGEN_FLOOR * top, 1.0)
+    inv = np.einsum("...ik,...k->...i", np.abs(V) ** 2, 1.0 / np.maximum(w, floor))
+    return np.where(top > 0, 1.0 / inv, 0.0)
+
+
+def welch_segments(samples: int, dt: float, segment_seconds: float, blocks: int = 1) -> int:
+    """How many Welch segments (50 % overlap, as :func:`tubeid.dynamics.spectra.psd_matrix`) an
+    estimate averages over ``blocks`` records of ``samples`` samples each."""
+    nper = 2 * int(round(segment_seconds / (2.0 * dt)))
+    step = nper - min(int(round(0.5 * nper)), nper - 1)
+    return blocks * ((samples - nper) // step + 1) if samples >= nper else 0
 
 
 def fine_segment(block_seconds: float, fine_seconds: float) -> float:

@@ -440,8 +440,8 @@ class ToneCandidate(Candidate):
 
 class StopCandidate(Candidate):
     """An added (or changed) symmetric elastic stop at a node of the non-linear tube. Node: the node
-    nearest the sensor whose excess kurtosis departs most from the model's (a stop clips the
-    motion near it) when that departure is clear (|z| ≥ :attr:`KURTOSIS_Z`) or the declared model
+    nearest the sensor of that tube whose excess kurtosis departs most from the model's (a stop
+    clips the motion near it) when that departure is clear (|z| ≥ :attr:`KURTOSIS_Z`) or the declared model
     is simplified, else the surrogate's best grounded spring (stiffness 1e6, 1e7, 1e8 N/m) against
     the residual; gap: the record's RMS at the nearest sensor × 4^[−1.5, 0.5]. Trials: that node
     and its neighbours × ``points`` gaps. Stiffness: the declared stop's (not fitted)."""
@@ -467,11 +467,13 @@ class StopCandidate(Candidate):
                 if best[1] is None or s > best[0]:
                     best = (s, x, float(k))
         xs = ev.sensor_x
-        on = [i for i, t in enumerate(ev.sensor_tube) if t == tube] or list(range(len(xs)))
-        j = on[int(np.argmax(np.abs(ev.z_stats[on, 2])))]
-        if ev.form == "simplified" or abs(ev.z_stats[j, 2]) >= self.KURTOSIS_Z:
-            nodes = np.array(_interior_nodes(ev.spec, tube))
-            best = (best[0], float(nodes[int(np.argmin(np.abs(nodes - xs[j])))]), best[2])
+        on = [i for i, t in enumerate(ev.sensor_tube) if t == tube]
+        if on:  # the kurtosis of the stop's own tube's sensors (another tube's position means nothing here)
+            j = on[int(np.argmax(np.abs(ev.z_stats[on, 2])))]
+            if ev.form == "simplified" or abs(ev.z_stats[j, 2]) >= self.KURTOSIS_Z:
+                nodes = np.array(_interior_nodes(ev.spec, tube))
+                best = (best[0], float(nodes[int(np.argmin(np.abs(nodes - xs[j])))]), best[2])
+        on = on or list(range(len(xs)))
         j = on[int(np.argmin(np.abs(xs[on] - best[1])))]
         return {"score": best[0], "estimate": {"tube": tube, "x": best[1], "spring": best[2],
                                                "rms_nearest": float(ev.rms[j])}}

@@ -162,6 +162,10 @@ def _context(data: xr.Dataset, spec0: BundleSpec, settings: DiagnoseSettings) ->
                                  f"(m = {m})")
     if settings.delta_reference is not None:
         resolve_spec(settings.delta_reference)  # refused here if unknown
+    if settings.form == "simplified" and meas.fine_seconds < settings.segment_seconds - meas.dt:
+        raise SpecificationError("settings.fine_segment_seconds", settings.fine_segment_seconds,
+                                 f"half a block of this record is {meas.fine_seconds:.4g} s, shorter than segment_seconds = "
+                                 f"{settings.segment_seconds} s: use fewer blocks, a shorter segment_seconds or a longer record")
     from tubeid.mechanics.reduction import reduce
 
     n_b = reduce(spec).subsystem.n
@@ -169,7 +173,12 @@ def _context(data: xr.Dataset, spec0: BundleSpec, settings: DiagnoseSettings) ->
         raise SpecificationError("settings.delta", settings.delta, f"must be < δ_max = {delta_max(n_b):.4f} for the "
                                  f"declared model's reduced B (n = {n_b})")
     obs = j_s(meas.frequency, meas.fit_cross, band=spec.band_hz)
-    return DiagnoseContext(settings=settings, spec0=spec0, spec=spec, meas=meas, m=m, j_s_observed=np.atleast_1d(obs))
+    ctx = DiagnoseContext(settings=settings, spec0=spec0, spec=spec, meas=meas, m=m, j_s_observed=np.atleast_1d(obs))
+    if settings.max_effects > 0 and not ctx.candidate_names:
+        raise SpecificationError("settings.candidates", settings.candidates,
+                                 f"none of them is a candidate of the {settings.form} model form (no statistic it is "
+                                 "trusted for points to them); give others or max_effects = 0")
+    return ctx
 
 
 _CONTEXTS: dict[tuple, DiagnoseContext] = {}

@@ -173,13 +173,15 @@ def _assumptions(ctx) -> list[str]:
            "δ_F (load dispersion) is not re-fitted with the effects",
            "effects of one kind are chosen at most once"]
     if s.form == "simplified":
-        from tubeid.diagnose._detection import STATISTICS
+        from tubeid.diagnose._detection import STATISTICS, applicable
 
-        unseen = [n for n in (s.candidates or tuple(CATALOG)) if n not in ctx.candidate_names]
+        used = applicable("simplified", st.record_observations(ctx, "held_out"), s.band_width_hz)
+        seen = {e for k in used for e in STATISTICS[k].effects}
+        unseen = [n for n in (s.candidates or tuple(CATALOG)) if n not in seen]
         out += ["model form: simplified" + (" (δ identified against another model)" if s.model_form is None else " (given)")
-                + ": the test reads only lines, the incoherent floor's flatness, kurtosis and in-band resonance "
-                "sharpness, each fitted effect is judged by its own statistic's feature, r is held at its identification"
-                + (f"; not testable against a simplified model (no statistic it is trusted for sees them): {unseen}"
+                + f": the test reads only {', '.join(used)} (fine segment {ctx.meas.fine_seconds:g} s), each fitted effect "
+                "is judged by its own statistic's feature, r is held at its identification"
+                + (f"; not testable here (no statistic of this form that this record allows sees them): {unseen}"
                    if unseen else "")]
     else:
         out += ["model form: exact (the declared model is the structure up to its random B): the test reads the "

@@ -17,10 +17,18 @@ realisation; the trials of one stage share one stream (common random numbers).
 ``band``            R realisations of the stochastic model, held-out layout → the calibrated test,
                     and (when something is detected) the signatures of the catalog for step 1
 ``step{k}_trials``  the catalog's trial grids (mean model, fitting blocks, chosen effects held)
-                    → the choice of step k by held-out error
-``step{k}_refit``   lines of 3 trials around (r, every chosen effect's parameters) → joint re-fit
+                    → the choice of step k by held-out error (the simplified form: by the pointing
+                    statistic's feature, :class:`FeatureErrors`)
+``step{k}_refit``   lines of 3 trials around (r — exact form only —, every chosen effect's
+                    parameters) → joint re-fit
+``step{k}_check``   the point the re-fit's lines moved to, evaluated (kept only if no worse than the
+                    best trial the lines evaluated)
 ``step{k}_band``    R realisations with the re-fitted effects → the test after step k (and the
                     signatures for step k + 1)
+
+With the simplified model form the band and trial stages also store what its statistics read: the
+fine-segment PSD and the conditional PSD (and, for trials, per fitting-layout record with the time
+statistics).
 
 Every band stage also holds, as realisation −1, the mean model's prediction at its point (fitting
 layout, ``fit_realisations`` records): the held-out error of that point.
@@ -32,12 +40,13 @@ import json
 
 import numpy as np
 
-from tubeid.diagnose._detection import SCALE_FLOOR, STATISTICS as TEST_STATISTICS, Observations, band_moments, \
-    detection_test, features
+from tubeid.diagnose._detection import SCALE_FLOOR, STATISTICS as TEST_STATISTICS, Observations, applicable, \
+    band_moments, detection_test, features
 from tubeid.diagnose._load import delta_f_identification, grid_minimum, r_coarse_grid, r_distance, r_fine_grid, scaled_r
 from tubeid.diagnose._selection import Scored, choose, keeps_moved_point, level_offset, line_minimum, prediction_error
 from tubeid.diagnose._settings import MAX_EFFECTS, DiagnoseSettings
 from tubeid.diagnose._simulate import load_spectrum, simulate_blocks, simulate_series
+from tubeid.diagnose._spectra import welch_segments
 from tubeid.diagnose.catalog import CATALOG, Evidence
 from tubeid.dynamics import warmup
 from tubeid.dynamics.spectra import j_s, psd_matrix
@@ -125,12 +134,19 @@ def _observation_coords(ctx, per_record: bool = False) -> tuple[dict, dict]:
     return coords, {"frequency_fine": "Hz", **({"fit_realisation": "1"} if per_record else {})}
 
 
+def _segments(ctx, which: str) -> int:
+    """Welch segments a ``"fit"`` or ``"held_out"`` layout's spectra average."""
+    m = ctx.meas
+    blocks = m.n_fit_blocks if which == "fit" else m.n_held_out_blocks
+    return welch_segments(m.block_samples, m.dt, ctx.settings.segment_seconds, blocks)
+
+
 def record_observations(ctx, which: str) -> Observations:
     """The record's ``"fit"`` or ``"held_out"`` blocks as one sample."""
     m = ctx.meas
     stats = {"fit": m.fit_stats, "held_out": m.stats}[which]
     return Observations(m.frequency, getattr(m, which)[None], m.frequency_fine, getattr(m, f"{which}_fine")[None],
-                        getattr(m, f"{which}_residual")[None], stats[None], ctx.spec.band_hz)
+                        getattr(m, f"{which}_residual")[None], stats[None], ctx.spec.band_hz, _segments(ctx, which))
 
 
 def _realisation_chunk(delta: float, n: int) -> int:
@@ -357,7 +373,7 @@ def band_observations(ctx, ds) -> Observations:
     P, stats = band_samples(ds)
     get = (lambda k, d: b[k].transpose("realisation", d, "sensor").values if k in b else None)
     return Observations(ctx.meas.frequency, P, ctx.meas.frequency_fine, get("fine", "frequency_fine"),
-                        get("residual", "frequency"), stats, ctx.spec.band_hz)
+                        get("residual", "frequency"), stats, ctx.spec.band_hz, _segments(ctx, "held_out"))
 
 
 def mean_prediction(ds) -> np.ndarray:
@@ -380,8 +396,10 @@ def evidence(ctx, ds, detection=None) -> Evidence:
     sur = LinearSurrogate(spec, load_spectrum(spec, p["r"], ctx.settings), ctx.meas.frequency)
     robust = {}
     if _simplified(ctx):
-        level = features("floor", record_observations(ctx, "fit"))[0, 0]
-        robust = {"form": "simplified", "floor_level": float(10.0 ** np.median(level)),
+        rec = record_observations(ctx, "fit")
+        floor = "floor" in applicable("simplified", rec, ctx.settings.band_width_hz)
+        robust = {"form": "simplified",
+                  "floor_level": float(10.0 ** np.median(features("floor", rec)[0, 0])) if floor else None,
                   "line_frequency_hz": None if detection is None else float(detection.scan_frequency_hz)}
     ev = Evidence(frequency=ctx.meas.frequency, fit=ctx.meas.fit, mu=mu, sigma=np.maximum(sd, 1e-6), z_stats=z,
                   rms=ctx.meas.fit_stats[:, 0], spec=spec, surrogate=sur, band_hz=ctx.spec.band_hz, **robust)
@@ -399,8 +417,12 @@ def summarize_band(ds):
     det = detection_test(obs, false_alarm=s.false_alarm, band_width_hz=s.band_width_hz, model_form=s.form)
     out = {"detection": json.dumps(det.to_dict(), sort_keys=True), "detected": det.detected, "p_value": det.p_value}
     chosen = [e["kind"] for e in json.loads(p["effects"])]
-    pointed = det.pointed_effects()
-    remaining = [n for n in ctx.candidate_names if n not in chosen and (pointed is None or n in pointed)]
+    available = tuple(n for n in ctx.candidate_names if n not in chosen)
+    pointed = det.pointed_effects(available)
+    remaining = [n for n in available if pointed is None or n in pointed]
+    if det.detected and available and not remaining:
+        out["screen_reason"] = (f"the departures the test sees ({', '.join(sorted(det.excess, key=lambda k: -det.excess[k]))}"
+                                f", strongest first) point to no candidate left ({', '.join(available)})")
     if det.detected and p["step"] < s.max_effects and remaining:
         ev = evidence(ctx, ds, det)
         screen = {n: CATALOG[n].signature(ev) for n in remaining}
@@ -467,7 +489,7 @@ def state_before(ctx, results, k: int) -> dict:
     if not b.attrs.get("detected", False):
         return {"active": False, "reason": "nothing detected" if k == 1 else f"explained after step {k - 1}"}
     if "screen" not in b.attrs:
-        return {"active": False, "reason": "every catalog candidate is chosen"}
+        return {"active": False, "reason": b.attrs.get("screen_reason", "every catalog candidate is chosen")}
     return {"active": True, "reason": "", "effects": effects, "r": r, "screen": json.loads(b.attrs["screen"]),
             "band": prev_band}
 
@@ -514,7 +536,7 @@ def trial_observations(ctx, ds, trials) -> list[Observations]:
                              (("fine", ("frequency_fine", "sensor")), ("residual", ("frequency", "sensor")),
                               ("stats", ("sensor", "statistic"))))
     return [Observations(ctx.meas.frequency, None, ctx.meas.frequency_fine, fine[i], residual[i], stats[i],
-                         ctx.spec.band_hz) for i in range(len(trials))]
+                         ctx.spec.band_hz, _segments(ctx, "fit")) for i in range(len(trials))]
 
 
 def feature_name(candidate: str) -> str:
