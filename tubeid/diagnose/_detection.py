@@ -140,6 +140,11 @@ class Observations:
         """The number of samples."""
         return next(int(a.shape[0]) for a in (self.psd, self.fine, self.residual, self.stats) if a is not None)
 
+    @property
+    def m(self) -> int:
+        """The number of sensors."""
+        return next(int(a.shape[-1]) for a in (self.psd, self.residual, self.fine) if a is not None)
+
     def stacked(self, others: "Observations") -> "Observations":
         """These samples followed by ``others``' (same frequencies and sensors).
 
@@ -388,10 +393,6 @@ def _roughness_chunks(obs: Observations, band_width_hz: float) -> np.ndarray:
     return np.log10(np.maximum(num / np.maximum(den, 1e-12), 1e-300))
 
 
-def _sensors(obs: Observations) -> int:
-    return next(int(a.shape[-1]) for a in (obs.psd, obs.residual, obs.fine) if a is not None)
-
-
 def applicable(model_form: str, obs: Observations, band_width_hz: float = 5.0) -> tuple[str, ...]:
     """The statistics of ``model_form`` (:data:`MODEL_FORMS`) whose ``applies`` holds for ``obs``
     (only frequencies, the band, the segment count and the sensor count are read)."""
@@ -476,7 +477,7 @@ STATISTICS: dict[str, Statistic] = {
                       applies=lambda obs, width: bool(np.any(_line_bins(obs)))),
     "floor": Statistic(_floor, needs=("residual",), robust=True, effects=("sensor_noise",),
                        applies=lambda obs, width: int(np.sum(_floor_bins(obs))) >= FLOOR_MIN_BINS
-                       and (obs.segments is None or obs.segments >= 2 * _sensors(obs))),
+                       and (obs.segments is None or obs.segments >= 2 * obs.m)),
     "kurtosis": Statistic(_kurtosis, needs=("stats",), robust=True, effects=("stop",)),
     "resonance": Statistic(_resonance, needs=("fine",), robust=True, effects=("damping",),
                            applies=lambda obs, width: bool(np.any(_chunks(obs, width)[1]))),

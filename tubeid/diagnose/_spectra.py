@@ -96,18 +96,21 @@ def fine_segment(block_seconds: float, fine_seconds: float) -> float:
     return min(float(fine_seconds), 0.5 * float(block_seconds))
 
 
-def block_observations(blocks: np.ndarray, dt: float, segment_seconds: float, fine_seconds: float) -> dict:
+def block_observations(blocks: np.ndarray, dt: float, segment_seconds: float, fine_seconds: float | None) -> dict:
     """What the test's statistics read of records cut into blocks (..., n_blocks, L, m), each
-    quantity averaged over the blocks: ``psd`` (..., F, m) and ``residual`` (..., F, m) [m²/Hz] at
-    ``segment_seconds`` (the residual from the block-averaged PSD matrix), ``fine`` (..., F', m) at
-    ``fine_seconds``, ``stats`` (..., m, 3) of all the blocks' samples, and the frequencies
-    ``frequency`` (F,), ``frequency_fine`` (F',) [Hz]."""
+    quantity averaged over the blocks: ``psd`` (..., F, m) at ``segment_seconds``, ``stats``
+    (..., m, 3) of all the blocks' samples and the frequencies ``frequency`` (F,) [Hz]; unless
+    ``fine_seconds`` is None (the exact model form reads neither), also ``residual`` (..., F, m)
+    [m²/Hz] from the block-averaged PSD matrix and ``fine`` (..., F', m) at ``fine_seconds`` with
+    ``frequency_fine`` (F',) [Hz]."""
     f, S = psd_matrix(blocks, dt, segment_seconds=segment_seconds)
     S = S.mean(axis=-4)
-    ff, Pf = auto_psd(blocks, dt, fine_seconds)
     y = blocks.reshape(blocks.shape[:-3] + (-1, blocks.shape[-1]))
-    return {"frequency": f, "psd": np.real(np.diagonal(S, axis1=-2, axis2=-1)), "residual": conditional_psd(S),
-            "frequency_fine": ff, "fine": Pf.mean(axis=-3), "stats": time_statistics(y)}
+    out = {"frequency": f, "psd": np.real(np.diagonal(S, axis1=-2, axis2=-1)), "stats": time_statistics(y)}
+    if fine_seconds is not None:
+        ff, Pf = auto_psd(blocks, dt, fine_seconds)
+        out |= {"residual": conditional_psd(S), "frequency_fine": ff, "fine": Pf.mean(axis=-3)}
+    return out
 
 
 def auto_psd(blocks: np.ndarray, dt: float, segment_seconds: float) -> tuple[np.ndarray, np.ndarray]:

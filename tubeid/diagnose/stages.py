@@ -93,15 +93,17 @@ def _psd_output(what: str, *, finite: bool = True) -> Output:
                   finite=finite)
 
 
-def _mean_model(ctx, r, effects, gen) -> dict:
-    """The mean model on the fitting layout, ``fit_realisations`` records (:func:`simulate_blocks`)."""
+def _mean_model(ctx, r, effects, gen, observed: bool | None = None) -> dict:
+    """The mean model on the fitting layout, ``fit_realisations`` records (:func:`simulate_blocks`;
+    ``observed`` None: what the model form's statistics read)."""
     s, meas = ctx.settings, ctx.meas
-    return simulate_blocks(ctx.spec, r, effects, meas, meas.n_fit_blocks, range(s.fit_realisations), s, rngs=[gen])
+    return simulate_blocks(ctx.spec, r, effects, meas, meas.n_fit_blocks, range(s.fit_realisations), s, rngs=[gen],
+                           observed=_simplified(ctx) if observed is None else observed)
 
 
 def _mean_psd(ctx, r, effects, gen) -> np.ndarray:
     """Mean-model auto-PSD (F, m) on the fitting layout, averaged over ``fit_realisations`` records."""
-    return _mean_model(ctx, r, effects, gen)["psd"].mean(axis=0)
+    return _mean_model(ctx, r, effects, gen, observed=False)["psd"].mean(axis=0)
 
 
 def _simplified(ctx) -> bool:
@@ -354,7 +356,8 @@ def band_block(block, rng, *, data, data_sha256, model, settings, r, effects, de
             out.setdefault(k, np.empty((len(reals),) + o[k].shape[1:]))[i] = o[k].mean(axis=0)
     if rest:
         o = simulate_blocks(ctx.spec, r, eff, meas, meas.n_held_out_blocks, [reals[i] for i in rest], s, delta=delta,
-                            load_dispersion=load_dispersion, rngs=[rng(s.seed, realisation=reals[i]) for i in rest])
+                            load_dispersion=load_dispersion, rngs=[rng(s.seed, realisation=reals[i]) for i in rest],
+                            observed=_simplified(ctx))
         for k in keys:
             out.setdefault(k, np.empty((len(reals),) + o[k].shape[1:]))[rest] = o[k]
     return out
