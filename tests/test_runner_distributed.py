@@ -27,6 +27,9 @@ pytestmark = [pytest.mark.distributed, pytest.mark.timeout(180)]
 RUNNER = [sys.executable, "-m", "tubeid.runner.cli", "run"]
 # 2 deltas x 24 realisations in blocks of 2: 24 tasks of ~0.1-0.2 s each on one core
 SIZE = dict(realisations=24, chunk=2, work=3000)
+# the tests that interrupt a run (a kill, Ctrl-C) sleep this long in every block (values unchanged):
+# the compute alone can finish the 22 blocks left after the kill point before the signal lands
+PACE = {"TUBEID_TEST_BLOCK_SECONDS": "0.15"}
 
 
 def _env(**extra):
@@ -119,7 +122,7 @@ def scheduler(tmp_path_factory):
             procs.append(subprocess.Popen([sys.executable, "-m", "dask", "worker", address, "--nthreads", "1",
                                            "--nworkers", "1", "--host", "127.0.0.1", "--no-dashboard",
                                            "--name", f"w{i}"],
-                                          stdout=log, stderr=log, start_new_session=True, env=_env()))
+                                          stdout=log, stderr=log, start_new_session=True, env=_env(**PACE)))
         with Client(address, timeout="30s") as client:
             client.wait_for_workers(2, timeout=60)
         yield address
@@ -145,7 +148,7 @@ def test_external_scheduler_gives_the_local_result(study, reference, scheduler, 
 def test_killed_runner_resumes_to_the_identical_store(study, reference, tmp_path):
     store = tmp_path / "killed.zarr"
     args = RUNNER + [str(study), "--store", str(store), "--workers", "2", "--no-progress"]
-    proc = subprocess.Popen(args, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    proc = subprocess.Popen(args, env=_env(**PACE), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=True)
     try:
         _wait_flags(store, 3, proc)
@@ -241,7 +244,7 @@ def _ctrl_c(proc) -> str:
 def test_ctrl_c_stops_cleanly_and_resumes(study, reference, tmp_path):
     store = tmp_path / "interrupted.zarr"
     proc = subprocess.Popen(RUNNER + [str(study), "--store", str(store), "--workers", "2", "--no-progress"],
-                            env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            env=_env(**PACE), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                             start_new_session=True)
     try:
         _wait_flags(store, 2, proc)
@@ -333,8 +336,33 @@ def test_the_embedded_cluster_admits_only_its_own_client(study, tmp_path):
         assert client.submit(lambda: 21 * 2, pure=False).result() == 42
         for addr, security in ((address.replace("tls://", "tcp://"), None), (address, Security.temporary())):
             with pytest.raises(Exception):  # plain TCP, or TLS with a certificate the cluster did not issue
-                Client(addr, security=security, timeout="3s").close()
+                # not the default Client: one that failed to start can leave dask.config's scheduler set
+                Client(addr, security=security, timeout="3s", set_as_default=False).close()
         assert client.submit(lambda: 1, pure=False).result() == 1  # still serving its own client
+
+
+def test_the_runners_own_clients_leave_the_callers_dask_config_alone():
+    """The embedded cluster's Client and a Client that failed to connect never become the process's
+    default Client nor set dask.config's scheduler: a caller's later xarray/dask compute (a notebook,
+    the next test) must not need a Client the runner opened and closed."""
+    import dask.config
+    from distributed import default_client
+
+    from tubeid.errors import SpecificationError
+    from tubeid.runner.execute import _client, _connect
+
+    assert dask.config.get("scheduler", None) is None
+    with _client(1, None, None, True) as (client, _):
+        assert client.submit(lambda: 2, pure=False).result() == 2
+        assert dask.config.get("scheduler", None) is None
+        with pytest.raises(ValueError):
+            default_client()
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    with dask.config.set({"tubeid.runner.connect-timeout": "2s"}), pytest.raises(SpecificationError):
+        _connect(f"tcp://127.0.0.1:{port}")
+    assert dask.config.get("scheduler", None) is None
 
 
 def test_the_embedded_workers_leave_ctrl_c_to_the_runner():

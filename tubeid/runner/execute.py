@@ -247,9 +247,17 @@ def _connect(scheduler: str):
     from distributed import Client
 
     timeout = config.get("runner.connect-timeout", "20s")
+    # Never the process's default Client (the runner passes its Client explicitly): a default one sets
+    # dask.config's scheduler, which a Client that failed to connect leaves behind. Built in two steps
+    # so that a Client that failed to connect is closed here (not by the garbage collector at exit,
+    # when its event loop is gone: an 8 s stall and a traceback).
+    client = Client.__new__(Client)
     try:
-        return Client(scheduler, timeout=timeout)
+        client.__init__(scheduler, timeout=timeout, set_as_default=False)
+        return client
     except Exception as exc:  # unreachable, refused, TLS expected or misconfigured, timed out
+        with contextlib.suppress(Exception):
+            client.close(timeout=5)
         text = f"{type(exc).__name__}: {exc}"
         if scheduler.startswith("tcp://") or "://" not in scheduler:  # no scheme is tcp:// too
             hint = ("; if the scheduler uses TLS, give its tls:// address and the client certificates (DASK_CONFIG, "
@@ -359,7 +367,7 @@ def _client(workers: int | None, scheduler: str | None, client, quiet: bool):
             raise SpecificationError("workers", int(n), f"the embedded cluster's worker processes did not start "
                                      f"({type(exc).__name__}: {exc}); if {script} calls run() outside "
                                      f"`if __name__ == \"__main__\":`, that is why: {_UNGUARDED}") from None
-    with cluster, Client(cluster, security=security) as own:
+    with cluster, Client(cluster, security=security, set_as_default=False) as own:
         own.run(_warm)  # imports once per worker, before the clock of the first task starts
         tls = ", TLS with ephemeral credentials" if security is not None else ""
         yield own, f"embedded LocalCluster ({len(cluster.workers)} single-threaded worker processes{tls})"
@@ -798,7 +806,7 @@ def _run_dask(client, fn, prefix, todo, report, progress, desc=None, lock=None, 
     index_of = {fut.key: index for fut, index in zip(futures, todo)}
     try:
         with _bar(report.total, report.skipped, progress, desc) as bar:
-            for fut in as_completed(futures):
+            for fut in as_completed(futures, loop=client.loop):  # the runner's Client is not the default one
                 if lock is not None:
                     lock.check()
                 try:

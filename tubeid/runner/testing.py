@@ -11,12 +11,16 @@ import zarr
 
 __all__ = ["STUDY", "PIPELINE", "write_study", "write_pipeline", "store_digest", "flags", "clear_flag"]
 
-# A realisation-bound study whose tasks take ~0.1-0.3 s (sleep-free compute loop). The random
-# stream of a point is keyed by its realisation only, and x = delta * (a function of that stream),
-# so delta = 0.2 must equal exactly 2 x delta = 0.1 (common random numbers). FAIL_AT (environment)
-# makes the block containing that realisation raise: a controllable interruption.
+# A realisation-bound study whose tasks cost `work` 48x48 tanh-matmul iterations per realisation
+# (work = 3000: ~10-40 ms per block of 2 on this project's 2-core machine). The random stream of a
+# point is keyed by its realisation only, and x = delta * (a function of that stream), so
+# delta = 0.2 must equal exactly 2 x delta = 0.1 (common random numbers). TUBEID_TEST_FAIL_AT
+# (environment) makes the block containing that realisation raise: a controllable interruption.
+# TUBEID_TEST_BLOCK_SECONDS (environment) adds that much sleep to every block without changing its
+# values: interruption tests pace the run with it, so their signal lands mid-study on a fast machine.
 STUDY = '''
 import os
+import time
 import numpy as np
 from tubeid.runner.study import Output, Parameter, Study
 
@@ -24,6 +28,7 @@ def task(block, rng, *, work, label="x"):
     fail_at = os.environ.get("TUBEID_TEST_FAIL_AT")
     if fail_at is not None and int(fail_at) in block["realisation"]:
         raise RuntimeError("interrupted on purpose")
+    time.sleep(float(os.environ.get("TUBEID_TEST_BLOCK_SECONDS", "0")))
     r, d = block["realisation"], block["delta"]
     out = np.empty((d.size, r.size, 3))
     for j, real in enumerate(r):
