@@ -409,7 +409,7 @@ def network(tmp: Path, study: Path) -> dict:
         address = client.scheduler.address
         for addr, security in ((address.replace("tls://", "tcp://"), None), (address, Security.temporary())):
             try:
-                Client(addr, security=security, timeout="3s").close()
+                Client(addr, security=security, timeout="3s", set_as_default=False).close()
                 out["wrong"] += 1
             except Exception:  # noqa: BLE001 - refused by the cluster
                 out["refused"] += 1
