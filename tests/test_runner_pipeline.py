@@ -302,12 +302,16 @@ def test_the_documented_pipeline_runs(tmp_path):
 RUNNER = [sys.executable, "-m", "tubeid.runner.cli", "run"]
 # curve: 4 blocks, around: 16 blocks of 2 realisations x ~0.05-0.1 s of compute each (work=3000)
 SIZE = dict(curve=8, around=32, work=3000)
+# the kill test sleeps this long in every block of stage `around` (values unchanged), so that the
+# kill lands mid-stage on a fast machine too
+PACE = {"TUBEID_TEST_BLOCK_SECONDS": "0.15"}
 
 
-def _env():
+def _env(**extra):
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    for k in ("DASK_SCHEDULER_ADDRESS", "TUBEID_TEST_FAIL_STAGE", "TUBEID_TEST_FAIL_AT"):
+    for k in ("DASK_SCHEDULER_ADDRESS", "TUBEID_TEST_FAIL_STAGE", "TUBEID_TEST_FAIL_AT", "TUBEID_TEST_BLOCK_SECONDS"):
         env.pop(k, None)
+    env.update(extra)
     return env
 
 
@@ -343,7 +347,7 @@ def test_two_workers_and_in_process_give_identical_stores(big, reference, tmp_pa
 def test_runner_killed_mid_stage_2_resumes_to_the_identical_store(big, reference, tmp_path):
     store = tmp_path / "killed.zarr"
     proc = subprocess.Popen(RUNNER + [str(big), "--store", str(store), "--workers", "2", "--no-progress"],
-                            env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+                            env=_env(**PACE), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         t0 = time.monotonic()
         while flags(store, "around").sum() < 2:

@@ -67,9 +67,11 @@ def write_study(directory, name="study.py", *, realisations=16, chunk=2, work=5)
 # mean over realisations is stored by `summarize`); stage `around`: a grid of offsets around x_opt
 # (a value derived from stage 1, passed as the parameter `center`); stage `final`: a fixed Study.
 # Every point costs `work` 48x48 tanh-matmul iterations. TUBEID_TEST_FAIL_STAGE / _FAIL_AT
-# (environment) make the block of that stage containing that realisation raise.
+# (environment) make the block of that stage containing that realisation raise;
+# TUBEID_TEST_BLOCK_SECONDS (environment) paces stage `around`'s blocks as in STUDY.
 PIPELINE = '''
 import os
+import time
 import numpy as np
 from tubeid.runner.pipeline import Pipeline
 from tubeid.runner.study import Output, Parameter, Study
@@ -99,6 +101,7 @@ def curve_task(block, rng, *, work):
 
 def around_task(block, rng, *, center, work):
     _maybe_fail("around", block["realisation"])
+    time.sleep(float(os.environ.get("TUBEID_TEST_BLOCK_SECONDS", "0")))
     o, r = block["offset"], block["realisation"]
     z = np.empty((o.size, r.size))
     for j, real in enumerate(r):
