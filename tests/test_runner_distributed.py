@@ -33,8 +33,9 @@ PACE = {"TUBEID_TEST_BLOCK_SECONDS": "0.15"}
 
 
 def _env(**extra):
-    env = dict(os.environ, PYTHONUNBUFFERED="1", **extra)
-    env.pop("DASK_SCHEDULER_ADDRESS", None)
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    for k in ("DASK_SCHEDULER_ADDRESS", "TUBEID_TEST_FAIL_AT", "TUBEID_TEST_BLOCK_SECONDS"):
+        env.pop(k, None)
     env.update(extra)
     return env
 
@@ -321,6 +322,55 @@ def test_an_unreachable_scheduler_names_the_tls_remedy(scheme, hint):
     with dask.config.set({"tubeid.runner.connect-timeout": "2s"}), \
             pytest.raises(SpecificationError, match=rf"scheduler = '{scheme}127.0.0.1:{port}': cannot connect.*{hint}"):
         _connect(f"{scheme}127.0.0.1:{port}")
+
+
+def _silent_listener():
+    """A TCP socket that accepts connections (the kernel's backlog) and never says a word."""
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    s.listen(8)
+    return s, s.getsockname()[1]
+
+
+def test_a_scheduler_that_never_answers_is_refused_within_the_connect_timeout():
+    """distributed's connect waits for the peer's handshake without a limit: the runner's does not."""
+    import dask.config
+
+    from tubeid.errors import SpecificationError
+    from tubeid.runner.execute import _connect
+
+    listener, port = _silent_listener()
+    try:
+        t0 = time.monotonic()
+        with dask.config.set({"tubeid.runner.connect-timeout": "2s"}), \
+                pytest.raises(SpecificationError, match=rf"scheduler = 'tcp://127.0.0.1:{port}': cannot connect within"):
+            _connect(f"tcp://127.0.0.1:{port}")
+        assert time.monotonic() - t0 < 10.0
+    finally:
+        listener.close()
+    assert dask.config.get("scheduler", None) is None
+
+
+def test_ctrl_c_while_connecting_exits_at_once(tmp_path):
+    """Ctrl-C while the runner waits for a scheduler: exit 130 with the resume hint, promptly, no traceback."""
+    listener, port = _silent_listener()
+    study = write_study(tmp_path, realisations=2, chunk=2, work=1)
+    proc = subprocess.Popen(RUNNER + [str(study), "--store", str(tmp_path / "s.zarr"), "--scheduler",
+                                      f"tcp://127.0.0.1:{port}", "--no-progress"],
+                            env=_env(TUBEID_RUNNER__CONNECT_TIMEOUT="30s"), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        time.sleep(4.0)  # imports done, waiting for the scheduler's answer
+        assert proc.poll() is None
+        t0 = time.monotonic()
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+        waited = time.monotonic() - t0
+    finally:
+        _stop(proc)
+        listener.close()
+    assert proc.returncode == 130 and "rerun the same command to resume" in err, err
+    assert "Traceback" not in err and waited < 10.0, (waited, err)
 
 
 def test_the_embedded_cluster_admits_only_its_own_client(study, tmp_path):

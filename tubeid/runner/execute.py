@@ -242,22 +242,60 @@ def _log(msg, quiet):
         print(msg, file=sys.stderr, flush=True)
 
 
+def _probe(address: str, seconds: float) -> None:
+    """Open one comm to ``address`` (its handshake included) and close it, within ``seconds``; raise
+    what failed. distributed's connect waits for the peer's handshake without a time limit, so a
+    Client to a peer that accepts TCP and never answers would wait for ever."""
+    import asyncio
+    import threading
+
+    from distributed.comm import connect
+    from distributed.security import Security
+
+    async def attempt():
+        comm = await asyncio.wait_for(connect(address, timeout=seconds, **Security().get_connection_args("client")),
+                                      seconds)
+        await comm.close()
+
+    outcome = {}
+
+    def target():  # its own event loop: the caller may be running one (a notebook)
+        try:
+            asyncio.run(attempt())
+        except BaseException as exc:  # noqa: BLE001 - handed to the caller
+            outcome["error"] = exc
+
+    thread = threading.Thread(target=target, name="tubeid-connect-probe", daemon=True)
+    thread.start()
+    thread.join(seconds + 5.0)
+    if thread.is_alive():
+        raise TimeoutError(f"no answer within {seconds:g} s")
+    if "error" in outcome:
+        raise outcome["error"]
+
+
 def _connect(scheduler: str):
     """A Client to ``scheduler``, or a SpecificationError saying why not (never a library traceback)."""
+    from dask.utils import parse_timedelta
     from distributed import Client
 
     timeout = config.get("runner.connect-timeout", "20s")
     # Never the process's default Client (the runner passes its Client explicitly): a default one sets
     # dask.config's scheduler, which a Client that failed to connect leaves behind. Built in two steps
     # so that a Client that failed to connect is closed here (not by the garbage collector at exit,
-    # when its event loop is gone: an 8 s stall and a traceback).
-    client = Client.__new__(Client)
+    # when its event loop is gone: a stall of twice the timeout and a traceback), Ctrl-C included.
+    client = None
     try:
+        _probe(scheduler, parse_timedelta(timeout, default="s"))
+        client = Client.__new__(Client)
         client.__init__(scheduler, timeout=timeout, set_as_default=False)
         return client
-    except Exception as exc:  # unreachable, refused, TLS expected or misconfigured, timed out
-        with contextlib.suppress(Exception):
-            client.close(timeout=5)
+    except BaseException as exc:  # unreachable, refused, silent, TLS expected or misconfigured, timed out; or Ctrl-C
+        if client is not None:
+            with contextlib.suppress(BaseException):
+                client.close(timeout=5)
+        if not isinstance(exc, Exception):
+            raise
         text = f"{type(exc).__name__}: {exc}"
         if scheduler.startswith("tcp://") or "://" not in scheduler:  # no scheme is tcp:// too
             hint = ("; if the scheduler uses TLS, give its tls:// address and the client certificates (DASK_CONFIG, "
