@@ -18,7 +18,7 @@ import numba.core.compiler
 from tubeid.dynamics.solver._regimes import FINE
 
 __all__ = ["FASTMATH", "NoAliasCompiler", "rows8", "rows", "exp_modes", "diag_mul", "expmul", "block_advance",
-           "slope_update", "set_load"]
+           "slope_update", "set_load", "set_load_rows"]
 
 #: Reassociation (vectorised sums) and FMA contraction; no NaN/Inf assumptions (the quick check
 #: compares against ±inf bounds).
@@ -199,4 +199,25 @@ def set_load(x, nx, m, fs, f1, t):
     for l in range(m):
         x[nx + l] = fs[l] + f1[l] * t
         x[nx + m + l] = f1[l]
+    x[nx + 2 * m] = 1.0
+
+
+@numba.njit(cache=True, _nrt=False, inline="always")
+def set_load_rows(x, nx, m, fs, f1, t):
+    """``set_load`` (same values) for fs, f1 rows of ``Work.L`` zero beyond m (m8 = m rounded up to
+    8 entries) written as whole rows: when xl has room, f and f' are written as rows of m8 (f
+    first: its zero pad lanes are overwritten by f', whose pad lanes fall on the 1 written last
+    and on xl's zero pad), which LLVM vectorises (m = 7: one 8-wide operation for 7 scalar ones).
+    For rows written as whole rows just before (a load after narrower stores of the same bytes
+    stalls: ``set_load`` there)."""
+    m8 = fs.shape[0]
+    if nx + m + m8 <= x.shape[0]:
+        for l in range(m8):
+            x[nx + l] = fs[l] + f1[l] * t
+        for l in range(m8):
+            x[nx + m + l] = f1[l]
+    else:
+        for l in range(m):
+            x[nx + l] = fs[l] + f1[l] * t
+            x[nx + m + l] = f1[l]
     x[nx + 2 * m] = 1.0
