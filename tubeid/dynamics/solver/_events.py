@@ -24,7 +24,7 @@ import math
 
 import numba
 
-from tubeid.dynamics.solver._modal import _FM, diag_mul, exp_modes, expmul, rows, rows8, set_load
+from tubeid.dynamics.solver._modal import _FM, NoAliasCompiler, diag_mul, exp_modes, expmul, rows, rows8, set_load_rows
 from tubeid.dynamics.solver._work import (EVALUATIONS, F1, FS, MAX_SWITCHES, RESCANS, SWITCHES, U_CROSS, U_END,
                                           U_START, UD_CROSS, UD_END, UD_START, X0, XE, XL, XS)
 
@@ -206,11 +206,12 @@ def segment_coefficients(T, W, r, m, t0):
         W.QS[s, 3] = p1
 
 
-@numba.njit(cache=True, _nrt=False, fastmath=_FM)
+@numba.njit(cache=True, _nrt=False, fastmath=_FM, pipeline_class=NoAliasCompiler)
 def evaluate(lam_re, lam_im, fine_re, fine_im, q, h, tau, A, QS, E, ev):
     """Exact u, u', u'' of every stop at tau from the segment start (ev[3s], ev[3s + 1],
     ev[3s + 2]), from the segment's coefficients A, QS (``segment_coefficients``) and E = e^{λ tau}
-    (left in E). One compiled body for every call site (short argument list: a cheap call)."""
+    (left in E). One compiled body for every call site (short argument list: a cheap call). No two
+    array arguments may share memory (``NoAliasCompiler``)."""
     exp_modes(lam_re, lam_im, fine_re, fine_im, q, h, tau, E)
     n2p = E.shape[1]
     for s in range(A.shape[0]):
@@ -360,10 +361,10 @@ def event_step(T, W, r, m, count, contact_time, n_events, refine_all, stats):
             raise RuntimeError("more than 200 regime switches within one step")
         q = T.basis[r]
         sigma = h - t_loc
-        set_load(x0, nx, m, fs, f1, t_loc)
+        set_load_rows(x0, nx, m, fs, f1, t_loc)
         if just_switched:  # end state of the remaining segment, kept in case no event occurs
             expmul(T.lam_re, T.lam_im, T.fine_re, T.fine_im, q, h, sigma, x0, xe, W.E)
-            set_load(xe, nx, m, fs, f1, h)
+            set_load_rows(xe, nx, m, fs, f1, h)
             rows(T.stop_rows, r, 0, n_rows, xe, nxl, ev, 0)
             for s in range(S):
                 U[U_END, s] = ev[3 * s]
@@ -410,7 +411,7 @@ def event_step(T, W, r, m, count, contact_time, n_events, refine_all, stats):
         if W.eval_tau[0] != tau_c:  # e^{λ tau_c}, unless the last evaluation left it in W.E
             exp_modes(T.lam_re, T.lam_im, T.fine_re, T.fine_im, q, h, tau_c, W.E)
         diag_mul(W.E, x0, xs)
-        set_load(xs, nx, m, fs, f1, t_loc + tau_c)
+        set_load_rows(xs, nx, m, fs, f1, t_loc + tau_c)
         for s in range(S):
             U[U_START, s] = U[U_CROSS, s]
             U[UD_START, s] = U[UD_CROSS, s]
@@ -433,7 +434,7 @@ def event_step(T, W, r, m, count, contact_time, n_events, refine_all, stats):
         if h - t_loc <= 1e-14 * h:
             for i in range(nx):
                 xl[i] = x0[i]
-            set_load(x0, nx, m, fs, f1, h)
+            set_load_rows(x0, nx, m, fs, f1, h)
             rows(T.stop_rows, r, 0, n_rows, x0, nxl, ev, 0)
             for s in range(S):
                 U[U_END, s] = ev[3 * s]

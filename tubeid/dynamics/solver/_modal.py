@@ -13,15 +13,35 @@ from __future__ import annotations
 import math
 
 import numba
+import numba.core.compiler
 
 from tubeid.dynamics.solver._regimes import FINE
 
-__all__ = ["FASTMATH", "rows8", "rows", "exp_modes", "diag_mul", "expmul", "block_advance", "slope_update", "set_load"]
+__all__ = ["FASTMATH", "NoAliasCompiler", "rows8", "rows", "exp_modes", "diag_mul", "expmul", "block_advance",
+           "slope_update", "set_load", "set_load_rows"]
 
 #: Reassociation (vectorised sums) and FMA contraction; no NaN/Inf assumptions (the quick check
 #: compares against ±inf bounds).
 FASTMATH = frozenset({"reassoc", "contract"})
 _FM = set(FASTMATH)
+
+
+
+
+class NoAliasCompiler(numba.core.compiler.Compiler):
+    """numba's default nopython pipeline with LLVM ``noalias`` on every pointer argument (numba's
+    internal ``noalias`` flag, the one its parfor lowering sets): ``pipeline_class`` of the kernels
+    whose array arguments never share memory (``run_exact``, ``evaluate``: tables, scratch, loads and
+    outputs are distinct allocations). LLVM then drops the run-time overlap checks in front of every
+    vectorisable loop (executed per call, and on these short loops often as long as the loop).
+    The arithmetic is unchanged: results are bit-identical (checked against the previous kernels)."""
+
+    def __init__(self, typingctx, targetctx, library, args, return_type, flags, locals):
+        flags = flags.copy()
+        flags.noalias = True
+        super().__init__(typingctx, targetctx, library, args, return_type, flags, locals)
+
+
 #: 1/k! for the e^x series of expmul
 _E2, _E3, _E4, _E5, _E6, _E7, _E8, _E9 = (1.0 / math.factorial(k) for k in range(2, 10))
 
@@ -179,4 +199,25 @@ def set_load(x, nx, m, fs, f1, t):
     for l in range(m):
         x[nx + l] = fs[l] + f1[l] * t
         x[nx + m + l] = f1[l]
+    x[nx + 2 * m] = 1.0
+
+
+@numba.njit(cache=True, _nrt=False, inline="always")
+def set_load_rows(x, nx, m, fs, f1, t):
+    """``set_load`` (same values) for fs, f1 rows of ``Work.L`` zero beyond m (m8 = m rounded up to
+    8 entries) written as whole rows: when xl has room, f and f' are written as rows of m8 (f
+    first: its zero pad lanes are overwritten by f', whose pad lanes fall on the 1 written last
+    and on xl's zero pad), which LLVM vectorises (m = 7: one 8-wide operation for 7 scalar ones).
+    For rows written as whole rows just before (a load after narrower stores of the same bytes
+    stalls: ``set_load`` there)."""
+    m8 = fs.shape[0]
+    if nx + m + m8 <= x.shape[0]:
+        for l in range(m8):
+            x[nx + l] = fs[l] + f1[l] * t
+        for l in range(m8):
+            x[nx + m + l] = f1[l]
+    else:
+        for l in range(m):
+            x[nx + l] = fs[l] + f1[l] * t
+            x[nx + m + l] = f1[l]
     x[nx + 2 * m] = 1.0
