@@ -412,3 +412,25 @@ def test_compiled_and_cached_kernels_give_the_same_bits(tmp_path):
     assert cold["compiled"] >= 1 and cold["loaded"] == 0, cold  # the first process really compiled ...
     assert warm["loaded"] >= 1 and warm["compiled"] == 0, warm  # ... and the second really loaded
     assert cold["sha256"] == warm["sha256"], (cold, warm)
+
+
+def test_the_noalias_pipeline_falls_back_on_another_numba_compiler_api(monkeypatch):
+    """The kernels' LLVM ``noalias`` pipeline hooks numba's internal Compiler; a numba whose Compiler
+    takes other arguments (or has no ``noalias`` flag) gets numba's default pipeline instead, never
+    a failure at the first call."""
+    import numba.core.compiler
+
+    from tubeid.dynamics.solver import _modal
+
+    assert _modal._no_alias_compiler() in (_modal._NoAliasCompiler, numba.core.compiler.Compiler)
+    monkeypatch.setattr(_modal, "_COMPILER_ARGS", _modal._COMPILER_ARGS + ["pipeline"])
+    assert _modal._no_alias_compiler() is numba.core.compiler.Compiler
+
+    @numba.njit(pipeline_class=_modal._no_alias_compiler())
+    def add(a, b, out):
+        for i in range(a.shape[0]):
+            out[i] = a[i] + b[i]
+
+    out = np.empty(3)
+    add(np.arange(3.0), np.ones(3), out)
+    assert out.tolist() == [1.0, 2.0, 3.0]

@@ -10,6 +10,7 @@ inlined into its caller (numba IR inlining) and reads or writes preallocated arr
 
 from __future__ import annotations
 
+import inspect
 import math
 
 import numba
@@ -26,20 +27,36 @@ FASTMATH = frozenset({"reassoc", "contract"})
 _FM = set(FASTMATH)
 
 
+_COMPILER_ARGS = ["self", "typingctx", "targetctx", "library", "args", "return_type", "flags", "locals"]
 
 
-class NoAliasCompiler(numba.core.compiler.Compiler):
-    """numba's default nopython pipeline with LLVM ``noalias`` on every pointer argument (numba's
-    internal ``noalias`` flag, the one its parfor lowering sets): ``pipeline_class`` of the kernels
-    whose array arguments never share memory (``run_exact``, ``evaluate``: tables, scratch, loads and
-    outputs are distinct allocations). LLVM then drops the run-time overlap checks in front of every
-    vectorisable loop (executed per call, and on these short loops often as long as the loop).
-    The arithmetic is unchanged: results are bit-identical (checked against the previous kernels)."""
-
+class _NoAliasCompiler(numba.core.compiler.Compiler):
     def __init__(self, typingctx, targetctx, library, args, return_type, flags, locals):
         flags = flags.copy()
         flags.noalias = True
         super().__init__(typingctx, targetctx, library, args, return_type, flags, locals)
+
+
+def _no_alias_compiler() -> type:
+    """:class:`_NoAliasCompiler` where numba's internal compiler API is the one it was written for
+    (as in numba 0.68: that ``Compiler.__init__`` signature and a ``Flags.noalias`` option), else
+    numba's default pipeline: the same results, only without the speed-up."""
+    try:
+        same = (list(inspect.signature(numba.core.compiler.Compiler.__init__).parameters) == _COMPILER_ARGS
+                and hasattr(numba.core.compiler.Flags(), "noalias"))
+    except (TypeError, ValueError, AttributeError):
+        same = False
+    return _NoAliasCompiler if same else numba.core.compiler.Compiler
+
+
+#: numba's default nopython pipeline with LLVM ``noalias`` on every pointer argument (numba's
+#: internal ``noalias`` flag, the one its parfor lowering sets): ``pipeline_class`` of the kernels
+#: whose array arguments never share memory (``run_exact``, ``evaluate``: tables, scratch, loads and
+#: outputs are distinct allocations). LLVM then drops the run-time overlap checks in front of every
+#: vectorisable loop (executed per call, and on these short loops often as long as the loop). The
+#: arithmetic is unchanged: results are bit-identical (checked against the previous kernels).
+#: Falls back to numba's default pipeline on a numba whose internal compiler API differs.
+NoAliasCompiler = _no_alias_compiler()
 
 
 #: 1/k! for the e^x series of expmul
