@@ -3,6 +3,7 @@
 import json
 import math
 import os
+import pathlib
 import subprocess
 import sys
 import warnings
@@ -366,19 +367,24 @@ B, C = model.load_matrix(), model.sensor_matrix()
 F = 40.0 * rng_for(11, "bit-identity").standard_normal((3001, B.shape[1]))
 y = simulate(M, D, K, stops, B, C, F, 1e-3, output_dt=1e-3).observations.values
 st = _fastpath.run_exact.stats
+import tubeid
 print(json.dumps({"sha256": hashlib.sha256(y.tobytes()).hexdigest(), "compiled": sum(st.cache_misses.values()),
+                  "tubeid": tubeid.__file__,
                   "loaded": sum(st.cache_hits.values()), "contacts": int((abs(y[0, :, 0]) > 0).sum())}))
 """
 
 
-def _run_in_subprocess(blas_threads: int, cache_dir) -> dict:
+def _run_in_subprocess(blas_threads: int, cache_dir, pythonpath=None) -> dict:
     """The paper-reference model with contact for 3 s in a new process: hash of the series and
-    whether the kernel was compiled or loaded from numba's cache."""
+    whether the kernel was compiled or loaded from numba's cache (``pythonpath``: import tubeid from
+    there)."""
     env = dict(os.environ, OPENBLAS_NUM_THREADS=str(blas_threads), OMP_NUM_THREADS=str(blas_threads),
                MKL_NUM_THREADS=str(blas_threads))
     env["NUMBA_CACHE_DIR"] = str(cache_dir)
+    if pythonpath is not None:
+        env["PYTHONPATH"] = str(pythonpath)
     res = subprocess.run([sys.executable, "-c", _BIT_IDENTITY_SCRIPT], capture_output=True, text=True, env=env,
-                         timeout=900)
+                         timeout=900, cwd=pythonpath)  # `-c` puts the working directory first on sys.path
     assert res.returncode == 0, res.stderr[-3000:]
     return json.loads(res.stdout.strip().splitlines()[-1])
 
@@ -434,3 +440,47 @@ def test_the_noalias_pipeline_falls_back_on_another_numba_compiler_api(monkeypat
     out = np.empty(3)
     add(np.arange(3.0), np.ones(3), out)
     assert out.tolist() == [1.0, 2.0, 3.0]
+
+
+def test_every_cached_kernel_is_keyed_on_all_the_solver_sources(tmp_path):
+    """numba keys a cached kernel on its own file's stamp; the solver's are keyed on a fingerprint of
+    every solver source, which changes with any of them."""
+    import shutil
+
+    from tubeid.dynamics import solver
+    from tubeid.dynamics.solver import _events, _fastpath, _kernel_cache, _modal, _symplectic
+
+    kernels = _kernel_cache.cached_kernels([_modal, _events, _fastpath, _symplectic])
+    names = {k.py_func.__name__ for k in kernels}
+    assert {"run_exact", "event_step", "evaluate", "set_load", "_kernel"} <= names
+    fingerprint = _kernel_cache.sources_fingerprint()
+    assert {k._cache._cache_file._source_stamp for k in kernels} == {fingerprint}
+    copy = tmp_path / "solver"
+    shutil.copytree(pathlib.Path(solver.__file__).parent, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    assert _kernel_cache.sources_fingerprint(copy) == fingerprint
+    (copy / "_work.py").write_text((copy / "_work.py").read_text() + "\n")
+    assert _kernel_cache.sources_fingerprint(copy) != fingerprint
+
+
+@pytest.mark.slow
+def test_an_edit_of_a_callee_recompiles_the_cached_main_loop(tmp_path):
+    """The main loop compiles _modal's primitives into its own code: after an edit of _modal.py alone,
+    the next process runs the edited code, not the cached main loop (with numba's own key it did)."""
+    import shutil
+
+    import tubeid
+
+    src = tmp_path / "src"
+    shutil.copytree(pathlib.Path(tubeid.__file__).parent, src / "tubeid", ignore=shutil.ignore_patterns("__pycache__"))
+    cache = tmp_path / "numba-cache"
+    first = _run_in_subprocess(1, cache, src)
+    again = _run_in_subprocess(1, cache, src)
+    assert first["tubeid"].startswith(str(src)), first  # the copy is what runs
+    assert first["compiled"] >= 1 and again["loaded"] >= 1 and again["compiled"] == 0
+    assert again["sha256"] == first["sha256"]
+    modal = src / "tubeid" / "dynamics" / "solver" / "_modal.py"
+    text = modal.read_text()
+    at = text.index("x[nx + l] = fs[l] + f1[l] * t", text.index("def set_load("))
+    modal.write_text(text[:at] + "x[nx + l] = 1.001 * fs[l] + f1[l] * t" + text[at + len("x[nx + l] = fs[l] + f1[l] * t"):])
+    edited = _run_in_subprocess(1, cache, src)
+    assert edited["compiled"] >= 1 and edited["sha256"] != first["sha256"], edited
