@@ -422,24 +422,28 @@ def test_compiled_and_cached_kernels_give_the_same_bits(tmp_path):
 
 def test_the_noalias_pipeline_falls_back_on_another_numba_compiler_api(monkeypatch):
     """The kernels' LLVM ``noalias`` pipeline hooks numba's internal Compiler; a numba whose Compiler
-    takes other arguments (or has no ``noalias`` flag) gets numba's default pipeline instead, never
-    a failure at the first call."""
+    takes other arguments (or has no ``noalias`` flag) gets numba's Compiler itself, one without that
+    class numba's default pipeline: never a failure at import or at the first call."""
     import numba.core.compiler
 
     from tubeid.dynamics.solver import _modal
 
-    assert _modal._no_alias_compiler() in (_modal._NoAliasCompiler, numba.core.compiler.Compiler)
+    here = _modal._no_alias_compiler()
+    assert here is not None and issubclass(here, numba.core.compiler.Compiler)
     monkeypatch.setattr(_modal, "_COMPILER_ARGS", _modal._COMPILER_ARGS + ["pipeline"])
     assert _modal._no_alias_compiler() is numba.core.compiler.Compiler
+    monkeypatch.delattr(numba.core.compiler, "Compiler")
+    assert _modal._no_alias_compiler() is None
+    monkeypatch.undo()
+    for options in ({"pipeline_class": here}, {"pipeline_class": numba.core.compiler.Compiler}, {}):
+        @numba.njit(**options)
+        def add(a, b, out):
+            for i in range(a.shape[0]):
+                out[i] = a[i] + b[i]
 
-    @numba.njit(pipeline_class=_modal._no_alias_compiler())
-    def add(a, b, out):
-        for i in range(a.shape[0]):
-            out[i] = a[i] + b[i]
-
-    out = np.empty(3)
-    add(np.arange(3.0), np.ones(3), out)
-    assert out.tolist() == [1.0, 2.0, 3.0]
+        out = np.empty(3)
+        add(np.arange(3.0), np.ones(3), out)
+        assert out.tolist() == [1.0, 2.0, 3.0]
 
 
 def test_every_cached_kernel_is_keyed_on_all_the_solver_sources(tmp_path):

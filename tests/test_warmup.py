@@ -51,3 +51,10 @@ def test_the_diagnose_pipeline_declares_the_solver_warmup():
     from tubeid.diagnose.stages import study
 
     _declares_the_solver_warmup(study)
+
+
+def test_with_numba_jit_disabled_nothing_is_cold():
+    """NUMBA_DISABLE_JIT=1 (debugging): the kernels are plain functions, nothing to compile or warn about."""
+    out = subprocess.run([sys.executable, "-c", "from tubeid.dynamics import warmup; print(warmup.cache_is_cold())"],
+                         capture_output=True, text=True, env=dict(os.environ, NUMBA_DISABLE_JIT="1"), timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "False", out.stderr[-2000:]

@@ -32,6 +32,8 @@ def cache_is_cold() -> bool:
     cannot be inspected counts as cold.
     """
     for kernel in _kernels():
+        if not hasattr(kernel, "overloads"):  # a plain function (NUMBA_DISABLE_JIT): nothing to compile
+            continue
         if kernel.overloads:  # compiled (or loaded) in this process already
             continue
         try:

@@ -253,8 +253,12 @@ def _probe(address: str, seconds: float) -> None:
     from distributed.security import Security
 
     async def attempt():
-        comm = await asyncio.wait_for(connect(address, timeout=seconds, **Security().get_connection_args("client")),
-                                      seconds)
+        try:  # distributed's own limit first (its message names the failure), then the handshake's
+            comm = await asyncio.wait_for(connect(address, timeout=seconds, **Security().get_connection_args("client")),
+                                          seconds + 1.0)
+        except asyncio.TimeoutError:
+            raise TimeoutError(f"connected, but no handshake from the peer within {seconds:g} s (is it a dask "
+                               "scheduler?)") from None
         await comm.close()
 
     outcome = {}
@@ -267,7 +271,7 @@ def _probe(address: str, seconds: float) -> None:
 
     thread = threading.Thread(target=target, name="tubeid-connect-probe", daemon=True)
     thread.start()
-    thread.join(seconds + 5.0)
+    thread.join(seconds + 6.0)
     if thread.is_alive():
         raise TimeoutError(f"no answer within {seconds:g} s")
     if "error" in outcome:

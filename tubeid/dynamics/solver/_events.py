@@ -24,7 +24,7 @@ import math
 
 import numba
 
-from tubeid.dynamics.solver._modal import _FM, NoAliasCompiler, diag_mul, exp_modes, expmul, rows, rows8, set_load_rows
+from tubeid.dynamics.solver._modal import _FM, NO_ALIAS, diag_mul, exp_modes, expmul, rows, rows8, set_load_rows
 from tubeid.dynamics.solver._work import (EVALUATIONS, F1, FS, MAX_SWITCHES, RESCANS, SWITCHES, U_CROSS, U_END,
                                           U_START, UD_CROSS, UD_END, UD_START, X0, XE, XL, XS)
 
@@ -206,12 +206,12 @@ def segment_coefficients(T, W, r, m, t0):
         W.QS[s, 3] = p1
 
 
-@numba.njit(cache=True, _nrt=False, fastmath=_FM, pipeline_class=NoAliasCompiler)
+@numba.njit(cache=True, _nrt=False, fastmath=_FM, **NO_ALIAS)
 def evaluate(lam_re, lam_im, fine_re, fine_im, q, h, tau, A, QS, E, ev):
     """Exact u, u', u'' of every stop at tau from the segment start (ev[3s], ev[3s + 1],
     ev[3s + 2]), from the segment's coefficients A, QS (``segment_coefficients``) and E = e^{λ tau}
     (left in E). One compiled body for every call site (short argument list: a cheap call). No two
-    array arguments may share memory (``NoAliasCompiler``)."""
+    array arguments may share memory (``NO_ALIAS``)."""
     exp_modes(lam_re, lam_im, fine_re, fine_im, q, h, tau, E)
     n2p = E.shape[1]
     for s in range(A.shape[0]):

@@ -16,13 +16,13 @@ from __future__ import annotations
 import numba
 
 from tubeid.dynamics.solver._events import event_step, hermite_flag
-from tubeid.dynamics.solver._modal import _FM, NoAliasCompiler, block_advance, rows, rows8, set_load, slope_update
+from tubeid.dynamics.solver._modal import _FM, NO_ALIAS, block_advance, rows, rows8, set_load, slope_update
 from tubeid.dynamics.solver._work import DF, F0, F1, FLAGGED_STEPS, FN, FS, U_END, U_START, UD_END, UD_START, XL
 
 __all__ = ["run_exact"]
 
 
-@numba.njit(cache=True, _nrt=False, fastmath=_FM, pipeline_class=NoAliasCompiler)
+@numba.njit(cache=True, _nrt=False, fastmath=_FM, **NO_ALIAS)
 def run_exact(loads, dt_load, ns, out_every, j0, r0, T, W, y_out, sumsq, contact_time, n_events, refine_all, stats):
     """Integrate one realisation; returns the number of sub-steps.
 
@@ -32,7 +32,7 @@ def run_exact(loads, dt_load, ns, out_every, j0, r0, T, W, y_out, sumsq, contact
     time and open -> contact events counted from output sample j0 on. r0: initial regime (0: every
     stop open), W.X[XL, :nx]: initial ζ. refine_all: send every sub-step to the exact event path (test
     hook). T: ``ExactTables``, W: ``Work``. No two array arguments may share memory (compiled with
-    ``NoAliasCompiler``).
+    ``NO_ALIAS``).
     """
     n_int = loads.shape[0] - 1
     m = loads.shape[1]

@@ -18,7 +18,7 @@ import numba.core.compiler
 
 from tubeid.dynamics.solver._regimes import FINE
 
-__all__ = ["FASTMATH", "NoAliasCompiler", "rows8", "rows", "exp_modes", "diag_mul", "expmul", "block_advance",
+__all__ = ["FASTMATH", "NO_ALIAS", "rows8", "rows", "exp_modes", "diag_mul", "expmul", "block_advance",
            "slope_update", "set_load", "set_load_rows"]
 
 #: Reassociation (vectorised sums) and FMA contraction; no NaN/Inf assumptions (the quick check
@@ -30,33 +30,38 @@ _FM = set(FASTMATH)
 _COMPILER_ARGS = ["self", "typingctx", "targetctx", "library", "args", "return_type", "flags", "locals"]
 
 
-class _NoAliasCompiler(numba.core.compiler.Compiler):
-    def __init__(self, typingctx, targetctx, library, args, return_type, flags, locals):
-        flags = flags.copy()
-        flags.noalias = True
-        super().__init__(typingctx, targetctx, library, args, return_type, flags, locals)
-
-
-def _no_alias_compiler() -> type:
-    """:class:`_NoAliasCompiler` where numba's internal compiler API is the one it was written for
-    (as in numba 0.68: that ``Compiler.__init__`` signature and a ``Flags.noalias`` option), else
-    numba's default pipeline: the same results, only without the speed-up."""
+def _no_alias_compiler() -> type | None:
+    """numba's nopython pipeline with ``noalias`` on (a ``Compiler`` subclass) where numba's internal
+    compiler API is the one it was written for (as in numba 0.68: that ``Compiler.__init__``
+    signature and a ``Flags.noalias`` option); numba's ``Compiler`` itself where that differs; None
+    where numba has no such class (then numba's default pipeline is used: the same results, only
+    without the speed-up)."""
     try:
-        same = (list(inspect.signature(numba.core.compiler.Compiler.__init__).parameters) == _COMPILER_ARGS
+        base = numba.core.compiler.Compiler
+        same = (list(inspect.signature(base.__init__).parameters) == _COMPILER_ARGS
                 and hasattr(numba.core.compiler.Flags(), "noalias"))
     except (TypeError, ValueError, AttributeError):
-        same = False
-    return _NoAliasCompiler if same else numba.core.compiler.Compiler
+        return None
+    if not same:
+        return base
+
+    class _NoAliasCompiler(base):
+        def __init__(self, typingctx, targetctx, library, args, return_type, flags, locals):
+            flags = flags.copy()
+            flags.noalias = True
+            super().__init__(typingctx, targetctx, library, args, return_type, flags, locals)
+
+    return _NoAliasCompiler
 
 
-#: numba's default nopython pipeline with LLVM ``noalias`` on every pointer argument (numba's
-#: internal ``noalias`` flag, the one its parfor lowering sets): ``pipeline_class`` of the kernels
-#: whose array arguments never share memory (``run_exact``, ``evaluate``: tables, scratch, loads and
-#: outputs are distinct allocations). LLVM then drops the run-time overlap checks in front of every
-#: vectorisable loop (executed per call, and on these short loops often as long as the loop). The
-#: arithmetic is unchanged: results are bit-identical (checked against the previous kernels).
-#: Falls back to numba's default pipeline on a numba whose internal compiler API differs.
-NoAliasCompiler = _no_alias_compiler()
+#: ``numba.njit`` options of the kernels whose array arguments never share memory (``run_exact``,
+#: ``evaluate``: tables, scratch, loads and outputs are distinct allocations): numba's nopython
+#: pipeline with LLVM ``noalias`` on every pointer argument (numba's internal ``noalias`` flag, the
+#: one its parfor lowering sets; :func:`_no_alias_compiler`). LLVM then drops the run-time overlap
+#: checks in front of every vectorisable loop (executed per call, and on these short loops often as
+#: long as the loop). The arithmetic is unchanged: results are bit-identical (checked against the
+#: previous kernels). Empty (numba's default pipeline) on a numba whose internal compiler API differs.
+NO_ALIAS: dict = {} if (_pipeline := _no_alias_compiler()) is None else {"pipeline_class": _pipeline}
 
 
 #: 1/k! for the e^x series of expmul
