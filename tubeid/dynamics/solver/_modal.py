@@ -233,13 +233,11 @@ def set_load_rows(x, nx, m, fs, f1, t):
     For rows written as whole rows just before (a load after narrower stores of the same bytes
     stalls: ``set_load`` there)."""
     m8 = fs.shape[0]
-    if nx + m + m8 <= x.shape[0]:
-        for l in range(m8):
-            x[nx + l] = fs[l] + f1[l] * t
-        for l in range(m8):
-            x[nx + m + l] = f1[l]
-    else:
-        for l in range(m):
-            x[nx + l] = fs[l] + f1[l] * t
-            x[nx + m + l] = f1[l]
+    if nx + m + m8 > x.shape[0]:
+        set_load(x, nx, m, fs, f1, t)
+        return
+    for l in range(m8):
+        x[nx + l] = fs[l] + f1[l] * t
+    for l in range(m8):
+        x[nx + m + l] = f1[l]
     x[nx + 2 * m] = 1.0
