@@ -25,7 +25,7 @@ from tubeid.runner.testing import flags, store_digest, write_study
 pytestmark = [pytest.mark.distributed, pytest.mark.timeout(180)]
 
 RUNNER = [sys.executable, "-m", "tubeid.runner.cli", "run"]
-# 2 deltas x 24 realisations in blocks of 2: 24 tasks of ~0.1-0.2 s each on one core
+# 2 deltas x 24 realisations in blocks of 2: 24 tasks of ~10-40 ms of compute each on one core
 SIZE = dict(realisations=24, chunk=2, work=3000)
 # the tests that interrupt a run (a kill, Ctrl-C) sleep this long in every block (values unchanged):
 # the compute alone can finish the 22 blocks left after the kill point before the signal lands
