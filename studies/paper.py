@@ -46,8 +46,8 @@ import json
 import numpy as np
 
 from tubeid.dynamics import warmup
-from tubeid.dynamics.response import ResponseSettings, simulate_responses
-from tubeid.dynamics.spectra import j_s
+from tubeid.dynamics.response import ResponseSettings, realisation_streams, simulate_responses
+from tubeid.dynamics.spectra import j_s, log_level
 from tubeid.errors import SpecificationError
 from tubeid.identification.delta import default_delta_grid, reference_j
 from tubeid.identification.likelihood import likelihood_curve
@@ -138,11 +138,24 @@ def _frequencies(size):
     return f[f <= BAND]
 
 
-def _psd_block(model, load, block, rng, *, size, dispersion, load_dispersion=0.0, axis="realisation"):
+def _streams(rng, axis, reals, repeat):
+    """The base generators of the block's realisations and, for a repeat, the structure's.
+
+    A repeat is a second record of the same structure: B's germs from the first record's stream 0
+    (``realisation_streams``), the load spectrum and history from the independent stream "repeat".
+    """
+    if not repeat:
+        return [rng.at({axis: r}) for r in reals], None
+    return ([rng.at({axis: r}, "repeat") for r in reals],
+            [realisation_streams(None, r, rng.at({axis: r}))[0] for r in reals])
+
+
+def _psd_block(model, load, block, rng, *, size, dispersion, load_dispersion=0.0, axis="realisation", repeat=False):
     """P_obs auto-PSD (first sensor) of one realisation per coordinate of ``axis`` in the block."""
     reals = [int(r) for r in block[axis]]
-    rngs = [rng.at({axis: r}) for r in reals]
-    ds = simulate_responses(model, load, reals, rngs=rngs, dispersion=dispersion, load_dispersion=load_dispersion, settings=_settings(size))
+    rngs, system = _streams(rng, axis, reals, repeat)
+    ds = simulate_responses(model, load, reals, rngs=rngs, dispersion=dispersion, load_dispersion=load_dispersion,
+                            settings=_settings(size), system_rngs=system)
     return ds.psd.real.sel(frequency=ds.frequency <= BAND).values[..., 0, 0]  # one sensor: P_obs
 
 
@@ -211,20 +224,24 @@ def _experiment_load(experiment):
     return coherent_forces() if experiment == "reference" else force_and_moment(TRUTH["r1"], TRUTH["r2"], x=8.0, band=BAND)
 
 
-def _experiment_psd(block, rng, *, size, experiment, simplified, axis):
+def _experiment_psd(block, rng, *, size, experiment, simplified, axis, repeat=False):
     """PSDs of the experiment's generator: the reference model, or the synthetic truth."""
     load = _experiment_load(experiment)
     if experiment == "reference":
         return _psd_block(REFERENCE, load, block, rng, size=size, dispersion=Dispersion(), axis=axis)
     return _psd_block(_model(simplified), load, block, rng, size=size, dispersion=Dispersion(stiffness=TRUTH["delta"]),
-                      load_dispersion=TRUTH["delta_F"], axis=axis)
+                      load_dispersion=TRUTH["delta_F"], axis=axis, repeat=repeat)
 
 
 def reference_block(block, rng, *, size, experiment, simplified):
     ref = _experiment_psd(block, rng, size=size, experiment=experiment, simplified=simplified, axis="experiment")
     mean = _psd_block(_model(simplified), _experiment_load(experiment), block, rng, size=size, dispersion=Dispersion(),
                       axis="experiment")
-    return {"psd_reference": ref, "psd_mean": mean}
+    out = {"psd_reference": ref, "psd_mean": mean}
+    if experiment == "synthetic":  # a second record of each record's structure: δ_F from the pairs
+        out["psd_repeat"] = _experiment_psd(block, rng, size=size, experiment=experiment, simplified=simplified,
+                                            axis="experiment", repeat=True)
+    return out
 
 
 def summarize_reference(ds):
@@ -253,6 +270,9 @@ def reference(results, *, size, experiment, simplified):
         outputs={
             "psd_reference": Output(dims=("frequency",), units="m^2/Hz", long_name="PSD at P_obs, reference model (two-sided)"),
             "psd_mean": Output(dims=("frequency",), units="m^2/Hz", long_name="PSD at P_obs, mean simplified model (two-sided)"),
+            **({"psd_repeat": Output(dims=("frequency",), units="m^2/Hz",
+                                     long_name="PSD at P_obs, a second record of the same structure under an "
+                                               "independent load (two-sided)")} if experiment == "synthetic" else {}),
         },
         units={"frequency": "Hz"},
         parameters={"size": size, "experiment": experiment, "simplified": simplified},
@@ -375,19 +395,30 @@ def load_r_fine(results, *, size, delta, distance, simplified):
 
 
 # -- stage 5: δ_F -----------------------------------------------------------------------------------
-def delta_f_block(block, rng, *, size, delta, r1, r2, J_s_exp, simplified, distance, r_identification):
-    """J_s per (δ_F, realisation); ``distance`` and ``r_identification`` are provenance (what r is)."""
+def delta_f_block(block, rng, *, size, delta, r1, r2, J_s_exp, simplified, distance, r_identification,
+                  level_difference_exp=None):
+    """J_s per (δ_F, realisation) and, when the experiment has repeated records (``level_difference_exp``
+    given), the log-level difference of two records of one structure (``_streams``); ``distance`` and
+    ``r_identification`` are provenance (what r is)."""
     load = force_and_moment(r1, r2, x=8.0, band=BAND)
     st = _settings(size)
-    out = np.empty((len(block["delta_F"]), len(block["realisation"])))
+    reals = [int(r) for r in block["realisation"]]
+    pairs = level_difference_exp is not None
+    out = {"J_s": np.empty((len(block["delta_F"]), len(reals)))}
+    if pairs:
+        out["level_difference"] = np.empty_like(out["J_s"])
     for i, dF in enumerate(block["delta_F"]):
-        reals = [int(r) for r in block["realisation"]]
-        ds = simulate_responses(_model(simplified), load, reals, rngs=[rng.at({"realisation": r}) for r in reals],
-                                dispersion=Dispersion(stiffness=delta), load_dispersion=float(dF), settings=st)
-        sel = ds.frequency.values <= BAND  # the stored grid of the other stages: J_s over the same bins
-        f = ds.frequency.values[sel]
-        out[i] = [j_s(f, ds.psd.values[k][sel], band=f[-1]) for k in range(len(reals))]
-    return {"J_s": out}
+        def p_obs(repeat):
+            rngs, system = _streams(rng, "realisation", reals, repeat)
+            ds = simulate_responses(_model(simplified), load, reals, rngs=rngs, dispersion=Dispersion(stiffness=delta),
+                                    load_dispersion=float(dF), settings=st, system_rngs=system)
+            sel = ds.frequency.values <= BAND  # the stored grid of the other stages: the same bins
+            return ds.frequency.values[sel], ds.psd.values[:, sel, :1, :1]  # P_obs, like the experiment's
+        f, P = p_obs(False)
+        out["J_s"][i] = [j_s(f, P[k], band=f[-1]) for k in range(len(reals))]
+        if pairs:
+            out["level_difference"][i] = log_level(f, P.real, BAND) - log_level(f, p_obs(True)[1].real, BAND)
+    return out
 
 
 def summarize_delta_f(ds):
@@ -395,9 +426,17 @@ def summarize_delta_f(ds):
     j_exp = params["J_s_exp"]
     lik = likelihood_curve(ds.J_s, j_exp, ds.delta_F.values, "delta_F", n_bootstrap=200, rng=1)
     a = lik.attrs
-    return {"J_s_exp": j_exp[0] if len(j_exp) == 1 else j_exp, "delta_F_opt": a["argmax"], "delta_F_opt_std": a["argmax_std"],
-            "delta_F_opt_at_grid_edge": bool(a["argmax_at_boundary"]), "delta_F_likelihood_flat": bool(a["flat"]),
-            "r_opt": [params["r1"], params["r2"]], "r_distance": params["distance"]}
+    out = {"J_s_exp": j_exp[0] if len(j_exp) == 1 else j_exp, "delta_F_opt": a["argmax"], "delta_F_opt_std": a["argmax_std"],
+           "delta_F_opt_at_grid_edge": bool(a["argmax_at_boundary"]), "delta_F_likelihood_flat": bool(a["flat"]),
+           "r_opt": [params["r1"], params["r2"]], "r_distance": params["distance"]}
+    d_exp = params.get("level_difference_exp")
+    if d_exp is not None:
+        a = likelihood_curve(ds.level_difference, d_exp, ds.delta_F.values, "delta_F", n_bootstrap=200, rng=1).attrs
+        out.update(level_difference_exp=d_exp, delta_F_pairs_opt=a["argmax"], delta_F_pairs_opt_std=a["argmax_std"],
+                   delta_F_pairs_opt_at_grid_edge=bool(a["argmax_at_boundary"]),
+                   delta_F_pairs_likelihood_flat=bool(a["flat"]),
+                   delta_F_pairs_lr_interval=[a["lr_interval_low"], a["lr_interval_high"]])
+    return out
 
 
 def r_identification(results):
@@ -428,6 +467,12 @@ def load_delta_f(results, *, size, delta, distance, simplified):
     ref = results["reference"]
     f = ref.frequency.values
     j_exp = [float(j_s(f, rec[:, None, None], band=f[-1])) for rec in ref.psd_reference.values]  # one per record
+    extra, outputs = {}, {}
+    if "psd_repeat" in ref:  # records in pairs of one structure: the log-level difference of each pair
+        extra["level_difference_exp"] = [float(log_level(f, a, BAND) - log_level(f, b, BAND))
+                                         for a, b in zip(ref.psd_reference.values, ref.psd_repeat.values)]
+        outputs["level_difference"] = Output(units="1", long_name="log level of a record minus that of a second record "
+                                                                  "of the same structure (tubeid.dynamics.log_level)")
     d = _delta_for(results, delta, simplified)
     s = SIZES[size]
     return Study(
@@ -438,10 +483,11 @@ def load_delta_f(results, *, size, delta, distance, simplified):
         chunks={"delta_F": 1, "realisation": 4},
         seed_axes=("realisation",),
         task=delta_f_block,
-        outputs={"J_s": Output(units="(m^2/Hz)^2 rad/s", long_name="J_s = integral of ||S_Z(w)||_F^2 over the band")},
+        outputs={"J_s": Output(units="(m^2/Hz)^2 rad/s", long_name="J_s = integral of ||S_Z(w)||_F^2 over the band"),
+                 **outputs},
         units={"delta_F": "1"},
         parameters={"size": size, "delta": d, "r1": r1, "r2": r2, "J_s_exp": j_exp, "simplified": simplified,
-                    "distance": distance, "r_identification": json.dumps(ident, sort_keys=True)},
+                    "distance": distance, "r_identification": json.dumps(ident, sort_keys=True), **extra},
         model=spec_to_dict(_model(simplified).spec),
         summarize=summarize_delta_f,
     )

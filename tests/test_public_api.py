@@ -29,7 +29,7 @@ PINNED = {
     "tubeid.dynamics": [
         "Stop", "TransientResult", "simulate", "highest_frequency", "choose_step",
         "ResponseSettings", "simulate_responses",
-        "psd_matrix", "psd_dataset", "variance_from_psd", "confidence_band", "j_s", "distance",
+        "psd_matrix", "psd_dataset", "variance_from_psd", "confidence_band", "j_s", "distance", "log_level",
     ],
     "tubeid.identification": [
         "identify_delta", "reference_j", "likelihood_curve", "kde_pdf", "silverman_bandwidth",

@@ -5,7 +5,7 @@ import pytest
 import scipy.signal
 import xarray as xr
 
-from tubeid.dynamics.spectra import confidence_band, distance, j_s, psd_dataset, psd_matrix, variance_from_psd
+from tubeid.dynamics.spectra import confidence_band, distance, j_s, log_level, psd_dataset, psd_matrix, variance_from_psd
 from tubeid.errors import SpecificationError
 from tubeid.seeds import rng_for
 
@@ -189,6 +189,38 @@ def test_j_s_and_distance_closed_forms():
         j_s(f, S, -1.0)
     with pytest.raises(SpecificationError):
         distance(f, S, S[:10], band)
+
+
+def test_log_level_closed_forms():
+    """Mean over 5 Hz bands and sensors of log(Σ S Δf): white S0 gives log(5 S0) exactly; a PSD
+    rising as f gives the mean of log(∫ band) (rectangle sums on the grid, computed here by hand);
+    a factor c on the PSD moves the level by log c; only the auto-spectra count."""
+    f = np.arange(0.0, 150.0 + 1e-9, 0.125)
+    S0 = 3e-12
+    assert log_level(f, np.full(f.size, S0)) == pytest.approx(np.log(5.0 * S0), rel=1e-14, abs=0)
+    ramp = 1e-12 * (1.0 + f)
+    by_hand = np.mean([np.log(ramp[(f > a) & (f <= a + 5.0)].sum() * 0.125) for a in range(0, 100, 5)])
+    assert log_level(f, ramp) == pytest.approx(by_hand, rel=1e-14, abs=0)
+    S = np.zeros((f.size, 2, 2), dtype=complex)
+    S[:, 0, 0], S[:, 1, 1], S[:, 0, 1] = S0, ramp, 5e-12j  # the cross-spectrum is ignored
+    both = (np.log(5.0 * S0) + by_hand) / 2
+    assert log_level(f, S) == pytest.approx(both, rel=1e-14, abs=0)
+    assert log_level(f, 7.0 * S) - log_level(f, S) == pytest.approx(np.log(7.0), rel=1e-12, abs=0)
+    np.testing.assert_allclose(log_level(f, np.stack([S, 2 * S])), [both, both + np.log(2.0)], rtol=1e-14)
+    assert log_level(f, np.full(f.size, S0), band=50.0, band_width=10.0) == pytest.approx(np.log(10.0 * S0), rel=1e-14, abs=0)
+    # a grid ending within one bin below the band (a Welch grid of 99.9 Hz): the last band ends there
+    g = np.arange(0.0, 99.95, 0.1)
+    assert log_level(g, np.full(g.size, S0)) == pytest.approx(np.log(5.0 * S0), rel=0.03, abs=0)
+    for kw, field in ((dict(band=200.0), "band"), (dict(band_width=7.0), "band_width"),
+                      (dict(band_width=0.01), "band_width")):
+        with pytest.raises(SpecificationError, match=field):
+            log_level(f, np.full(f.size, S0), **kw)
+    hole = np.full(f.size, S0)
+    hole[(f > 20) & (f <= 25)] = 0.0
+    with pytest.raises(SpecificationError, match="without energy"):
+        log_level(f, hole)
+    with pytest.raises(SpecificationError, match="uniform grid from 0"):
+        log_level(f[1:], np.full(f.size - 1, S0))
 
 
 def test_refusals():

@@ -16,7 +16,9 @@ The store is the Zarr store of ``studies/paper.py``, one group per stage (each o
 * ``load_r``, ``load_r_fine``: ``psd`` (r1, r2, realisation, …) on the coarse and the fine trial grid.
 * ``load_delta_f``: ``J_s`` (delta_F, realisation), attribute ``J_s_exp``; its ``parameters`` hold
   the r passed downstream (``r1``, ``r2``, ``distance``) and r_opt of every distance
-  (``r_identification``, JSON).
+  (``r_identification``, JSON). When the experiment has record pairs of one structure (the
+  synthetic one), also ``level_difference`` (delta_F, realisation) and ``level_difference_exp``:
+  δ_F from the pairs (``delta_f_pairs_likelihood.png``, beyond the paper).
 
 The report reads what the study stored and passed downstream (δ used, r_opt per distance, δ_opt,
 δ_F,opt); it recomputes, with the same functions (``tubeid.identification``), only the bootstrap
@@ -27,7 +29,8 @@ them as NaN) are left out and counted; a missing stage is reported, not fatal.
 Writes into DIR (default: ``<store>-report`` beside the store), through ``tubeid._outputs.OutputDir``
 (a file there that tubeid did not write, e.g. the user's own ``summary.md``, is never overwritten:
 the report is refused before anything is written): fig4_mean_model.png, fig5_delta_likelihood.png,
-fig6_confidence_region.png, d_map.png, delta_f_likelihood.png, summary.md and summary.json. Outputs
+fig6_confidence_region.png, d_map.png, delta_f_likelihood.png (and delta_f_pairs_likelihood.png),
+summary.md and summary.json. Outputs
 of an earlier report in DIR that this run does not produce are removed (only if unchanged).
 
 Definitions used in the summary:
@@ -71,15 +74,21 @@ PAPER_VALUES = {"delta_opt": 0.45, "r1_opt": 18.0, "r2_opt": 20.0, "delta_F_opt"
 #: The analysis sections of the report (each reads one or more groups of the store).
 STAGES = ("delta", "response", "load_r", "load_delta_f")
 FIGURES = ("fig4_mean_model.png", "fig5_delta_likelihood.png", "fig6_confidence_region.png", "d_map.png",
-           "delta_f_likelihood.png")
+           "delta_f_likelihood.png", "delta_f_pairs_likelihood.png")
 #: Every file the report may write.
 OUTPUTS = FIGURES + ("summary.md", "summary.json")
 #: Frequency bands of the coverage, (lo, hi] Hz.
 COVERAGE_BANDS = {"0-100": (0.0, 100.0), "0-35": (0.0, 35.0), "35-100": (35.0, 100.0)}
 J_UNITS_DEFAULT = "m^2 rad/(N^2 s)"
-_UNITS = {"delta_opt": "1", "r1_opt": "N^2/Hz", "r2_opt": "(N m)^2/Hz", "delta_F_opt": "1"}
+_UNITS = {"delta_opt": "1", "r1_opt": "N^2/Hz", "r2_opt": "(N m)^2/Hz", "delta_F_opt": "1", "delta_F_pairs_opt": "1"}
 _LABELS = {"delta_opt": "δ_opt (dispersion of K_B)", "r1_opt": "r1,opt (force T)", "r2_opt": "r2,opt (moment M)",
-           "delta_F_opt": "δ_F,opt (load dispersion)"}
+           "delta_F_opt": "δ_F,opt (load dispersion)",
+           "delta_F_pairs_opt": "δ_F,opt from record pairs (beyond the paper)"}
+#: Quantities compared with another quantity's target: δ_F identified a second way.
+_TARGET_OF = {"delta_F_pairs_opt": "delta_F_opt"}
+#: The identified quantities in the order of the tables (the last only when the store has it).
+_KEYS = ("delta_opt", "r1_opt", "r2_opt", "delta_F_opt", "delta_F_pairs_opt")
+_OPTIONAL = ("delta_F_pairs_opt",)
 _SENSOR_DIMS = ("sensor", "sensor_")
 _LEVEL = 0.95
 
@@ -475,8 +484,43 @@ def _stage_load_delta_f(store, out, n_bootstrap, seed, written, notes, targets) 
                        "load dispersion δ_F (dimensionless)",
                        f"Likelihood of δ_F, {Js.sizes['realisation']} realisations per δ_F",
                        out, "delta_f_likelihood.png", written)
-    return {"quantities": {"delta_F_opt": q}, "details": {"J_s_exp": js_exp, "J_s_exp_source": source,
-                                                           "J_s_units": units}}
+    result = {"quantities": {"delta_F_opt": q}, "details": {"J_s_exp": js_exp, "J_s_exp_source": source,
+                                                             "J_s_units": units}}
+    if "level_difference" in ds:
+        _pairs_delta_f(ds, out, n_bootstrap, seed, written, notes, targets, result)
+    return result
+
+
+def _pairs_delta_f(ds, out, n_bootstrap, seed, written, notes, targets, result) -> None:
+    """δ_F from the log-level differences of record pairs of one structure (``level_difference``)."""
+    d_exp = _attr(ds, "level_difference", "level_difference_exp")
+    if d_exp is None:
+        notes.append("load_delta_f.level_difference is stored without its observations (attribute "
+                     "level_difference_exp): δ_F from record pairs is not computed")
+        return
+    L = _variable(ds, "load_delta_f", "level_difference")
+    if set(L.dims) != {"delta_F", "realisation"}:
+        notes.append(f"load_delta_f.level_difference has dims {tuple(L.dims)}, not (delta_F, realisation): "
+                     "δ_F from record pairs is not computed")
+        return
+    L = _complete(L.transpose("delta_F", "realisation"), "realisation", "load_delta_f.level_difference", notes, 5)
+    try:
+        lk = delta_f_likelihood(L, d_exp, n_bootstrap=n_bootstrap, rng=rng_for(seed, "report", "load_delta_f", "pairs"),
+                                units="1", observable="level_difference")
+    except SpecificationError as exc:
+        notes.append(f"δ_F from record pairs could not be computed: {exc}")
+        return
+    n_pairs = len(d_exp) if isinstance(d_exp, (list, tuple)) else 1
+    q = _likelihood_quantity(lk.attrs, int(L.sizes["realisation"]), lk["delta_F"].values, ds.attrs.get("delta_F_pairs_opt"),
+                             "δ_F,opt from record pairs", notes)
+    target, label = targets
+    _likelihood_figure(lk, "delta_F", q, "δ_F,opt", target["delta_F_opt"], label, lk.attrs["delta_F_max"],
+                       "load dispersion δ_F (dimensionless)",
+                       f"δ_F from {n_pairs} record pairs (log-level differences), {L.sizes['realisation']} per δ_F",
+                       out, "delta_f_pairs_likelihood.png", written)
+    result["quantities"]["delta_F_pairs_opt"] = q
+    result["details"]["n_record_pairs"] = n_pairs
+    result["details"]["level_difference_exp_std"] = float(np.std(d_exp, ddof=1)) if n_pairs > 1 else None
 
 
 # ---------------------------------------------------------------------- responses (Figures 4 and 6)
@@ -798,13 +842,16 @@ def _markdown(summary: dict) -> str:
               "passed downstream.", "",
               f"| quantity | identified | ± MC std | 95 % interval | {summary['target_label']} | units | verdict |",
               "|---|---|---|---|---|---|---|"]
-    for key in ("delta_opt", "r1_opt", "r2_opt", "delta_F_opt"):
+    for key in _KEYS:
         q = summary["quantities"].get(key)
+        if q is None and key in _OPTIONAL:
+            continue
         if q is None:
             lines.append(f"| {_LABELS[key]} | missing | | | {summary['target_values'][key]:g} | {_UNITS[key]} | stage not available |")
             continue
         lines.append(f"| {_LABELS[key]} | {_fmt(q['value'], 4)} | {_fmt(q['std'], 2)} | "
-                     f"[{_fmt(q['low'])}, {_fmt(q['high'])}] | {summary['target_values'][key]:g} | {_UNITS[key]} | {q['verdict']} |")
+                     f"[{_fmt(q['low'])}, {_fmt(q['high'])}] | {summary['target_values'][_TARGET_OF.get(key, key)]:g} | "
+                     f"{_UNITS[key]} | {q['verdict']} |")
     lines.append("")
     det = summary["details"]
     lines += ["## Figure 6: coverage of the reference", ""]
@@ -863,6 +910,11 @@ def _markdown(summary: dict) -> str:
     if "load_delta_f" in det:
         lines.append(f"- J_s,exp = {_fmt(det['load_delta_f']['J_s_exp'], 6)} {det['load_delta_f']['J_s_units']} "
                      f"({det['load_delta_f']['J_s_exp_source']}).")
+        if det["load_delta_f"].get("n_record_pairs"):
+            lines.append(f"- δ_F from record pairs (beyond the paper): {det['load_delta_f']['n_record_pairs']} pairs of "
+                         "records of one structure each; the observable is the difference of their log levels (mean "
+                         "over 5 Hz bands of the log band energy at P_obs), whose spread the random B barely reaches "
+                         f"(observed standard deviation {_fmt(det['load_delta_f'].get('level_difference_exp_std'))}).")
     lines.append("")
     if summary["missing"]:
         lines += ["## Missing or incomplete stages", ""] + [f"- {m}" for m in summary["missing"]] + [""]
@@ -939,11 +991,12 @@ def make_report(store, out=None, *, n_bootstrap: int = 200, seed: int = 2008, se
         corr = details["load_r"]["r_opt_corr"][0][1]
     target_values, label = targets
     for key, q in quantities.items():
-        if key in PAPER_VALUES:
-            q["paper"] = PAPER_VALUES[key]
-            q[label] = target_values[key]
+        base = _TARGET_OF.get(key, key)
+        if base in PAPER_VALUES:
+            q["paper"] = PAPER_VALUES[base]
+            q[label] = target_values[base]
             q["units"] = _UNITS[key]
-            q["verdict"] = _verdict(key, q, target_values, label, corr)
+            q["verdict"] = _verdict(base, q, target_values, label, corr)
     resp = details.get("response", {})
     dq = quantities.get("delta_opt")
     summary = _jsonable({
@@ -969,12 +1022,12 @@ def _run(args) -> int:
     print(f"report written to {out}: {', '.join(s['figures'] + ['summary.md', 'summary.json'])}")
     if s["run"].get("quick"):
         print("  quick run: sizes for a look at the pipeline, not a result")
-    for key in ("delta_opt", "r1_opt", "r2_opt", "delta_F_opt"):
+    for key in _KEYS:
         q = s["quantities"].get(key)
         if q is not None:
             flag = " [flat]" if q.get("flat") else " [grid edge]" if q.get("at_grid_edge") else ""
             print(f"  {key:12s} {_fmt(q['value'], 4):>10s} ± {_fmt(q['std'], 2):<8s} ({s['target_label']} "
-                  f"{s['target_values'][key]:g}){flag}")
+                  f"{s['target_values'][_TARGET_OF.get(key, key)]:g}){flag}")
     cov = s.get("reference_coverage")
     if cov:
         print(f"  coverage of the reference, 0-100 Hz: {_pct(cov['0-100'])} "

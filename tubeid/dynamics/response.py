@@ -121,6 +121,7 @@ def simulate_responses(
     dispersion: Dispersion = Dispersion(),
     load_dispersion: float = 0.0,
     settings: ResponseSettings = ResponseSettings(),
+    system_rngs: Sequence[np.random.Generator] | None = None,
 ) -> xr.Dataset:
     """Monte Carlo responses of the stochastic non-linear model at its sensors (module docstring).
 
@@ -142,6 +143,10 @@ def simulate_responses(
         δ_F of the random load spectrum (0: the mean spectrum).
     settings : ResponseSettings
         Time and spectral settings.
+    system_rngs : sequence of numpy.random.Generator, optional
+        One generator per realisation for B's germs instead of the realisation's stream 0: give
+        generators in the same state to realisations that must share one structure (several
+        records of one system under independent loads). Consumed.
 
     Returns
     -------
@@ -157,7 +162,10 @@ def simulate_responses(
     streams = [realisation_streams(seed, r, None if rngs is None else rngs[i]) for i, r in enumerate(realisations)]
     sub = model.subsystem
     dispersion.check(sub.n)
-    germs = germs_from_rngs(sub.n, [s[0] for s in streams])
+    if system_rngs is not None and len(system_rngs) != len(realisations):
+        raise SpecificationError("system_rngs", f"{len(system_rngs)} generators",
+                                 f"must hold one generator per realisation ({len(realisations)})")
+    germs = germs_from_rngs(sub.n, [s[0] for s in streams] if system_rngs is None else system_rngs)
     if dispersion.is_deterministic:  # one model for every realisation: the solver builds its tables once
         M, D, K = model.mean_matrices
     else:

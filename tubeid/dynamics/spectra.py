@@ -18,10 +18,16 @@ Functionals (ω in rad/s, dω = 2π df):
 over B: ω ∈ 2π [-band, band], both signs counted (||S(-f)||_F = ||S(f)||_F, so the integral is
 2 * 2π * int_0^band ||S(f)||_F^2 df, trapezoid rule in f). If S is in m^2/Hz, J_s and D are in
 (m^2/Hz)^2 rad/s.
+
+The *log level* of a record (:func:`log_level`) is the mean, over the bands (a, a + w] that tile
+(0, band] and over the sensors, of the natural log of the band energy Σ_{f in band} S_aa(f) Δf
+[m²]: a scale factor c on the PSD moves it by exactly log c, and it averages the estimation noise of
+many bands (J_s, dominated by a few resonance bins, does not).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -32,7 +38,8 @@ from numpy.typing import ArrayLike
 
 from tubeid.errors import SpecificationError
 
-__all__ = ["psd_matrix", "psd_dataset", "variance_from_psd", "confidence_band", "j_s", "distance"]
+__all__ = ["psd_matrix", "psd_dataset", "variance_from_psd", "confidence_band", "j_s", "distance", "log_level",
+           "log_band_energies"]
 
 _DETRENDS = (False, "constant", "linear")
 
@@ -382,6 +389,65 @@ def j_s(f: ArrayLike, S: ArrayLike, band: float = 100.0) -> np.ndarray:
         fi = np.append(fi, band)
         vals = np.concatenate([vals, edge[..., None]], axis=-1)
     return 2.0 * 2.0 * np.pi * np.trapezoid(vals, fi, axis=-1)
+
+
+def log_band_energies(P: np.ndarray, f: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """log of Σ_{f in (a, b]} S(f) Δf per band and auto-spectrum: P (..., F, m, m) → (..., B·m).
+
+    ``f`` is the uniform grid of P (Δf = f[1] − f[0]), ``edges`` the B + 1 band edges [Hz]; a band
+    without energy gives −inf (the caller refuses it, naming its own field).
+    """
+    auto = np.real(np.diagonal(P, axis1=-2, axis2=-1))  # (..., F, m)
+    df = float(f[1] - f[0])
+    cols = [auto[..., (f > a) & (f <= b), :].sum(axis=-2) * df for a, b in zip(edges[:-1], edges[1:])]
+    e = np.stack(cols, axis=-2)  # (..., B, m)
+    with np.errstate(divide="ignore"):
+        return np.log(e.reshape(e.shape[:-2] + (-1,)))
+
+
+def log_level(f: ArrayLike, S: ArrayLike, band: float = 100.0, band_width: float = 5.0) -> np.ndarray:
+    """The log level of a response: mean over bands and sensors of the log band energy (module docstring).
+
+    Parameters
+    ----------
+    f : array_like
+        (F,) uniform grid in Hz from 0 (the f >= 0 half of a two-sided PSD), reaching ``band`` to
+        within one bin (the last band then ends at the last bin).
+    S : array_like
+        (..., F, m, m) two-sided PSD matrix per Hz (its auto-spectra are used), or (..., F) scalar.
+    band : float
+        Upper end of the bands [Hz]; the bands (a, a + band_width] tile (0, band].
+    band_width : float
+        Width of each band [Hz]: at least the bin width, dividing ``band`` into whole bands.
+
+    Returns
+    -------
+    numpy.ndarray
+        Shape (...): natural log of band energies in [S]·Hz (e.g. m²), averaged.
+    """
+    S = np.asarray(S)
+    if S.ndim >= 1 and not (S.ndim >= 3 and S.shape[-1] == S.shape[-2] and S.shape[-3] == np.size(f)):
+        S = S[..., None, None]
+    if S.ndim < 3:
+        raise SpecificationError("S", S.shape, "must be (..., F, m, m) or (..., F)")
+    f = np.asarray(f, dtype=float)
+    if f.ndim != 1 or f.size != S.shape[-3]:
+        raise SpecificationError("S", S.shape, f"frequency axis (-3) must have len(f) = {f.size}")
+    if f.size < 2 or f[0] != 0 or not np.allclose(np.diff(f), f[1] - f[0], rtol=1e-9, atol=0):
+        raise SpecificationError("f", f"{f.size} bins from {f[0]:g} Hz", "must be a uniform grid from 0 Hz")
+    band = float(band)
+    if not (math.isfinite(band) and f[-1] >= band - (f[1] - f[0]) * (1 + 1e-9)):
+        raise SpecificationError("band", band, f"must lie within one bin above the grid's last frequency {f[-1]:g} Hz")
+    width = float(band_width)
+    n = band / width if width > 0 else math.inf
+    if not (math.isfinite(width) and width >= (f[1] - f[0]) * (1 - 1e-9)) or abs(n - round(n)) > 1e-9 * n:
+        raise SpecificationError("band_width", band_width, f"must be at least the bin width {f[1] - f[0]:g} Hz and "
+                                                           f"divide the band {band:g} Hz into whole bands")
+    L = log_band_energies(S, f, width * np.arange(int(round(n)) + 1))
+    if not np.all(np.isfinite(L)):
+        raise SpecificationError("S", "a band without energy", f"every {width:g} Hz band of (0, {band:g}] Hz must "
+                                                               "hold energy > 0 in every auto-spectrum")
+    return L.mean(axis=-1)
 
 
 def distance(f: ArrayLike, S_model: ArrayLike, S_exp: ArrayLike, band: float = 100.0) -> np.ndarray:

@@ -54,7 +54,7 @@ import numpy as np
 import xarray as xr
 from numpy.typing import ArrayLike
 
-from tubeid.dynamics.spectra import distance, j_s
+from tubeid.dynamics.spectra import distance, j_s, log_band_energies
 from tubeid._validation import integer, open_unit
 from tubeid.errors import Described as _Desc, SpecificationError
 from tubeid.identification.likelihood import likelihood_curve
@@ -608,17 +608,6 @@ def relative_weight(psd: xr.DataArray) -> xr.DataArray:
                                "long_name": "relative weight 1/sqrt(S_aa S_bb) of a reference PSD"})
 
 
-
-def _log_band_energies(P: np.ndarray, f: np.ndarray, edges: np.ndarray) -> np.ndarray:
-    """log of Σ_{f in (a, b]} S(f) Δf per band and auto-spectrum: P (..., F, m, m) → (..., B·m)."""
-    auto = np.real(np.diagonal(P, axis1=-2, axis2=-1))  # (..., F, m)
-    df = float(f[1] - f[0])
-    cols = [auto[..., (f > a) & (f <= b), :].sum(axis=-2) * df for a, b in zip(edges[:-1], edges[1:])]
-    e = np.stack(cols, axis=-2)  # (..., B, m)
-    with np.errstate(divide="ignore"):
-        return np.log(e.reshape(e.shape[:-2] + (-1,)))
-
-
 def log_band_distance_map(psd_model: xr.DataArray, psd_exp: xr.DataArray, band_hz: float = 100.0,
                           band_width_hz: float = 5.0, n_bootstrap: int = 200,
                           rng: np.random.Generator | int | None = None, *, dim: str = "realisation",
@@ -698,8 +687,8 @@ def log_band_distance_map(psd_model: xr.DataArray, psd_exp: xr.DataArray, band_h
         P, E = P[..., None, None], E[..., None, None]
     n_bands = int(math.floor(band / width + 1e-9))
     edges = width * np.arange(n_bands + 1)
-    Lm = _log_band_energies(P, fb, edges)  # (*grid, N, K)
-    Le = _log_band_energies(E, fb, edges)  # ([n_exp,] K)
+    Lm = log_band_energies(P, fb, edges)  # (*grid, N, K)
+    Le = log_band_energies(E, fb, edges)  # ([n_exp,] K)
     if not (np.all(np.isfinite(Lm)) and np.all(np.isfinite(Le))):
         raise SpecificationError("psd", _Desc("band energies"), f"every band of width {width:g} Hz must hold energy > 0 "
                                  "in every realisation and record (widen the bands or drop empty channels)")
@@ -898,8 +887,12 @@ def delta_f_likelihood(j_s_samples: xr.DataArray | ArrayLike, j_s_exp: float | A
                        grid: ArrayLike | None = None, *, n_bootstrap: int = 200,
                        rng: np.random.Generator | int | None = None,
                        confidence: float = 0.95, m: int = 2, grid_name: str = "delta_F",
-                       units: str = JS_UNITS) -> xr.Dataset:
+                       units: str = JS_UNITS, observable: str = "J_s") -> xr.Dataset:
     """δ_F ↦ p̂_Js(J_s,exp; δ_F) and δ_F,opt (paper Eq. 5) from Monte Carlo samples of J_s.
+
+    The same likelihood serves another scalar observable of the load's randomness (``observable``,
+    e.g. ``"level_difference"``: the log-level difference of two records of one structure, whose
+    spread the random B does not reach); its samples and observations then replace J_s's.
 
     ``j_s_samples``: (delta_F, realisation) values of J_s = ∫_B ‖S_Z(ω)‖²_F dω [``units``], a
     DataArray (its ``grid_name`` coordinate is the grid) or an array with ``grid`` given; common
@@ -929,7 +922,9 @@ def delta_f_likelihood(j_s_samples: xr.DataArray | ArrayLike, j_s_exp: float | A
     grid_name : str
         Name of the grid dimension.
     units : str
-        Units of J_s.
+        Units of J_s (of the observable).
+    observable : str
+        Name of the observable: the samples' variable and the ``<observable>_exp`` attribute.
 
     Returns
     -------
@@ -963,16 +958,16 @@ def delta_f_likelihood(j_s_samples: xr.DataArray | ArrayLike, j_s_exp: float | A
                                  f"must lie in the admissible set (0, {dmax:.4f}) of SG+ with m = {m}")
     ds = likelihood_curve(samples, j_s_exp, g, grid_name, n_bootstrap=n_bootstrap, rng=rng,
                           confidence=confidence)
-    ds["J_s"] = ((grid_name, "realisation"), np.asarray(samples, dtype=float),
-                 {"units": units, "long_name": "J_s = integral over B of ||S_Z(w)||_F^2 dw"})
-    ds.attrs.update(
-        delta_F_opt=ds.attrs["argmax"],
-        delta_F_opt_std=ds.attrs["argmax_std"],
-        delta_F_opt_low=ds.attrs["argmax_low"],
-        delta_F_opt_high=ds.attrs["argmax_high"],
-        J_s_exp=ds.attrs["x_ref"],
-        J_s_units=units,
-        delta_F_max=dmax,
-        m=m,
-    )
+    long_name = "J_s = integral over B of ||S_Z(w)||_F^2 dw" if observable == "J_s" else observable
+    ds[observable] = ((grid_name, "realisation"), np.asarray(samples, dtype=float), {"units": units, "long_name": long_name})
+    ds.attrs.update({
+        "delta_F_opt": ds.attrs["argmax"],
+        "delta_F_opt_std": ds.attrs["argmax_std"],
+        "delta_F_opt_low": ds.attrs["argmax_low"],
+        "delta_F_opt_high": ds.attrs["argmax_high"],
+        f"{observable}_exp": ds.attrs["x_ref"],
+        f"{observable}_units": units,
+        "delta_F_max": dmax,
+        "m": m,
+    })
     return ds
