@@ -25,7 +25,7 @@ import zarr
 
 from tubeid.cli import main
 from tubeid.diagnose import CATALOG, DiagnoseSettings, detection_test, diagnose
-from tubeid.diagnose._selection import Scored, choose, line_minimum, prediction_error
+from tubeid.diagnose._selection import Scored, choose, line_minimum, near_ties, prediction_error
 from tubeid.diagnose._detection import MODEL_FORMS, Observations
 from tubeid.diagnose._spectra import conditional_psd, measured_spectra, time_statistics
 from tubeid.diagnose._surrogate import LinearSurrogate
@@ -264,6 +264,55 @@ def test_the_choice_is_the_best_penalised_held_out_error_not_the_first_improveme
     assert choose([a, b, c], current=1.0, penalty=0.1).name == "stop"    # 0.617, the lowest
     assert choose([a, b], current=0.75, penalty=0.1) is None
     assert choose([Scored("tone", 1, 1.0, np.nan)], current=1.0, penalty=0.1) is None
+
+
+def test_near_ties_are_the_runner_ups_that_paid_within_the_margin_of_the_chosen_ratio():
+    """Ratios penalised / current: the chosen tone 0.793; the added mass 0.796 (0.4 % away: a near tie,
+    as measured on a record with both), damping 0.892 (12 % away: not at a 10 % margin, yes at 15 %),
+    sensor noise 1.055 (does not pay: never). Each candidate's ratio uses its own current error."""
+    c = [{"name": "tone", "penalised": 0.793, "current": 1.0}, {"name": "added_mass", "penalised": 1.592, "current": 2.0},
+         {"name": "damping", "penalised": 0.892, "current": 1.0}, {"name": "sensor_noise", "penalised": 1.055, "current": 1.0}]
+    assert near_ties(c, "tone", 0.10) == {"added_mass": (pytest.approx(0.796, rel=1e-12, abs=0), 0.793)}
+    assert set(near_ties(c, "tone", 0.15)) == {"added_mass", "damping"}
+    assert near_ties(c, "tone", 0.0) == {} and near_ties(c, "", 0.1) == {}
+    assert near_ties(c, "added_mass", 0.10) == {"tone": (0.793, pytest.approx(0.796, rel=1e-12, abs=0))}
+
+
+def test_a_near_tied_runner_up_is_offered_once_after_the_record_is_explained(monkeypatch):
+    """The bookkeeping of ``stages.runner_ups`` on stand-in stages: step 1 chose the tone with the added
+    mass near-tied; explained after step 1 → step 2 offers the mass alone, with the signature of step
+    1's screen. After step 2 (a continuation, itself with a near tie) nothing is offered again: each tie
+    is resolved once. Held effects and far runner-ups are never offered; no ties when ``tie`` = 0."""
+    import types
+
+    import xarray as xr
+
+    from tubeid.diagnose import stages
+
+    def band(detected, screen=None):
+        ds = xr.Dataset(attrs={"detected": detected})
+        if screen is not None:
+            ds.attrs["screen"] = json.dumps(screen)
+        return ds
+
+    sig = {n: {"estimate": {"n": n}, "score": 1.0} for n in ("tone", "added_mass", "damping")}
+    results = {"band": band(True, sig), "step1_trials": xr.Dataset(), "step1_band": band(False),
+               "step2_trials": xr.Dataset(), "step2_band": band(False)}
+    sel = {1: {"chosen": "tone", "candidates": [{"name": "tone", "penalised": 0.793, "current": 1.0},
+                                                {"name": "added_mass", "penalised": 0.80, "current": 1.0},
+                                                {"name": "damping", "penalised": 0.95, "current": 1.0}]},
+           2: {"chosen": "added_mass", "candidates": [{"name": "added_mass", "penalised": 0.5, "current": 1.0},
+                                                       {"name": "damping", "penalised": 0.51, "current": 1.0}]}}
+    monkeypatch.setattr(stages, "selection", lambda ctx, res, j: sel[j])
+    ctx = types.SimpleNamespace(settings=DiagnoseSettings())
+    up = stages.runner_ups(ctx, results, 2, {"tone"})
+    assert list(up) == ["added_mass"] and up["added_mass"]["signature"] == sig["added_mass"]
+    assert up["added_mass"]["step"] == 1 and up["added_mass"]["chosen"] == "tone"
+    assert stages.runner_ups(ctx, results, 2, {"tone", "added_mass"}) == {}
+    assert stages.runner_ups(ctx, results, 3, {"tone", "added_mass"}) == {}  # step 2 was the continuation
+    assert stages.runner_ups(types.SimpleNamespace(settings=DiagnoseSettings(tie=0.0)), results, 2, {"tone"}) == {}
+    with pytest.raises(SpecificationError, match="settings.tie"):
+        DiagnoseSettings(tie=-0.1)
 
 
 def test_candidates_judged_on_their_own_features_are_compared_relative_to_the_current_model():

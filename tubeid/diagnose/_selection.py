@@ -20,6 +20,13 @@ first that improves. When every candidate is judged by the same error (the spect
 the lowest penalised error below the current one; when the declared model is simplified, each
 candidate is judged by its own feature's error and compared with the current model's in that
 feature (:mod:`tubeid.diagnose.stages`), so the ratio puts them on one scale.
+
+**Near ties** (:func:`near_ties`): a candidate that also pays its penalty, with a ratio within
+``tie`` (relative) of the chosen one's, was as good at that step. Forward selection must still pick
+one first, and fitting it can pull the record back inside the declared model's band (B's random
+stiffness), so the test stops the loop with the other one missing (measured: an added mass and a
+tone at 0.7–9 % of each other). The loop therefore offers each such runner-up once more, alone, at
+the first step the test calls the record explained; it is added only if it pays its penalty there.
 """
 
 from __future__ import annotations
@@ -30,7 +37,7 @@ import numpy as np
 
 from tubeid.diagnose._spectra import analysis_bins, log10
 
-__all__ = ["Scored", "level_offset", "prediction_error", "choose", "line_minimum", "keeps_moved_point"]
+__all__ = ["Scored", "level_offset", "prediction_error", "choose", "near_ties", "line_minimum", "keeps_moved_point"]
 
 
 @dataclass(frozen=True)
@@ -79,6 +86,21 @@ def choose(scored, current: float, penalty: float) -> Scored | None:
     if best is None or not best[0][0] < 1.0:
         return None
     return best[1]
+
+
+def near_ties(candidates, chosen: str, tie: float) -> dict[str, tuple[float, float]]:
+    """The runner-ups near-tied with ``chosen``: {name: (its ratio, the chosen one's)}.
+
+    ``candidates``: dicts with ``name``, ``penalised`` and ``current`` (one step's, as
+    :func:`tubeid.diagnose.stages.selection` lists them). A runner-up is near-tied when its ratio
+    penalised / current is below 1 and at most the chosen one's × (1 + ``tie``).
+    """
+    ratios = {c["name"]: c["penalised"] / c["current"] for c in candidates
+              if np.isfinite(c["penalised"]) and np.isfinite(c["current"]) and c["current"] > 0}
+    if not chosen or chosen not in ratios or tie <= 0:
+        return {}
+    top = ratios[chosen]
+    return {n: (r, top) for n, r in ratios.items() if n != chosen and r < 1.0 and r <= top * (1.0 + tie)}
 
 
 def line_minimum(values, errors, log: bool) -> float:

@@ -108,6 +108,12 @@ class DiagnoseSettings:
     penalty : float
         An effect with k parameters must bring the held-out error below the current one × (1 −
         penalty)^k.
+    tie : float
+        Near-tie margin (0: off). A candidate whose penalised ratio lies below 1 and within ``tie``
+        (relative) of the chosen one's at the same step was as good: the data cannot order the
+        two, and fitting the first can hide the second from the test. Such a runner-up, never
+        chosen, is fitted once more (alone) at the first step the test calls the record explained,
+        and added only if it pays its penalty there.
     discard : float
         Transient dropped from every simulated record [s].
     dt_load_max : float
@@ -146,6 +152,7 @@ class DiagnoseSettings:
     fit_realisations: int = 2
     grid_points: int = 4
     penalty: float = 0.05
+    tie: float = 0.1
     discard: float = 2.0
     dt_load_max: float = 1e-3
     seed: int = 0
@@ -193,6 +200,7 @@ class DiagnoseSettings:
             v.real(f + "load_dispersion", self.load_dispersion, low=0.0, high=1.0, high_open=True)
         v.real(f + "delta_f_fallback", self.delta_f_fallback, low=0.0, high=1.0, high_open=True)
         v.real(f + "penalty", self.penalty, low=0.0, high=1.0, high_open=True)
+        v.real(f + "tie", self.tie, low=0.0, high=1.0, high_open=True)
         v.non_negative(f + "discard", self.discard, "s")
         n_r = 2 if self.load == "force_and_moment" else 1
         if self.r0 is not None and (not isinstance(self.r0, tuple) or len(self.r0) != n_r

@@ -35,11 +35,15 @@ resumable); this module holds the context every stage reads and assembles the re
    fitting-block error is worse than the best point the lines evaluated — the moves overshoot when
    parameters trade off — that point is kept instead), and the augmented model's band is tested
    again. The loop stops when the test no longer detects anything (``explained``), when no
-   candidate pays its penalty, or after ``max_effects`` steps.
+   candidate pays its penalty, or after ``max_effects`` steps — except that a runner-up which also
+   paid its penalty within ``tie`` (10 %) of the chosen one's ratio at an earlier step, and was
+   never chosen, is first offered once more, alone (``stages.runner_ups``): the data could not order
+   the two, and the first one fitted can pull the record inside the band (B's random stiffness)
+   with the second one missing.
 
 ``report.json``: ``effect`` (the first effect's name, or ``none``), ``effects`` ([{name,
 parameters}]), ``detection`` (p-values before), ``steps`` (per step: the candidates' errors, the
-choice, the re-fitted effects and r, ``refit_check`` (the moved point's and the best evaluated point's fitting
+``continuation`` that offered them after an explained step (or null), the choice, the re-fitted effects and r, ``refit_check`` (the moved point's and the best evaluated point's fitting
 errors, ``fallback``), the held-out error and the test after), ``error_before``,
 ``error_after``, ``explained_before``/``explained_after``, ``load``, ``delta``, ``assumptions``.
 """

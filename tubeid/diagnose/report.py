@@ -68,6 +68,7 @@ def assemble(store, ctx):
         sel = st.selection(ctx, results, k)
         prev = st.state_before(ctx, results, k)
         step = {"step": k, "error_current": sel["current"], "chosen": sel["chosen"] or None,
+                "continuation": prev.get("continuation"),
                 "candidates": [{**c, "signature_score": prev["screen"][c["name"]]["score"],
                                 "signature_estimate": prev["screen"][c["name"]]["estimate"],
                                 "fitted": _describe(c["effect"])["parameters"]}
@@ -75,7 +76,9 @@ def assemble(store, ctx):
         for c in step["candidates"]:
             c.pop("effect"), c.pop("trial")
         if not sel["chosen"]:
-            stop_reason = f"no candidate pays its penalty at step {k}"
+            stop_reason = (f"no candidate pays its penalty at step {k}" if not prev.get("continuation") else
+                           f"explained after step {k - 1}; the near-tied runner-up(s) {sorted(prev['continuation'])} "
+                           f"did not pay their penalty at step {k}")
             steps.append(step)
             break
         rf, pt = st.refit_result(ctx, results, k), st.point_result(ctx, results, k)
@@ -90,7 +93,8 @@ def assemble(store, ctx):
         final = pt
         if not det_last["detected"]:
             stop_reason = f"explained after step {k}: the test no longer detects anything"
-            break
+            if k == st.MAX_EFFECTS or st.skipped(results[f"step{k + 1}_trials"]):
+                break  # else a near-tied runner-up is tried once more (the next step's continuation)
     else:
         stop_reason = f"max_effects = {s.max_effects} reached"
     effects = [] if final is None else [_describe(e) for e in final["effects"]]
@@ -132,11 +136,19 @@ def _selection_rule(s) -> str:
                 "fitted on the fitting blocks (the chosen effects held) to that statistic's feature and scored by its "
                 "held-out error relative to the current model's in the same feature; the lowest ratio x "
                 f"(1 - {s.penalty})^-k (k parameters) is added if it is below 1; then every chosen effect's parameters "
-                "are re-fitted jointly on their features (r held) and the augmented model is tested again")
+                "are re-fitted jointly on their features (r held) and the augmented model is tested again" + _tie_rule(s))
     return ("at each step every catalog effect not yet chosen is fitted on the fitting blocks (the chosen effects "
             "held, the level profiled) and scored by its held-out error; the lowest held-out error x "
             f"(1 - {s.penalty})^-k (k parameters) is added if it is below the current model's held-out error; then r "
-            "and every chosen effect's parameters are re-fitted jointly and the augmented model is tested again")
+            "and every chosen effect's parameters are re-fitted jointly and the augmented model is tested again"
+            + _tie_rule(s))
+
+
+def _tie_rule(s) -> str:
+    if s.tie <= 0:
+        return ""
+    return (f"; a runner-up that also paid its penalty within {s.tie:g} (relative) of the chosen one's ratio is "
+            "offered once more, alone, at the first step the test calls the record explained")
 
 
 def _load(ctx, results, r_before, r_after) -> dict:
@@ -238,6 +250,13 @@ def _delta_f_lines(load: dict) -> list[str]:
     return lines
 
 
+def _continuation_line(step: dict) -> str:
+    ties = "; ".join(f"`{n}` at step {v['step']} (ratio {v['ratio']:.4g} against `{v['chosen']}`'s {v['chosen_ratio']:.4g})"
+                     for n, v in step["continuation"].items())
+    return (f"The record was explained after step {step['step'] - 1}, but near-tied runner-ups were never tried with "
+            f"the other fitted: {ties}. They are offered once more, alone.\n")
+
+
 def markdown(rep: dict) -> str:
     """The report.md of a report dict."""
     names = ", ".join(f"`{e['name']}`" for e in rep["effects"]) or "`none`"
@@ -269,6 +288,7 @@ def markdown(rep: dict) -> str:
     for step in rep["steps"]:
         lines += [f"## Step {step['step']}: {('`' + step['chosen'] + '` added') if step['chosen'] else 'nothing added'}", "",
                   f"Held-out error of the model so far: {step['error_current']:.4g}.", "",
+                  *([_continuation_line(step)] if step.get("continuation") else []),
                   "| candidate | judged on | signature | k | fit error | held-out error | current | penalised |",
                   "|---|---|---|---|---|---|---|---|"]
         for c in step["candidates"]:

@@ -18,7 +18,8 @@ realisation; the trials of one stage share one stream (common random numbers).
                     and (when something is detected) the signatures of the catalog for step 1
 ``step{k}_trials``  the catalog's trial grids (mean model, fitting blocks, chosen effects held)
                     → the choice of step k by held-out error (the simplified form: by the pointing
-                    statistic's feature, :class:`FeatureErrors`)
+                    statistic's feature, :class:`FeatureErrors`); after a step that explained the
+                    record, only the near-tied runner-ups of earlier steps (:func:`runner_ups`)
 ``step{k}_refit``   lines of 3 trials around (r — exact form only —, every chosen effect's
                     parameters) → joint re-fit
 ``step{k}_check``   the point the re-fit's lines moved to, evaluated (kept only if no worse than the
@@ -43,7 +44,7 @@ import numpy as np
 from tubeid.diagnose._detection import SCALE_FLOOR, STATISTICS as TEST_STATISTICS, Observations, applicable, \
     band_moments, detection_test, features
 from tubeid.diagnose._load import delta_f_identification, grid_minimum, r_coarse_grid, r_distance, r_fine_grid, scaled_r
-from tubeid.diagnose._selection import Scored, choose, keeps_moved_point, level_offset, line_minimum, prediction_error
+from tubeid.diagnose._selection import Scored, choose, keeps_moved_point, level_offset, line_minimum, near_ties, prediction_error
 from tubeid.diagnose._settings import MAX_EFFECTS, DiagnoseSettings
 from tubeid.diagnose._simulate import load_spectrum, simulate_blocks, simulate_series
 from tubeid.diagnose._spectra import welch_segments
@@ -490,11 +491,41 @@ def state_before(ctx, results, k: int) -> dict:
         return {"active": False, "reason": f"max_effects = {s.max_effects}"}
     b = results[prev_band]
     if not b.attrs.get("detected", False):
+        pending = {} if k == 1 else runner_ups(ctx, results, k, {e["kind"] for e in json.loads(effects)})
+        if pending:  # explained, but a near-tied runner-up was never tried with the other fitted
+            return {"active": True, "reason": "", "effects": effects, "r": r, "band": prev_band,
+                    "screen": {n: v["signature"] for n, v in pending.items()},
+                    "continuation": {n: {key: v[key] for key in ("step", "ratio", "chosen", "chosen_ratio")}
+                                     for n, v in pending.items()}}
         return {"active": False, "reason": "nothing detected" if k == 1 else f"explained after step {k - 1}"}
     if "screen" not in b.attrs:
         return {"active": False, "reason": b.attrs.get("screen_reason", "every catalog candidate is chosen")}
     return {"active": True, "reason": "", "effects": effects, "r": r, "screen": json.loads(b.attrs["screen"]),
             "band": prev_band}
+
+
+def runner_ups(ctx, results, k: int, held: set) -> dict:
+    """Near-tied runner-ups of steps 1 … k − 1 (:func:`tubeid.diagnose._selection.near_ties`) still
+    to be offered: not held now, not offered at an earlier continuation step. {name: {"signature"
+    (from the screen of the step where it tied), "step", "ratio", "chosen", "chosen_ratio"}}; a
+    continuation's own runner-ups are not offered again (each tie is resolved once)."""
+    tie = ctx.settings.tie
+    pending, offered = {}, set()
+    for j in range(1, k):
+        tr = results[f"step{j}_trials"]
+        if tie <= 0 or skipped(tr):
+            break
+        prev = "band" if j == 1 else f"step{j - 1}_band"
+        sel = selection(ctx, results, j)
+        if j > 1 and not results[prev].attrs.get("detected", False):  # step j was itself a continuation
+            offered |= {c["name"] for c in sel["candidates"]}
+            continue
+        screen = json.loads(results[prev].attrs["screen"])
+        for name, (ratio, top) in near_ties(sel["candidates"], sel["chosen"], tie).items():
+            if name in screen and name not in pending:
+                pending[name] = {"signature": screen[name], "step": j, "ratio": ratio, "chosen": sel["chosen"],
+                                 "chosen_ratio": top}
+    return {n: v for n, v in pending.items() if n not in held and n not in offered}
 
 
 def trial_block(block, rng, *, data, data_sha256, model, settings, trials, lines=""):
@@ -602,8 +633,9 @@ def _trials(k, results, base):
         for e in cand.trials(sig["estimate"], ctx.spec, s.grid_points):
             trials.append({"candidate": n, "effects": held + [effect_to_dict(e)], "r": st["r"],
                            "analytic": _analytic(ctx, cand)})
-    return _trial_study(name, base, ctx, trials,
-                        f"step {k}: trial grids of {sorted(st['screen'])} (mean model, fitting blocks, chosen effects held)")
+    what = (f"step {k}: trial grids of {sorted(st['screen'])} (mean model, fitting blocks, chosen effects held)"
+            + (": near-tied runner-ups, the record explained" if st.get("continuation") else ""))
+    return _trial_study(name, base, ctx, trials, what)
 
 
 def _analytic(ctx, cand) -> bool:
