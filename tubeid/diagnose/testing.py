@@ -84,7 +84,10 @@ def make_record(model="paper-reference", effects: HandEffects = HandEffects(), *
     if effects.tones:
         t = np.arange(F.shape[0]) * dt_load
         phase = rng_for(seed, "record", "tones").uniform(0.0, 2 * np.pi, len(effects.tones))
-        cols = [amp * np.cos(2 * np.pi * f0 * t + ph) for (_, _, f0, amp), ph in zip(effects.tones, phase)]
+        # amplitude over sinc²(f0 dt_load): the solver's piecewise-linear reading of the samples attenuates
+        # the line by that factor, so the record's force is the tone asked for
+        cols = [amp / np.sinc(f0 * dt_load) ** 2 * np.cos(2 * np.pi * f0 * t + ph)
+                for (_, _, f0, amp), ph in zip(effects.tones, phase)]
         F = np.column_stack([F, *cols])
         points += [LoadPoint(name=f"tone{i}", tube=tb, x=float(x)) for i, (tb, x, _, _) in enumerate(effects.tones)]
     M, D, K = m.mean_matrices

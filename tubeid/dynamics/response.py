@@ -184,7 +184,9 @@ def simulate_responses(
         t = np.arange(loads.shape[1]) * settings.dt_load
         phases = np.array([s[3].uniform(0, 2 * np.pi, len(tones)) for s in streams])  # (R, n_tones)
         f0 = np.array([e.frequency_hz for e in tones])
-        amp = np.array([e.amplitude for e in tones])
+        # the solver reads the samples as their piecewise-linear interpolant, whose component at f0 is
+        # sinc²(f0 dt_load) times the tone's: pre-compensated, as gaussian_loads does in band
+        amp = np.array([e.amplitude for e in tones]) / np.sinc(f0 * settings.dt_load) ** 2
         extra = amp * np.cos(2 * np.pi * f0 * t[None, :, None] + phases[:, None, :])
         loads = np.concatenate([loads, extra], axis=2)
     B = model.load_matrix(points)
