@@ -477,18 +477,23 @@ def _stage_load_delta_f(store, out, n_bootstrap, seed, written, notes, targets) 
                                 units=units)
     except SpecificationError as exc:
         raise _StageMissing(f"likelihood of δ_F could not be computed: {exc}") from None
-    q = _likelihood_quantity(lk.attrs, int(Js.sizes["realisation"]), lk["delta_F"].values, ds.attrs.get("delta_F_opt"),
-                             "δ_F,opt", notes)
-    target, label = targets
-    _likelihood_figure(lk, "delta_F", q, "δ_F,opt", target["delta_F_opt"], label, lk.attrs["delta_F_max"],
-                       "load dispersion δ_F (dimensionless)",
-                       f"Likelihood of δ_F, {Js.sizes['realisation']} realisations per δ_F",
-                       out, "delta_f_likelihood.png", written)
+    q = _delta_f_quantity(lk, ds.attrs.get("delta_F_opt"), "δ_F,opt", targets, notes,
+                          f"Likelihood of δ_F, {Js.sizes['realisation']} realisations per δ_F",
+                          out, "delta_f_likelihood.png", written)
     result = {"quantities": {"delta_F_opt": q}, "details": {"J_s_exp": js_exp, "J_s_exp_source": source,
                                                              "J_s_units": units}}
     if "level_difference" in ds:
         _pairs_delta_f(ds, out, n_bootstrap, seed, written, notes, targets, result)
     return result
+
+
+def _delta_f_quantity(lk, stored, key, targets, notes, title, out, name, written) -> dict:
+    """A δ_F likelihood (``delta_f_likelihood``'s Dataset) as a summary quantity, and its figure."""
+    q = _likelihood_quantity(lk.attrs, int(lk.sizes["realisation"]), lk["delta_F"].values, stored, key, notes)
+    target, label = targets
+    _likelihood_figure(lk, "delta_F", q, "δ_F,opt", target["delta_F_opt"], label, lk.attrs["delta_F_max"],
+                       "load dispersion δ_F (dimensionless)", title, out, name, written)
+    return q
 
 
 def _pairs_delta_f(ds, out, n_bootstrap, seed, written, notes, targets, result) -> None:
@@ -511,13 +516,9 @@ def _pairs_delta_f(ds, out, n_bootstrap, seed, written, notes, targets, result) 
         notes.append(f"δ_F from record pairs could not be computed: {exc}")
         return
     n_pairs = len(d_exp) if isinstance(d_exp, (list, tuple)) else 1
-    q = _likelihood_quantity(lk.attrs, int(L.sizes["realisation"]), lk["delta_F"].values, ds.attrs.get("delta_F_pairs_opt"),
-                             "δ_F,opt from record pairs", notes)
-    target, label = targets
-    _likelihood_figure(lk, "delta_F", q, "δ_F,opt", target["delta_F_opt"], label, lk.attrs["delta_F_max"],
-                       "load dispersion δ_F (dimensionless)",
-                       f"δ_F from {n_pairs} record pairs (log-level differences), {L.sizes['realisation']} per δ_F",
-                       out, "delta_f_pairs_likelihood.png", written)
+    q = _delta_f_quantity(lk, ds.attrs.get("delta_F_pairs_opt"), "δ_F,opt from record pairs", targets, notes,
+                          f"δ_F from {n_pairs} record pairs (log-level differences), {L.sizes['realisation']} per δ_F",
+                          out, "delta_f_pairs_likelihood.png", written)
     result["quantities"]["delta_F_pairs_opt"] = q
     result["details"]["n_record_pairs"] = n_pairs
     result["details"]["level_difference_exp_std"] = float(np.std(d_exp, ddof=1)) if n_pairs > 1 else None
