@@ -3,7 +3,8 @@
     python benchmarks/effect_inside_band.py [CASE,...] [SEED,...] [--delta D] [--realisations R]
 
 For each case of ``studies/diagnose_effects.py``'s ``CASES`` (default: the simplified campaign's
-control, tone, stop, added_mass, damping, sensor_noise) and seed, a 220 s record of the reference
+control, tone, stop, added_mass, damping, sensor_noise; ``added_mass_xF``: the centre tube's density
+× F) and seed, a 220 s record of the reference
 model with the effect written by hand (``tubeid.diagnose.testing.make_record``, 7 sensors c02–c14),
 and R realisations (default 40) of ``paper-simplified`` with the same sensors at δ (default 0.627,
 MODEL.md §2's δ_opt) under the record's own load (coherent forces, 1.3 N²/Hz: the true level, so
@@ -99,7 +100,12 @@ def main() -> None:
     print(f"paper-simplified at delta = {a.delta}, {a.realisations} realisations; coverage 0-100 / 0-35 / 35-100 Hz; "
           f"frequency shift per chunk {CHUNKS} in model standard deviations (those: {np.round(sd, 3).tolist()})")
     for case in a.cases.split(","):
-        effects, _, positions, _ = cases[case]
+        if case.startswith("added_mass_x") and case not in cases:
+            from tubeid.diagnose.testing import HandEffects
+
+            effects, positions = HandEffects(density={"centre": float(case.removeprefix("added_mass_x"))}), xs
+        else:
+            effects, _, positions, _ = cases[case]
         for seed in (int(s) for s in a.seeds.split(",")):
             rec = make_record("paper-reference", effects, xs=positions, seed=seed)
             fr, S = psd_matrix(rec.displacement.values, 3e-3, segment_seconds=8.0)
