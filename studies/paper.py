@@ -431,7 +431,8 @@ def summarize_delta_f(ds):
            "r_opt": [params["r1"], params["r2"]], "r_distance": params["distance"]}
     d_exp = params.get("level_difference_exp")
     if d_exp is not None:
-        a = likelihood_curve(ds.level_difference, d_exp, ds.delta_F.values, "delta_F", n_bootstrap=200, rng=1).attrs
+        a = likelihood_curve(ds.level_difference, d_exp, ds.delta_F.values, "delta_F", n_bootstrap=200, rng=1,
+                             variance_corrected=True).attrs  # δ_F sets the spread: the kernel must not widen it
         out.update(level_difference_exp=d_exp, delta_F_pairs_opt=a["argmax"], delta_F_pairs_opt_std=a["argmax_std"],
                    delta_F_pairs_opt_at_grid_edge=bool(a["argmax_at_boundary"]),
                    delta_F_pairs_likelihood_flat=bool(a["flat"]),

@@ -276,6 +276,8 @@ def test_near_ties_are_the_runner_ups_that_paid_within_the_margin_of_the_chosen_
     assert set(near_ties(c, "tone", 0.15)) == {"added_mass", "damping"}
     assert near_ties(c, "tone", 0.0) == {} and near_ties(c, "", 0.1) == {}
     assert near_ties(c, "added_mass", 0.10) == {"tone": (0.793, pytest.approx(0.796, rel=1e-12, abs=0))}
+    paid = [{"name": "tone", "penalised": 0.97, "current": 1.0}, {"name": "damping", "penalised": 1.01, "current": 1.0}]
+    assert near_ties(paid, "tone", 0.10) == {}  # within 10 % but it does not pay its penalty
 
 
 def test_a_near_tied_runner_up_is_offered_once_after_the_record_is_explained(monkeypatch):
@@ -313,6 +315,52 @@ def test_a_near_tied_runner_up_is_offered_once_after_the_record_is_explained(mon
     assert stages.runner_ups(types.SimpleNamespace(settings=DiagnoseSettings(tie=0.0)), results, 2, {"tone"}) == {}
     with pytest.raises(SpecificationError, match="settings.tie"):
         DiagnoseSettings(tie=-0.1)
+
+
+def test_a_runner_up_tried_later_or_offered_once_is_not_offered_again_and_a_rejected_continuation_stops(monkeypatch):
+    """More bookkeeping of the near-tie rule on stand-in stages. (a) The mass, tied with the tone at step
+    1, was a candidate again at the regular step 2 (with the tone fitted) and did not pay: its tie is
+    resolved, not offered after step 2. (b) A continuation offered the mass and damping, damping was
+    added: the mass is not offered again. (c) A continuation whose effect makes the test detect again
+    is rejected: the loop stops there and says so."""
+    import types
+
+    import xarray as xr
+
+    from tubeid.diagnose import stages
+
+    def band(detected, screen=None, params=None):
+        ds = xr.Dataset(attrs={"detected": detected})
+        if screen is not None:
+            ds.attrs["screen"] = json.dumps(screen)
+        if params is not None:
+            ds.attrs["parameters"] = json.dumps(params)
+        return ds
+
+    sig = {n: {"estimate": {"n": n}, "score": 1.0} for n in ("tone", "added_mass", "damping")}
+    tied = {"chosen": "tone", "candidates": [{"name": "tone", "penalised": 0.793, "current": 1.0},
+                                             {"name": "added_mass", "penalised": 0.80, "current": 1.0},
+                                             {"name": "damping", "penalised": 0.85, "current": 1.0}]}
+    ctx = types.SimpleNamespace(settings=DiagnoseSettings())
+    # (a) step 2 regular: the record still detected after step 1
+    sel = {1: tied, 2: {"chosen": "damping", "candidates": [{"name": "added_mass", "penalised": 1.3, "current": 1.0},
+                                                            {"name": "damping", "penalised": 0.6, "current": 1.0}]}}
+    monkeypatch.setattr(stages, "selection", lambda c, res, j: sel[j])
+    a = {"band": band(True, sig), "step1_trials": xr.Dataset(), "step1_band": band(True, sig),
+         "step2_trials": xr.Dataset(), "step2_band": band(False)}
+    assert stages.runner_ups(ctx, a, 3, {"tone", "damping"}) == {}
+    # (b) step 2 a continuation (explained after step 1) that added damping
+    b = {**a, "step1_band": band(False)}
+    assert stages.runner_ups(ctx, b, 2, {"tone"}).keys() == {"added_mass", "damping"}
+    sel[2] = {"chosen": "damping", "candidates": [{"name": "added_mass", "penalised": 0.95, "current": 1.0},
+                                                  {"name": "damping", "penalised": 0.6, "current": 1.0}]}
+    assert stages.runner_ups(ctx, b, 3, {"tone", "damping"}) == {}
+    # (c) the continuation's effect made the test detect again
+    effects = json.dumps([{"kind": "tone"}, {"kind": "damping"}])
+    c = {**b, "step2_band": band(True, sig, {"effects": effects, "r": [1.0]})}
+    assert stages.continuation_rejected(c, 2) and not stages.continuation_rejected(a, 2)
+    st3 = stages.state_before(ctx, c, 3)
+    assert not st3["active"] and "made the test detect again: not kept" in st3["reason"]
 
 
 def test_candidates_judged_on_their_own_features_are_compared_relative_to_the_current_model():

@@ -255,3 +255,26 @@ def test_edge_and_flat_verdicts_fire_on_cases_built_for_them_and_not_otherwise()
     noisy = likelihood_curve(np.random.default_rng(0).standard_normal((g.size, 8)), 2.0, g, n_bootstrap=200, rng=1).attrs
     assert noisy["log_likelihood_range"] > 1.92 and noisy["flat"] and noisy["n_excluded"] == 0
     assert likelihood_curve(g[:, None] + 0.1 * z, 0.55, g, n_bootstrap=0).attrs["flat"] == 0
+
+
+def test_variance_corrected_kernel_removes_the_bias_of_a_dispersion_read_from_a_spread():
+    """θ is the standard deviation of a centred Gaussian observable; 40 model samples per θ (common
+    random numbers) and 32 observations at θ = 1, repeated 300 times (seeded). Silverman's kernel
+    widens each density's variance by 1.12·40^(−0.4) = 26 %, so the uncorrected maximum sits low
+    (near 1/√1.26 = 0.89); the variance-corrected one near 1. Measured medians of 300 estimates:
+    0.930 and 1.034 (each estimate ±0.19, so a median is known to ±0.013): the corrected median
+    within 0.06 of 1, and above the plain one by more than 0.07 (no correction: 0; a correction
+    applied twice: a median near 1.15)."""
+    from tubeid.seeds import rng_for
+
+    grid = np.linspace(0.5, 2.0, 61)
+    plain, corrected = [], []
+    for rep in range(300):
+        gen = rng_for(2026, "variance-corrected", rep)
+        z = gen.standard_normal(40)
+        obs = gen.standard_normal(32)
+        samples = grid[:, None] * z[None, :]
+        plain.append(likelihood_curve(samples, obs, grid, "theta", n_bootstrap=0).attrs["argmax"])
+        corrected.append(likelihood_curve(samples, obs, grid, "theta", n_bootstrap=0, variance_corrected=True).attrs["argmax"])
+    assert abs(np.median(corrected) - 1.0) <= 0.06, np.median(corrected)
+    assert np.median(corrected) - np.median(plain) > 0.07, (np.median(plain), np.median(corrected))

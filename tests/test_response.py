@@ -158,6 +158,20 @@ def test_tone_power_matches_the_frequency_response(f0, dt_load):
     assert power == pytest.approx(abs(H[0, 0]) ** 2 * 400.0**2 / 4, rel=0.03, abs=0)
 
 
+def test_a_tone_the_load_sampling_cannot_carry_is_refused():
+    """A line at or above 1/(2 dt_load) cannot be written into the load samples (at 1000 Hz with 1 ms
+    samples the compensation 1/sinc² is 6.6e32): refused, naming the field, value and rule."""
+    from tubeid.diagnose.testing import HandEffects, make_record
+    from tubeid.mechanics.effects import Tone, apply_effects
+
+    spec = apply_effects(builtin_spec("paper-simplified"), [Tone(frequency_hz=500.0, amplitude=1.0)])
+    with pytest.raises(SpecificationError, match=r"effects.tone.frequency_hz = 500.0: must lie below .* = 500 Hz"):
+        simulate_responses(reduce(spec), coherent_forces(), [0], seed=1,
+                           settings=ResponseSettings(duration=4.0, discard=1.0, segment_seconds=2.0))
+    with pytest.raises(SpecificationError, match="effects.tones.frequency"):
+        make_record(effects=HandEffects(tones=(("centre", 5.0, 700.0, 1.0),)), duration=2.0)
+
+
 def _paper_system(delta=0.45, seed=2):
     from tubeid.dynamics.response import _load_points
     from tubeid.dynamics.solver import Stop

@@ -212,13 +212,17 @@ def test_log_level_closed_forms():
     g = np.arange(0.0, 99.95, 0.1)
     assert log_level(g, np.full(g.size, S0)) == pytest.approx(np.log(5.0 * S0), rel=0.03, abs=0)
     for kw, field in ((dict(band=200.0), "band"), (dict(band_width=7.0), "band_width"),
-                      (dict(band_width=0.01), "band_width")):
+                      (dict(band_width=0.01), "band_width"), (dict(band=0.0), "band ="), (dict(band=-100.0), "band =")):
         with pytest.raises(SpecificationError, match=field):
             log_level(f, np.full(f.size, S0), **kw)
+    with pytest.raises(SpecificationError, match=r"\(1201, 2, 3\)"):  # the shape given, not a padded one
+        log_level(f, np.zeros((f.size, 2, 3)))
     hole = np.full(f.size, S0)
     hole[(f > 20) & (f <= 25)] = 0.0
     with pytest.raises(SpecificationError, match="without energy"):
         log_level(f, hole)
+    with pytest.raises(SpecificationError, match="without energy"):
+        log_level(f, -hole)  # negative energy: refused too, without a warning from the log
     with pytest.raises(SpecificationError, match="uniform grid from 0"):
         log_level(f[1:], np.full(f.size - 1, S0))
 

@@ -508,10 +508,14 @@ def _pairs_delta_f(ds, out, n_bootstrap, seed, written, notes, targets, result) 
         notes.append(f"load_delta_f.level_difference has dims {tuple(L.dims)}, not (delta_F, realisation): "
                      "δ_F from record pairs is not computed")
         return
-    L = _complete(L.transpose("delta_F", "realisation"), "realisation", "load_delta_f.level_difference", notes, 5)
+    try:
+        L = _complete(L.transpose("delta_F", "realisation"), "realisation", "load_delta_f.level_difference", notes, 5)
+    except _StageMissing as exc:  # the paper's δ_F stands without it
+        notes.append(f"δ_F from record pairs is not computed: {exc}")
+        return
     try:
         lk = delta_f_likelihood(L, d_exp, n_bootstrap=n_bootstrap, rng=rng_for(seed, "report", "load_delta_f", "pairs"),
-                                units="1", observable="level_difference")
+                                units="1", observable="level_difference", variance_corrected=True)
     except SpecificationError as exc:
         notes.append(f"δ_F from record pairs could not be computed: {exc}")
         return

@@ -83,13 +83,19 @@ def assemble(store, ctx):
             break
         rf, pt = st.refit_result(ctx, results, k), st.point_result(ctx, results, k)
         chk = st.refit_point(ctx, results, k, rf)
-        det_last, band_last = json.loads(results[f"step{k}_band"].attrs["detection"]), results[f"step{k}_band"]
+        det_k = json.loads(results[f"step{k}_band"].attrs["detection"])
         step.update({"refit": rf["lines"],
                      "refit_check": {key: chk[key] for key in ("moved_fit_error", "best_fit_error", "fallback")},
                      "effects_after": [_describe(e) for e in pt["effects"]], "r_after": pt["r"],
                      "error_after": pt["held_out_error"], "fit_error_after": pt["fit_error"],
-                     "detection_after": det_last})
+                     "detection_after": det_k})
         steps.append(step)
+        if st.continuation_rejected(results, k):  # the explained answer of step k - 1 stands
+            step["kept"] = False
+            stop_reason = (f"explained after step {k - 1}; the near-tied runner-up `{sel['chosen']}` added at step {k} "
+                           "made the test detect again: not kept")
+            break
+        det_last, band_last = det_k, results[f"step{k}_band"]
         final = pt
         if not det_last["detected"]:
             stop_reason = f"explained after step {k}: the test no longer detects anything"
@@ -296,7 +302,8 @@ def markdown(rep: dict) -> str:
                          f"{c['held_out_error']:.4g} | {c['current']:.4g} | {c['penalised']:.4g} |")
         if "error_after" in step:
             lines += ["", f"After the joint re-fit: held-out error {step['error_after']:.4g}, test p = "
-                          f"{step['detection_after']['p_value']:.3g}."]
+                          f"{step['detection_after']['p_value']:.3g}."
+                      + (" The test detects again with it: not kept." if step.get("kept") is False else "")]
         lines.append("")
     lines += ["## Rules and assumptions", "", rep["selection_rule"] + ".", ""]
     lines += [f"- {a}" for a in rep["assumptions"]]

@@ -490,6 +490,9 @@ def state_before(ctx, results, k: int) -> dict:
     if k > s.max_effects:
         return {"active": False, "reason": f"max_effects = {s.max_effects}"}
     b = results[prev_band]
+    if b.attrs.get("detected", False) and continuation_rejected(results, k - 1):
+        return {"active": False, "reason": f"the near-tied runner-up added at step {k - 1} made the test detect again: "
+                                           f"not kept (the answer is that of step {k - 2})"}
     if not b.attrs.get("detected", False):
         pending = {} if k == 1 else runner_ups(ctx, results, k, {e["kind"] for e in json.loads(effects)})
         if pending:  # explained, but a near-tied runner-up was never tried with the other fitted
@@ -504,11 +507,21 @@ def state_before(ctx, results, k: int) -> dict:
             "band": prev_band}
 
 
+def continuation_rejected(results, k: int) -> bool:
+    """Whether step k was a continuation (its starting band explained the record) that added an
+    effect after which the test detects again: that effect is not kept."""
+    if k < 2 or skipped(results[f"step{k}_trials"]) or skipped(results[f"step{k}_band"]):
+        return False
+    return (not results[f"step{k - 1}_band"].attrs.get("detected", False)
+            and bool(results[f"step{k}_band"].attrs.get("detected", False)))
+
+
 def runner_ups(ctx, results, k: int, held: set) -> dict:
     """Near-tied runner-ups of steps 1 … k − 1 (:func:`tubeid.diagnose._selection.near_ties`) still
-    to be offered: not held now, not offered at an earlier continuation step. {name: {"signature"
-    (from the screen of the step where it tied), "step", "ratio", "chosen", "chosen_ratio"}}; a
-    continuation's own runner-ups are not offered again (each tie is resolved once)."""
+    to be offered: not held now, not a candidate of a later step (tried there with the effects chosen
+    since), not offered at an earlier continuation step. {name: {"signature" (from the screen of the
+    step where it tied), "step", "ratio", "chosen", "chosen_ratio"}}; a continuation's own
+    runner-ups are not offered again (each tie is resolved once)."""
     tie = ctx.settings.tie
     pending, offered = {}, set()
     for j in range(1, k):
@@ -520,6 +533,8 @@ def runner_ups(ctx, results, k: int, held: set) -> dict:
         if j > 1 and not results[prev].attrs.get("detected", False):  # step j was itself a continuation
             offered |= {c["name"] for c in sel["candidates"]}
             continue
+        for c in sel["candidates"]:  # tried here with the effects chosen since: its tie is resolved
+            pending.pop(c["name"], None)
         screen = json.loads(results[prev].attrs["screen"])
         for name, (ratio, top) in near_ties(sel["candidates"], sel["chosen"], tie).items():
             if name in screen and name not in pending:

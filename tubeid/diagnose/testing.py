@@ -18,6 +18,7 @@ import numpy as np
 import xarray as xr
 
 from tubeid.dynamics.solver import Stop, simulate
+from tubeid.errors import SpecificationError
 from tubeid.measured.validation import validate_measurements
 from tubeid.mechanics.library import resolve_spec
 from tubeid.mechanics.reduction import reduce
@@ -82,6 +83,9 @@ def make_record(model="paper-reference", effects: HandEffects = HandEffects(), *
     F = gaussian_loads(load, total, dt_load, [rng_for(seed, "record", "load")])[0]            # (n_t, m)
     points = [LoadPoint(name=n, tube=tube, x=float(x)) for n, x in zip(load.names, load.x)]
     if effects.tones:
+        bad = [f0 for _, _, f0, _ in effects.tones if f0 >= 0.5 / dt_load]
+        if bad:
+            raise SpecificationError("effects.tones.frequency", bad[0], f"must lie below 1/(2 dt_load) = {0.5 / dt_load:g} Hz")
         t = np.arange(F.shape[0]) * dt_load
         phase = rng_for(seed, "record", "tones").uniform(0.0, 2 * np.pi, len(effects.tones))
         # amplitude over sinc²(f0 dt_load): the solver's piecewise-linear reading of the samples attenuates

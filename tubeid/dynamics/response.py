@@ -184,6 +184,10 @@ def simulate_responses(
         t = np.arange(loads.shape[1]) * settings.dt_load
         phases = np.array([s[3].uniform(0, 2 * np.pi, len(tones)) for s in streams])  # (R, n_tones)
         f0 = np.array([e.frequency_hz for e in tones])
+        nyquist = 0.5 / settings.dt_load
+        if np.any(f0 >= nyquist):
+            raise SpecificationError("effects.tone.frequency_hz", float(f0[np.argmax(f0 >= nyquist)]),
+                                     f"must lie below the load sampling's Nyquist frequency 1/(2 dt_load) = {nyquist:g} Hz")
         # the solver reads the samples as their piecewise-linear interpolant, whose component at f0 is
         # sinc²(f0 dt_load) times the tone's: pre-compensated, as gaussian_loads does in band
         amp = np.array([e.amplitude for e in tones]) / np.sinc(f0 * settings.dt_load) ** 2

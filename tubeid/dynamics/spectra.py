@@ -395,14 +395,14 @@ def log_band_energies(P: np.ndarray, f: np.ndarray, edges: np.ndarray) -> np.nda
     """log of Σ_{f in (a, b]} S(f) Δf per band and auto-spectrum: P (..., F, m, m) → (..., B·m).
 
     ``f`` is the uniform grid of P (Δf = f[1] − f[0]), ``edges`` the B + 1 band edges [Hz]; a band
-    without energy gives −inf (the caller refuses it, naming its own field).
+    without energy (≤ 0) gives −inf (the caller refuses it, naming its own field).
     """
     auto = np.real(np.diagonal(P, axis1=-2, axis2=-1))  # (..., F, m)
     df = float(f[1] - f[0])
     cols = [auto[..., (f > a) & (f <= b), :].sum(axis=-2) * df for a, b in zip(edges[:-1], edges[1:])]
     e = np.stack(cols, axis=-2)  # (..., B, m)
-    with np.errstate(divide="ignore"):
-        return np.log(e.reshape(e.shape[:-2] + (-1,)))
+    e = e.reshape(e.shape[:-2] + (-1,))
+    return np.where(e > 0, np.log(np.where(e > 0, e, 1.0)), -np.inf)
 
 
 def log_level(f: ArrayLike, S: ArrayLike, band: float = 100.0, band_width: float = 5.0) -> np.ndarray:
@@ -426,17 +426,20 @@ def log_level(f: ArrayLike, S: ArrayLike, band: float = 100.0, band_width: float
         Shape (...): natural log of band energies in [S]·Hz (e.g. m²), averaged.
     """
     S = np.asarray(S)
-    if S.ndim >= 1 and not (S.ndim >= 3 and S.shape[-1] == S.shape[-2] and S.shape[-3] == np.size(f)):
-        S = S[..., None, None]
-    if S.ndim < 3:
-        raise SpecificationError("S", S.shape, "must be (..., F, m, m) or (..., F)")
     f = np.asarray(f, dtype=float)
-    if f.ndim != 1 or f.size != S.shape[-3]:
-        raise SpecificationError("S", S.shape, f"frequency axis (-3) must have len(f) = {f.size}")
+    shape = S.shape
+    if S.ndim >= 3 and S.shape[-1] == S.shape[-2] and S.shape[-3] == f.size:
+        pass  # (..., F, m, m)
+    elif S.ndim >= 1 and S.shape[-1] == f.size:
+        S = S[..., None, None]  # (..., F) scalar
+    else:
+        raise SpecificationError("S", shape, f"must be (..., F, m, m) or (..., F) with F = len(f) = {f.size}")
     if f.size < 2 or f[0] != 0 or not np.allclose(np.diff(f), f[1] - f[0], rtol=1e-9, atol=0):
         raise SpecificationError("f", f"{f.size} bins from {f[0]:g} Hz", "must be a uniform grid from 0 Hz")
     band = float(band)
-    if not (math.isfinite(band) and f[-1] >= band - (f[1] - f[0]) * (1 + 1e-9)):
+    if not (math.isfinite(band) and band > 0):
+        raise SpecificationError("band", band, "must be a finite number > 0 (Hz)")
+    if not f[-1] >= band - (f[1] - f[0]) * (1 + 1e-9):
         raise SpecificationError("band", band, f"must lie within one bin above the grid's last frequency {f[-1]:g} Hz")
     width = float(band_width)
     n = band / width if width > 0 else math.inf

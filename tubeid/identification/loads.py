@@ -887,7 +887,7 @@ def delta_f_likelihood(j_s_samples: xr.DataArray | ArrayLike, j_s_exp: float | A
                        grid: ArrayLike | None = None, *, n_bootstrap: int = 200,
                        rng: np.random.Generator | int | None = None,
                        confidence: float = 0.95, m: int = 2, grid_name: str = "delta_F",
-                       units: str = JS_UNITS, observable: str = "J_s") -> xr.Dataset:
+                       units: str = JS_UNITS, observable: str = "J_s", variance_corrected: bool = False) -> xr.Dataset:
     """δ_F ↦ p̂_Js(J_s,exp; δ_F) and δ_F,opt (paper Eq. 5) from Monte Carlo samples of J_s.
 
     The same likelihood serves another scalar observable of the load's randomness (``observable``,
@@ -925,6 +925,9 @@ def delta_f_likelihood(j_s_samples: xr.DataArray | ArrayLike, j_s_exp: float | A
         Units of J_s (of the observable).
     observable : str
         Name of the observable: the samples' variable and the ``<observable>_exp`` attribute.
+    variance_corrected : bool
+        :func:`likelihood_curve`'s variance-corrected kernel (for an observable whose spread δ_F
+        sets, such as the level difference of record pairs).
 
     Returns
     -------
@@ -957,7 +960,7 @@ def delta_f_likelihood(j_s_samples: xr.DataArray | ArrayLike, j_s_exp: float | A
         raise SpecificationError(grid_name, _Desc(np.array2string(g, threshold=8)),
                                  f"must lie in the admissible set (0, {dmax:.4f}) of SG+ with m = {m}")
     ds = likelihood_curve(samples, j_s_exp, g, grid_name, n_bootstrap=n_bootstrap, rng=rng,
-                          confidence=confidence)
+                          confidence=confidence, variance_corrected=variance_corrected)
     long_name = "J_s = integral over B of ||S_Z(w)||_F^2 dw" if observable == "J_s" else observable
     ds[observable] = ((grid_name, "realisation"), np.asarray(samples, dtype=float), {"units": units, "long_name": long_name})
     ds.attrs.update({
