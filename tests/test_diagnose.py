@@ -787,10 +787,10 @@ def _check_named(rep, names):
 def tone_between():
     """A 100 N tone at 29 Hz on the centre tube at x = 4.6 m (between nodes and sensors, away from
     8 m), written as a force column, seen by 7 sensors during 96 s: the diagnosis's report. With
-    48 s the trial positions' fitting errors are too noisy: measured over seeds 11–14, the tone was
-    put on ``outer4`` at x = 1 m once (and, before the tone columns were compensated for the
-    solver's linear reading, in 4 of 6 seeds); with 96 s, seeds 11–16, on the centre tube at
-    4.51–5.0 m in 6 of 6, named alone in 5."""
+    48 s the trial positions' fitting errors are too noisy and the answer flips with any small
+    change of the record (measured: on ``outer4`` at x = 1 m for 1 of seeds 11–14, and for 4 of
+    seeds 11–16 before the tone columns were scaled by 1.003 for the solver's linear reading); with
+    96 s, seeds 11–16, on the centre tube at 4.51–5.0 m in 6 of 6, named alone in 5."""
     data = make_record(effects=HandEffects(tones=(("centre", 4.6, 29.0, 100.0),)), xs=SEVEN, duration=96.0, seed=11)
     return diagnose(data, "paper-reference", SMALL).report
 
