@@ -16,13 +16,16 @@ runner task; random streams keyed by the realisation, so every grid shares commo
 ``load_r``        trial grid over r = (r1, r2) of the (T, M) load at x = 8 m, stochastic model at
                   δ_opt → D(r) map and the coarse r_opt.
 ``load_r_fine``   a finer grid, ± one coarse step around the coarse minimum (beyond the paper).
-``load_delta_f``  J_s over a δ_F grid at (δ_opt, r_opt) → p_Js(J_s,exp; δ_F), δ_F,opt. Its stage
-                  parameters hold r_opt of every distance on the fine grid (``r_identification``,
-                  JSON): what the study passed downstream, read by ``tubeid report``.
+``load_delta_f``  J_s over a δ_F grid at (δ_opt, r_opt) → p_Js(J_s,exp; δ_F), δ_F,opt; with record
+                  pairs of one structure (the synthetic experiment) also their log-level
+                  differences → δ_F from the pairs (beyond the paper). Its stage parameters hold
+                  r_opt of every distance on the fine grid (``r_identification``, JSON): what the
+                  study passed downstream, read by ``tubeid report``.
 
 Proof of identification: ``--set experiment=synthetic`` replaces the reference model by the
 stochastic simplified model itself with known TRUTH (δ = 0.3 for the J observations, r = (18, 20),
-δ_F = 0.04, 8 experimental records): the report then compares what is identified with the truth.
+δ_F = 0.04; 32 structures, each recorded twice under independent loads): the report then compares
+what is identified with the truth.
 
 The simplified model is a parameter: ``--set simplified=NAME_OR_SPEC_FILE`` (default the built-in
 ``paper-simplified``, MODEL.md §2). Its specification's *content* becomes the parameter's value

@@ -75,8 +75,8 @@ def test_report_recovers_delta_and_says_it_is_a_quick_run(store, tmp_path):
     for name in ("fig4_mean_model.png", "fig5_delta_likelihood.png", "fig6_confidence_region.png", "d_map.png",
                  "delta_f_likelihood.png", "delta_f_pairs_likelihood.png"):
         assert (tmp_path / name).stat().st_size > 10_000
-    pairs = s["quantities"]["delta_F_pairs_opt"]  # quick size: a value on the grid, compared with the truth
-    assert pairs["truth"] == 0.04 and pairs["grid_ends"][0] <= pairs["value"] <= pairs["grid_ends"][1]
+    pairs = s["quantities"]["delta_F_pairs_opt"]  # quick size: analysed and compared with the truth (no claim)
+    assert pairs["truth"] == 0.04 and pairs["std"] > 0 and "verdict" in pairs
     assert s["details"]["load_delta_f"]["n_record_pairs"] == 32
     md = (tmp_path / "summary.md").read_text()
     assert "| truth |" in md and "**Quick run**" in md
