@@ -258,7 +258,8 @@ def _per_bin_reference(spectrum, duration, dt, rng, interpolation):
 def test_matches_per_bin_reference(which, interpolation):
     # The fast path factorises a constant spectrum once and scales it per bin; tabulated spectra
     # are factorised per bin. Both must equal the per-bin formula with the same random numbers up
-    # to round-off (1e-12 relative to the largest sample: measured ~1e-15).
+    # to round-off of the single-precision transform (2e-6 relative to the largest sample: measured
+    # ~1.4e-7; the float64 reference's own round-off is ~1e-15).
     f = np.linspace(0.0, 100.0, 11)
     S = np.zeros((f.size, 2, 2), dtype=complex)
     S[:, 0, 0], S[:, 1, 1] = 1.0 + f / 50.0, 2.0
@@ -270,4 +271,4 @@ def test_matches_per_bin_reference(which, interpolation):
     x = gaussian_loads(spec, 3.0, DT, [rng_for(2, "ref", 0)], interpolation=interpolation)[0]
     ref = _per_bin_reference(spec, 3.0, DT, rng_for(2, "ref", 0), interpolation)
     assert x.shape == ref.shape
-    assert np.max(np.abs(x - ref)) < 1e-12 * np.max(np.abs(ref))
+    assert np.max(np.abs(x - ref)) < 2e-6 * np.max(np.abs(ref))

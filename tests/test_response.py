@@ -167,7 +167,7 @@ def test_a_tone_the_load_sampling_cannot_carry_is_refused():
     spec = apply_effects(builtin_spec("paper-simplified"), [Tone(frequency_hz=500.0, amplitude=1.0)])
     with pytest.raises(SpecificationError, match=r"effects.tone.frequency_hz = 500.0: must lie below .* = 500 Hz"):
         simulate_responses(reduce(spec), coherent_forces(), [0], seed=1,
-                           settings=ResponseSettings(duration=4.0, discard=1.0, segment_seconds=2.0))
+                           settings=ResponseSettings(duration=4.0, discard=1.0, segment_seconds=2.0, dt_load=1e-3))
     with pytest.raises(SpecificationError, match="effects.tones.frequency"):
         make_record(effects=HandEffects(tones=(("centre", 5.0, 700.0, 1.0),)), duration=2.0)
 

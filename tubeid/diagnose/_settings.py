@@ -154,7 +154,7 @@ class DiagnoseSettings:
     penalty: float = 0.05
     tie: float = 0.1
     discard: float = 2.0
-    dt_load_max: float = 1e-3
+    dt_load_max: float = 2e-3
     seed: int = 0
 
     def __post_init__(self):

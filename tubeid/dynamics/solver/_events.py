@@ -11,7 +11,7 @@ of the method is to miss a grazing excursion shallower than that bound.
 A flagged sub-step is integrated exactly. Every evaluation of u, u', u'' inside it is exact
 (e^{λτ} from the table at τ = k h/64 times the series of the rest, then one row product);
 interior minima are located by Newton on d' = 0, the first crossing by safeguarded Halley
-iterations (tolerance 1e-13 h) from the root of the Hermite cubic; if the Hermite check on
+iterations (tolerance T.xtol = CROSSING_TOL h) from the root of the Hermite cubic; if the Hermite check on
 [0, t_c] still allows an earlier dip, [0, t_c] is rescanned exactly on 8 pieces. A switch maps
 xl(t_c) through the basis-to-basis transform (x continuous); u and u' continue from their values
 at the crossing; the end state of the remaining segment is propagated and its u, u' pre-checked,
@@ -243,7 +243,7 @@ def _eval(T, W, r, m, t0, tau, s, code, side, stats):
 def _crossing_in(T, W, r, m, t0, ta, tb, da, dda, db, ddb, code, side, s, margin, stats):
     """First crossing (d < 0) in (ta, tb] of the exact solution, given d and d' at the ends; -1 if
     none. Cubic Hermite guess, exact Newton on d' = 0 for an interior minimum, then safeguarded
-    Halley iterations on d for the root (tolerance 1e-13 h). With a root, W.ev holds u, u', u''
+    Halley iterations on d for the root (tolerance T.xtol). With a root, W.ev holds u, u', u''
     at the returned instant (see ``evaluate``)."""
     h = T.h
     sig = tb - ta
@@ -264,7 +264,7 @@ def _crossing_in(T, W, r, m, t0, ta, tb, da, dda, db, ddb, code, side, s, margin
             if dm < 0 or dddm <= 0:
                 break
             tn = min(max(tm - ddm / dddm, ta), tb)
-            if abs(tn - tm) < 1e-13 * h:
+            if abs(tn - tm) < T.xtol:
                 break
             tm = tn
         if dm >= 0:
@@ -280,7 +280,7 @@ def _crossing_in(T, W, r, m, t0, ta, tb, da, dda, db, ddb, code, side, s, margin
             lo = t
         else:
             hi = t
-        if d == 0 or hi - lo < 1e-13 * h:
+        if d == 0 or hi - lo < T.xtol:
             return t
         # Halley step (u'' comes with the evaluation): cubic convergence from the Hermite guess
         den = 2 * dd * dd - d * ddd
@@ -289,7 +289,7 @@ def _crossing_in(T, W, r, m, t0, ta, tb, da, dda, db, ddb, code, side, s, margin
             tn = t - d / dd if dd != 0 else -1.0
             if not (lo < tn < hi):
                 tn = 0.5 * (lo + hi)
-        if abs(tn - t) < 1e-13 * h:
+        if abs(tn - t) < T.xtol:
             return t  # converged; W.ev holds u, u', u'' at t
         t = tn
     _eval(T, W, r, m, t0, t, s, code, side, stats)
@@ -301,7 +301,7 @@ def _first_crossing(T, W, r, m, t0, code, side, s, sigma, d0, dd0, d1, dd1, scan
     """Earliest crossing in (0, sigma] of one boundary (-1 if none). The candidate is verified: if
     the cubic Hermite check on [0, t_c] allows an earlier dip, [0, t_c] is rescanned exactly on 8
     pieces. scan=True scans the whole segment exactly on 8 pieces (test hook). With a crossing,
-    W.ev holds u, u', u'' there (within the 1e-13 h tolerance)."""
+    W.ev holds u, u', u'' there (within the T.xtol tolerance)."""
     h = T.h
     mcoef = T.mcoef
     tc = sigma
