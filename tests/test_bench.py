@@ -13,14 +13,29 @@ def test_bench_j_reports_rates_and_agreement():
 
 
 def test_bench_transient_reports_the_issue_keys():
-    out = bench_transient(duration=24.0, baseline_window=0.2, n_psd_realisations=1, realisations_per_call=2, repeat=1)
+    out = bench_transient(duration=24.0, baseline_window=0.2, n_psd_realisations=1, realisations_per_call=2, repeat=1,
+                          psd_sets=3)
     for key in ("seconds_per_realisation", "baseline_seconds_per_realisation", "speedup", "flop_bound_seconds",
                 "psd_error_vs_fine_step", "seconds_fast_path", "microseconds_per_flagged_step"):
         assert key in out and math.isfinite(out[key]) and out[key] >= 0
     assert out["f_max_hz"] > 900  # the stop-closed highest frequency of the paper model (947 Hz, MODEL.md 3.7)
-    assert out["integration_step_s"] == 2.5e-4  # default rule: 4 points per period of f_max, dividing 1 ms and 3 ms
+    assert out["integration_step_s"] == 2.5e-4  # default rule: 4 points per period of f_max, dividing 2 ms and 3 ms
+    # the step error's scatter: three independent sets, the first the one reported alone (so they differ)
+    sets = out["psd_error_sets"]
+    assert sets["sets"] == 3
+    assert sets["max"] >= out["psd_error_vs_fine_step"] and sets["max"] >= sets["p90"] >= sets["median"]
+    assert len({out["psd_error_vs_fine_step"], sets["median"], sets["max"]}) > 1  # not three copies of one set
     # the stop is active in this realisation: contacts are located (about two switches per contact)
     assert out["switches"] > 0 and out["flagged_steps"] >= out["switches"] // 2
+
+
+def test_bench_transient_refuses_a_bad_set_count():
+    import pytest
+
+    from tubeid.errors import SpecificationError
+
+    with pytest.raises(SpecificationError, match="psd_sets = 0"):
+        bench_transient(duration=24.0, psd_sets=0)
 
 
 def test_baseline_agrees_with_symplectic_euler_kernel():

@@ -69,7 +69,7 @@ def _run(args) -> int:
     if args.section in ("transient", "all"):
         from tubeid.dynamics.bench import bench_transient
 
-        out.update(bench_transient(compile_time=args.compile_time))
+        out.update(bench_transient(compile_time=args.compile_time, psd_sets=args.psd_sets, dt_load=args.dt_load))
     if args.json:
         print(json.dumps(out, indent=2))
     else:
@@ -86,4 +86,8 @@ def register(sub) -> None:
     p.add_argument("--json", action="store_true", help="print a JSON object")
     p.add_argument("--compile-time", action="store_true",
                    help="transient: also time the solver's compilation in a new process (empty numba cache)")
+    p.add_argument("--psd-sets", type=int, default=1, metavar="N",
+                   help="transient: the step error of the PSD over N independent sets of realisations (its scatter)")
+    p.add_argument("--dt-load", type=float, default=None, metavar="S",
+                   help="transient: the load sampling [s] (default: the response settings')")
     p.set_defaults(func=_run)

@@ -38,9 +38,10 @@ B_k = c_k B with B B^* = S and the scalar c_k = sqrt(df)/sinc^2(f_k dt) (Cholesk
 scale exactly like this; for a singular S the eigen factor is used, same law). Tabulated
 spectra are factorised per bin (an interpolated factor is not a factor of the interpolated
 matrix). The transform is one ``scipy.fft.irfft`` per load on a contiguous axis (workers=1),
-N = next_fast_len(n_t). Measured for 7 loads x 220 s at 1 ms (one core): about 0.018 s
-(irfft 7 ms, normals 3 ms, the rest copies), against 0.33 s when every bin was factorised.
-Memory: about R * N * m * 24 bytes (complex coefficients plus real output).
+N = next_fast_len(n_t), in single precision: the load changes by ~2e-7 of itself (a white floor
+~135 dB below it); the draws and factors stay float64, the output is float64. Its time is
+``seconds_load_generation`` of ``tubeid bench transient``. Memory: about R * N * m * 16 bytes
+(complex64 coefficients, the float32 transform, the float64 output).
 """
 
 from __future__ import annotations
@@ -145,8 +146,7 @@ def gaussian_loads(spectrum: LoadSpectrum, duration: float, dt: float, rngs: Seq
     B = _factors(spectrum, fk, m)  # (m, m): one factor for every in-band bin, or (K + 1, m, m)
 
     R = len(rngs)
-    # FFT axis last (contiguous transforms). The transform runs in single precision (relative
-    # rounding ~1e-7 of the load, a white floor ~140 dB below it); draws and factors stay float64.
+    # FFT axis last (contiguous transforms), single precision (see the module docstring).
     coef = np.empty((R, m, N // 2 + 1), dtype=np.complex64)
     coef[:, :, K + 1:] = 0.0  # bins 0..K are written below
     for r, g in enumerate(rngs):  # draws only for bins 0..K: one generator per realisation
