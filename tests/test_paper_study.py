@@ -172,7 +172,7 @@ def test_full_synthetic_proof_recovers_the_truth(tmp_path):
     """The full proof (paper size, a few minutes on 2 cores): ``experiment=synthetic``, ``distance=bands``.
     Tolerances: r within 10 % (the issue's), δ and δ_F within 2 bootstrap σ (σ includes the Monte Carlo
     error of the model and the sampling of the observations). δ_F is identified from the 32 record pairs
-    of one structure each (``delta_F_pairs_opt``: measured 0.045 ± 0.013, variance-corrected kernel); the paper's J_s cannot hold it
+    of one structure each (``delta_F_pairs_opt``: measured 0.045 ± 0.012, variance-corrected kernel); the paper's J_s cannot hold it
     in this design (between 0.005 and 0.04 the spread of J_s changes by < 1 %, far below the sampling
     error of the spread of 32 records; measured: the lower grid edge 0.005, 95 % likelihood-ratio interval
     [0.005, 0.06]): that one must either lie within 2 σ, or be flagged (grid edge or flat) with the truth

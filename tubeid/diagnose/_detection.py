@@ -25,8 +25,8 @@ Statistics that take the declared model's spectral *shape* as right (``model_for
 Statistics that a *simplified* declared model can be trusted for (``model_form="simplified"``):
 its random subsystem B moves and scales resonances (what δ covers), but a coarser or homogenised B
 also misses modes and mis-shapes the spectrum in ways no draw of B reproduces (measured with
-``paper-simplified`` against reference records: ``scan``, ``gof`` and ``sharpness`` then alarm on
-6 of 10 effect-free records). These four look only at what such a model still gets right — the
+``paper-simplified`` against 10 effect-free reference records: ``scan``, ``gof`` and ``sharpness``
+give p-values of 0.025–0.15 only, where a calibrated test spreads them over 0.025–1; README). These four look only at what such a model still gets right — the
 non-linear tube, its sensors and its declared damping — each through a local or scale-free feature
 (:func:`features`), and each points to the catalog effect that can explain it (``effects``):
 
