@@ -3,8 +3,9 @@
     python benchmarks/diagnose_records.py CASE[,CASE...] SEED[,SEED...] [--paired] [--model NAME] [--set NAME=VALUE ...] [--dir DIR]
 
 Every case with every seed, or with ``--paired`` the i-th case with the i-th seed. Each record is made by ``tubeid.diagnose.testing.make_record`` (the reference model with the case's
-effects written by hand, ``studies/diagnose_effects.py``'s ``CASES``), written to NetCDF in DIR, then
-diagnosed by the command line (``tubeid diagnose REC.nc --model NAME --out DIR/... --workers 2``).
+effects written by hand, ``studies/diagnose_effects.py``'s ``CASES``; ``added_mass_xF``: the centre
+tube's density × F, 7 sensors), written to NetCDF in DIR, then
+diagnosed by the command line of this interpreter (``python -m tubeid diagnose REC.nc --model NAME --out DIR/... --workers 2``).
 Printed per record: case, seed, wall time of the diagnosis, p-value, named effects and their
 parameters, whether exactly the true effects are named, whether explained after.
 """
@@ -53,11 +54,17 @@ def main() -> None:
         p.error(f"--paired needs as many seeds as cases ({len(names)}), got {len(seeds)}")
     pairs = list(zip(names, seeds)) if args.paired else [(n, s) for n in names for s in seeds]
     for name, seed in pairs:
-        effects, truth, xs, _ = cases[name]
+        if name.startswith("added_mass_x") and name not in cases:
+            from tubeid.diagnose.testing import HandEffects
+
+            effects = HandEffects(density={"centre": float(name.removeprefix("added_mass_x"))})
+            truth, xs = ("added_mass",), cases["added_mass"][2]
+        else:
+            effects, truth, xs, _ = cases[name]
         record = out / f"{name}-{seed}.nc"
         make_record("paper-reference", effects, xs=xs, seed=seed).to_netcdf(record, engine="h5netcdf")
         where = out / f"{name}-{seed}-{args.model}"
-        cmd = ["tubeid", "diagnose", str(record), "--model", args.model, "--out", str(where), "--workers", "2",
+        cmd = [sys.executable, "-m", "tubeid", "diagnose", str(record), "--model", args.model, "--out", str(where), "--workers", "2",
                "--no-progress", *[a for s in args.set for a in ("--set", s)]]
         t0 = time.perf_counter()
         res = subprocess.run(cmd, capture_output=True, text=True)
