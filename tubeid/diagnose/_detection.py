@@ -26,9 +26,10 @@ Statistics that a *simplified* declared model can be trusted for (``model_form="
 its random subsystem B moves and scales resonances (what δ covers), but a coarser or homogenised B
 also misses modes and mis-shapes the spectrum in ways no draw of B reproduces (measured with
 ``paper-simplified`` against 10 effect-free reference records: ``scan``, ``gof`` and ``sharpness``
-give p-values of 0.025–0.15 only, where a calibrated test spreads them over 0.025–1; README). These four look only at what such a model still gets right — the
-non-linear tube, its sensors and its declared damping — each through a local or scale-free feature
-(:func:`features`), and each points to the catalog effect that can explain it (``effects``):
+give p-values of 0.025–0.15 only, where a calibrated test spreads them over 0.025–1; README).
+These four look only at what such a model still gets right — the non-linear tube, its sensors
+and its declared damping — each through a local or scale-free feature (:func:`features`), and each
+points to the catalog effect that can explain it (``effects``):
 
 ``line``       fine resolution (``fine``): the prominence of log10 PSD over a ring of bins 4–8
                bins away (a Hann line stays within ±2 bins, a resonance of the declared damping

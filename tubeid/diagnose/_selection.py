@@ -25,8 +25,9 @@ feature (:mod:`tubeid.diagnose.stages`), so the ratio puts them on one scale.
 ``tie`` (relative) of the chosen one's, was as good at that step. Forward selection must still pick
 one first, and fitting it can pull the record back inside the declared model's band (B's random
 stiffness), so the test stops the loop with the other one missing (measured: an added mass and a
-tone within a few % of each other; the README's "Five more seeds"). The loop therefore offers each such runner-up once more, alone, at
-the first step the test calls the record explained; it is added only if it pays its penalty there.
+tone within a few % of each other; the README's "Five more seeds"). The loop therefore offers each
+such runner-up once more, alone, at the first step the test calls the record explained; it is
+added only if it pays its penalty there.
 """
 
 from __future__ import annotations

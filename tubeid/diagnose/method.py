@@ -43,8 +43,9 @@ resumable); this module holds the context every stage reads and assembles the re
 
 ``report.json``: ``effect`` (the first effect's name, or ``none``), ``effects`` ([{name,
 parameters}]), ``detection`` (p-values before), ``steps`` (per step: the candidates' errors, the
-``continuation`` that offered them after an explained step (or null), the choice, the re-fitted effects and r, ``refit_check`` (the moved point's and the best evaluated point's fitting
-errors, ``fallback``), the held-out error and the test after), ``error_before``,
+``continuation`` that offered them after an explained step (or null), the choice, the re-fitted
+effects and r, ``refit_check`` (the moved point's and the best evaluated point's fitting errors,
+``fallback``), the held-out error and the test after), ``error_before``,
 ``error_after``, ``explained_before``/``explained_after``, ``load``, ``delta``, ``assumptions``.
 """
 

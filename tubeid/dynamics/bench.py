@@ -277,11 +277,8 @@ def bench_transient(duration: float = 220.0, delta: float = 0.45, delta_f: float
             errs.append(abs(p[sel].mean() / p4[sel].mean() - 1))
         return float(max(errs)), S
 
-    set_errors = []
-    for j in range(psd_sets):
-        e, S_j = psd_error(seed + 1000 * (j + 1))
-        set_errors.append(e)
-        S = S_j if j == 0 else S
+    first, S = psd_error(seed + 1000)
+    set_errors = [first] + [psd_error(seed + 1000 * (j + 1))[0] for j in range(1, psd_sets)]
     tracemalloc.start()
     chain(batch[:1])
     peak = tracemalloc.get_traced_memory()[1]

@@ -13,8 +13,9 @@ one side, 3**S regimes. In each regime the modal equations are integrated exactl
 piecewise-linear load; nothing is approximated between regimes except the location of the
 switching instants, found by safeguarded Halley iterations on the exact closed form (tolerance
 ``_regimes.CROSSING_TOL`` = 1e-5 of the step: 2.5 ns at the default 250 µs step), and a switch
-keeps the state continuous. A cubic-Hermite pre-check with a margin (4x the Hermite error of the highest mode) decides which sub-steps can contain a switch;
-the only approximation left is to miss a grazing excursion shallower than that margin.
+keeps the state continuous. A cubic-Hermite pre-check with a margin (4x the Hermite error of the
+highest mode) decides which sub-steps can contain a switch; the only approximation left is to miss
+a grazing excursion shallower than that margin.
 
 Method ``"symplectic-euler"`` (the semi-implicit Euler of industrial modal codes):
 v += dt M⁻¹ (B F - D v - K q - f); q += dt v. First order.

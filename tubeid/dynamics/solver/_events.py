@@ -11,8 +11,8 @@ of the method is to miss a grazing excursion shallower than that bound.
 A flagged sub-step is integrated exactly. Every evaluation of u, u', u'' inside it is exact
 (e^{λτ} from the table at τ = k h/64 times the series of the rest, then one row product);
 interior minima are located by Newton on d' = 0, the first crossing by safeguarded Halley
-iterations (tolerance T.xtol = CROSSING_TOL h) from the root of the Hermite cubic; if the Hermite check on
-[0, t_c] still allows an earlier dip, [0, t_c] is rescanned exactly on 8 pieces. A switch maps
+iterations (tolerance T.xtol = CROSSING_TOL h) from the root of the Hermite cubic; if the Hermite
+check on [0, t_c] still allows an earlier dip, [0, t_c] is rescanned exactly on 8 pieces. A switch maps
 xl(t_c) through the basis-to-basis transform (x continuous); u and u' continue from their values
 at the crossing; the end state of the remaining segment is propagated and its u, u' pre-checked,
 and a crossing is searched only if that check flags the segment.
