@@ -127,6 +127,20 @@ def test_reproducible_per_realisation():
     assert not np.allclose(b, d, atol=0)
 
 
+def test_out_receives_the_same_values_and_bad_out_is_refused():
+    s = force_and_moment(18.0, 20.0)
+    a = gaussian_loads(s, 2.0, DT, _rngs(7, "load", [0, 1]))
+    batch = np.full((3, a.shape[1], 2), np.nan)  # a batch's rows, as simulate_responses writes them
+    r = gaussian_loads(s, 2.0, DT, _rngs(7, "load", [1]), out=batch[1:2])
+    assert r is not None and np.shares_memory(r, batch)
+    np.testing.assert_array_equal(batch[1], a[1])
+    assert np.isnan(batch[0]).all() and np.isnan(batch[2]).all()  # nothing beyond the rows given
+    for bad in (np.empty((1, a.shape[1] - 1, 2)), np.empty((1, a.shape[1], 2), dtype=np.float32),
+                np.empty((1, 2, a.shape[1])).transpose(0, 2, 1), [[0.0]]):
+        with pytest.raises(SpecificationError, match="out"):
+            gaussian_loads(s, 2.0, DT, _rngs(7, "load", [1]), out=bad)
+
+
 def test_randomised_spectrum_covariance():
     # Loads from L^* G L: covariance 200 Hz * sqrt(r_i r_j) G_ij (off-diagonal appears).
     r = np.array([18.0, 20.0])

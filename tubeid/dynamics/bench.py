@@ -208,15 +208,16 @@ def bench_transient(duration: float = 220.0, delta: float = 0.45, delta_f: float
     stops = [Stop(b=tuple(b), gap=s.gap, stiffness=s.stiffness) for b, s in zip(model.stop_vectors(), model.spec.stops)]
     opened = [Stop(b=s.b, gap=1e9, stiffness=s.stiffness) for s in stops]
 
-    def draw(k, spectrum_dispersion=delta_f, seed_=seed):
-        """Matrices and loads of realisation k (the response chain's streams)."""
+    def draw(k, spectrum_dispersion=delta_f, seed_=seed, out=None):
+        """Matrices and loads of realisation k (the response chain's streams); the loads written
+        into ``out`` (1, n_t, m) if given, as ``simulate_responses`` writes a batch's rows."""
         streams = realisation_streams(seed_, k)
         MB, DB, KB = random_subsystem(model.subsystem, Dispersion(stiffness=delta), 0, [k],
                                       germs=germs_from_rngs(model.subsystem.n, [streams[0]]))
         M, D, K = (a[0] for a in model.matrices(MB, DB, KB))
         spectrum = load if spectrum_dispersion == 0 else randomised(load, sg_plus(len(load.names), spectrum_dispersion,
                                                                                    rng=streams[1]))
-        return M, D, K, gaussian_loads(spectrum, st.duration, st.dt_load, [streams[2]])[0]
+        return M, D, K, gaussian_loads(spectrum, st.duration, st.dt_load, [streams[2]], out=out)[0]
 
     def integrate(M, D, K, F, stops_=stops, dt=None):
         return simulate(M, D, K, stops_, B, C, F, st.dt_load, output_dt=st.output_dt, dt=dt,
@@ -225,9 +226,10 @@ def bench_transient(duration: float = 220.0, delta: float = 0.45, delta_f: float
     def chain(ks):
         """(load generation, integration, PSD) seconds for realisations ks in one simulate call."""
         t0 = time.perf_counter()
-        drawn = [draw(k) for k in ks]
+        F = np.empty((len(ks), int(round(st.duration / st.dt_load)) + 1, len(load.names)))
+        drawn = [draw(k, out=F[i:i + 1]) for i, k in enumerate(ks)]
         t1 = time.perf_counter()
-        M, D, K, F = (np.stack(a) for a in zip(*drawn))
+        M, D, K = (np.stack(a) for a in list(zip(*drawn))[:3])
         y = integrate(M, D, K, F)
         t2 = time.perf_counter()
         for r in range(len(ks)):

@@ -90,7 +90,7 @@ def synthesis_grid(duration: float, dt: float) -> tuple[int, int]:
 
 
 def gaussian_loads(spectrum: LoadSpectrum, duration: float, dt: float, rngs: Sequence[np.random.Generator],
-                   interpolation: str = "linear") -> np.ndarray:
+                   interpolation: str = "linear", out: np.ndarray | None = None) -> np.ndarray:
     """Realisations of the centred stationary Gaussian load with two-sided PSD ``spectrum.matrix(f)``.
 
     See the module docstring for the synthesis, its law and its cost.
@@ -109,11 +109,14 @@ def gaussian_loads(spectrum: LoadSpectrum, duration: float, dt: float, rngs: Seq
     interpolation : str
         ``"linear"`` (pre-compensated so that the piecewise-linear interpolant has the target
         PSD in band) or ``"none"`` (the samples have it).
+    out : numpy.ndarray, optional
+        A writeable C-contiguous float64 array of shape (R, n_t, m) to write the result into
+        (e.g. a batch's rows: no new array, no copy by the caller); the values are the same.
 
     Returns
     -------
     numpy.ndarray
-        float64, shape (R, n_t, m), in the units of each load (N or N m).
+        float64, shape (R, n_t, m), in the units of each load (N or N m): ``out`` if given.
     """
     if interpolation not in INTERPOLATIONS:
         raise SpecificationError("interpolation", interpolation, f"must be one of {INTERPOLATIONS}")
@@ -133,6 +136,14 @@ def gaussian_loads(spectrum: LoadSpectrum, duration: float, dt: float, rngs: Seq
         if not isinstance(g, np.random.Generator):
             raise SpecificationError(f"rngs[{r}]", type(g).__name__, "must be a numpy.random.Generator")
     m = len(spectrum.names)
+    R = len(rngs)
+    if out is not None:
+        ok = (isinstance(out, np.ndarray) and out.dtype == np.float64 and out.flags.c_contiguous
+              and out.flags.writeable)
+        if not ok or out.shape != (R, n_t, m):
+            raise SpecificationError("out", getattr(out, "shape", type(out).__name__),
+                                     f"must be a writeable C-contiguous float64 array of shape (R, n_t, m) = "
+                                     f"{(R, n_t, m)}")
 
     df = 1.0 / (N * dt)
     K = int(np.floor(band / df * (1 + 1e-12)))  # bins 0..K lie in |f| <= band
@@ -145,7 +156,6 @@ def gaussian_loads(spectrum: LoadSpectrum, duration: float, dt: float, rngs: Seq
         scale /= np.sinc(fk * dt) ** 2
     B = _factors(spectrum, fk, m)  # (m, m): one factor for every in-band bin, or (K + 1, m, m)
 
-    R = len(rngs)
     # FFT axis last (contiguous transforms), single precision (see the module docstring).
     coef = np.empty((R, m, N // 2 + 1), dtype=np.complex64)
     coef[:, :, K + 1:] = 0.0  # bins 0..K are written below
@@ -160,7 +170,10 @@ def gaussian_loads(spectrum: LoadSpectrum, duration: float, dt: float, rngs: Seq
     # covariance Re(B B^*) = S(0) df whatever the (possibly complex) factor B of the real S(0).
     coef[:, :, 0] = np.float32(np.sqrt(2.0)) * coef[:, :, 0].real
     x = scipy.fft.irfft(coef, n=N, axis=-1, workers=1, overwrite_x=True)  # coef is scratch
-    return np.ascontiguousarray(np.swapaxes(x[:, :, :n_t], 1, 2), dtype=np.float64)
+    if out is None:
+        return np.ascontiguousarray(np.swapaxes(x[:, :, :n_t], 1, 2), dtype=np.float64)
+    np.copyto(out, np.swapaxes(x[:, :, :n_t], 1, 2))  # float32 -> float64: exact, the same values
+    return out
 
 
 def _factors(spectrum, fk, m) -> np.ndarray:
