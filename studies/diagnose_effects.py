@@ -21,7 +21,8 @@ resumes; a finished point is never recomputed):
 ``simplified_false_alarm``  ``paper-simplified`` declared (δ by maximum likelihood of J against the
                   reference, so the simplified model form), the reference's own records, the test
                   only: the alarm rate of the simplified form's statistics under model-form error
-``simplified``    the same declared model, reference records with each catalog effect: the full loop
+``simplified``    the same declared model, reference records with each catalog effect (and added
+                  mass × 2 on the centre tube beside the catalog's × 1.3): the full loop
 
 Outputs per point: the test (``detected``, p-values), the effects named (``named``: bit k set for
 catalog entry k; ``right``: 1 when exactly the true effects are named), the position error of a
@@ -64,6 +65,7 @@ CASES = {
     "tone": (HandEffects(tones=(TONE,)), ("tone",), SEVEN, None),
     "stop": (HandEffects(stops=(("centre", 10.0, 3e-6, 1e8),)), ("stop",), SEVEN, None),
     "added_mass": (HandEffects(density={"centre": 1.3}), ("added_mass",), SEVEN, None),
+    "added_mass_x2": (HandEffects(density={"centre": 2.0}), ("added_mass",), SEVEN, None),
     "damping": (HandEffects(damping={"centre": 0.008}), ("damping",), SEVEN, None),
     "sensor_noise": (HandEffects(noise=1e-16), ("sensor_noise",), SEVEN, None),
 }
@@ -168,7 +170,8 @@ def simplified_false_alarm(results, *, simplified_model, control_records):
 
 
 def simplified(results, *, simplified_model, simplified_records):
-    return _stage("simplified", ["tone", "stop", "added_mass", "damping", "sensor_noise"], simplified_records, full_loop,
+    return _stage("simplified", ["tone", "stop", "added_mass", "added_mass_x2", "damping", "sensor_noise"],
+                  simplified_records, full_loop,
                   {"model": simplified_model, "delta_reference": "paper-reference"})
 
 

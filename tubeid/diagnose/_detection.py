@@ -48,6 +48,11 @@ points to the catalog effect that can explain it (``effects``):
                round-off). → ``sensor_noise``.
 ``kurtosis``   the excess kurtosis of each sensor's record (a stop clips the motion near it):
                the largest over sensors of its standardised residual squared. → ``stop``.
+``tilt``       fine resolution: the least-squares slope of log10 PSD against log10 f over
+               [:data:`TILT_LOW_HZ`, band] per sensor (the rate at which the response falls with
+               frequency: the sensors' tube's mass against its stiffness, which a heavier tube
+               steepens and a random B barely moves, where a simplified B mis-shapes the detail of
+               the spectrum); the absolute standardised mean over sensors (two-sided). → ``added_mass``.
 ``resonance``  fine resolution: log roughness (as ``sharpness``, running mean over ±2 Hz) per
                4·``band_width_hz`` chunk in the load band, the first chunk left out (the lowest
                modes are B's, the most uncertain), lines left out (bins within ±2 Hz of a
@@ -100,6 +105,8 @@ LINE_MASK_DECADES = 1.0
 FLOOR_MIN_BINS = 8
 #: Half width of the running mean behind the ``resonance`` roughness [Hz].
 RESONANCE_SMOOTH_HZ = 2.0
+#: Lowest frequency of the ``tilt`` fit [Hz] (below it the Welch estimate's first bins).
+TILT_LOW_HZ = 2.0
 
 
 @dataclass(frozen=True)
@@ -394,6 +401,26 @@ def _roughness_chunks(obs: Observations, band_width_hz: float) -> np.ndarray:
     return np.log10(np.maximum(num / np.maximum(den, 1e-12), 1e-300))
 
 
+def _tilt_bins(obs: Observations) -> np.ndarray:
+    """Fine analysis bins of the ``tilt`` fit: from :data:`TILT_LOW_HZ` to the load's band (to
+    Nyquist when the band is unknown)."""
+    f = obs.frequency_fine
+    sel = analysis_bins(f) & (f >= TILT_LOW_HZ)
+    if obs.band_hz is not None:
+        sel &= f <= obs.band_hz + 1e-9
+    return sel
+
+
+def _tilt_slopes(obs: Observations) -> np.ndarray:
+    """Per sample and sensor, the least-squares slope of log10 of the fine PSD against log10 f over
+    :func:`_tilt_bins` (N, m) [decades per decade]."""
+    sel = _tilt_bins(obs)
+    x = np.log10(obs.frequency_fine[sel])
+    x = x - x.mean()
+    L = log10(obs.fine[:, sel])
+    return np.einsum("f,nfm->nm", x, L) / np.dot(x, x)
+
+
 def applicable(model_form: str, obs: Observations, band_width_hz: float = 5.0) -> tuple[str, ...]:
     """The statistics of ``model_form`` (:data:`MODEL_FORMS`) whose ``applies`` holds for ``obs``
     (only frequencies, the band, the segment count and the sensor count are read)."""
@@ -405,7 +432,7 @@ def features(name: str, obs: Observations, band_width_hz: float = 5.0) -> np.nda
     """The feature a robust statistic standardises, per sample (N, ...): what the selection fits an
     effect to when the declared model is simplified (``line``: prominence (N, F'', m) [decades];
     ``floor``: level and spread of log10 conditional PSD (N, 2, m) [decades]; ``kurtosis``: excess
-    kurtosis (N, m); ``resonance``: log roughness (N, C, m))."""
+    kurtosis (N, m); ``resonance``: log roughness (N, C, m); ``tilt``: log-log slopes (N, m))."""
     if name == "line":
         return _prominence(obs)
     if name == "floor":
@@ -414,6 +441,8 @@ def features(name: str, obs: Observations, band_width_hz: float = 5.0) -> np.nda
         return obs.stats[:, :, 2]
     if name == "resonance":
         return _roughness_chunks(obs, band_width_hz)
+    if name == "tilt":
+        return _tilt_slopes(obs)
     raise SpecificationError("statistic", name, f"has no feature; one of {[k for k, s in STATISTICS.items() if s.robust]}")
 
 
@@ -465,6 +494,10 @@ def _kurtosis(obs, band_width_hz, smooth_bins):
     return (_loo_z(obs.stats[:, :, 2], level_free=False) ** 2).max(axis=1)
 
 
+def _tilt(obs, band_width_hz, smooth_bins):
+    return np.exp(np.abs(_loo_z(_tilt_slopes(obs).mean(axis=1), level_free=False)))
+
+
 def _resonance(obs, band_width_hz, smooth_bins):
     return np.exp(np.abs(_loo_z(_roughness_chunks(obs, band_width_hz), level_free=False).mean(axis=(1, 2))))
 
@@ -482,12 +515,14 @@ STATISTICS: dict[str, Statistic] = {
     "kurtosis": Statistic(_kurtosis, needs=("stats",), robust=True, effects=("stop",)),
     "resonance": Statistic(_resonance, needs=("fine",), robust=True, effects=("damping",),
                            applies=lambda obs, width: bool(np.any(_chunks(obs, width)[1]))),
+    "tilt": Statistic(_tilt, needs=("fine",), robust=True, effects=("added_mass",),
+                      applies=lambda obs, width: int(np.sum(_tilt_bins(obs))) >= 8),
 }
 
 #: The statistics a test combines, by what the declared model is taken to be.
 MODEL_FORMS: dict[str, tuple[str, ...]] = {
     "exact": ("scan", "gof", "sharpness"),
-    "simplified": ("line", "floor", "kurtosis", "resonance"),
+    "simplified": ("line", "floor", "kurtosis", "resonance", "tilt"),
 }
 
 
