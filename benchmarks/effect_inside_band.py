@@ -15,7 +15,9 @@ the (0, 100] Hz bins of all sensors' auto-PSDs (Welch, 8 s) inside the model's 2
 inside the model's uncertainty: no test of "outside the band" can name it without alarming on the
 control as often. Then, per 20 Hz chunk, the log-frequency shift (−25 … +25 %) that best correlates
 the record's smoothed log-PSDs with the model's mean, in standard deviations of the same shift over
-the model's realisations (a frequency signature the band's coverage cannot see).
+the model's realisations (a frequency signature the band's coverage cannot see); and the tilt, the
+least-squares slope of log10 PSD against log10 f over 2–100 Hz averaged over the sensors (what
+the simplified form's ``tilt`` statistic reads), in standard deviations of the model's.
 """
 
 from __future__ import annotations
@@ -67,6 +69,12 @@ def _shifts(L, mean, f):
     return np.array(out)
 
 
+def _tilt(P, f):
+    """Mean over sensors of the least-squares slope of log10 PSD against log10 f over 2–100 Hz."""
+    sel = (f >= 2.0) & (f <= 100.0)
+    return float(np.mean(np.polyfit(np.log10(f[sel]), np.log10(P[sel]), 1)[0]))
+
+
 def main() -> None:
     """Print the coverage of each record and of the model's own draws."""
     from tubeid.diagnose.testing import make_record, sensors
@@ -97,8 +105,11 @@ def main() -> None:
     mean = np.mean([_smooth(np.log(x)) for x in P], axis=0)
     model_shifts = np.array([_shifts(np.log(x), mean, fb) for x in P])
     mu, sd = model_shifts.mean(0), model_shifts.std(0, ddof=1)
+    tilts = np.array([_tilt(x, fb) for x in P])
     print(f"paper-simplified at delta = {a.delta}, {a.realisations} realisations; coverage 0-100 / 0-35 / 35-100 Hz; "
-          f"frequency shift per chunk {CHUNKS} in model standard deviations (those: {np.round(sd, 3).tolist()})")
+          f"frequency shift per chunk {CHUNKS} in model standard deviations (those: {np.round(sd, 3).tolist()}); "
+          f"tilt in model standard deviations (the model's: mean {tilts.mean():.3f}, standard deviation "
+          f"{tilts.std(ddof=1):.3f} decade per decade)")
     for case in a.cases.split(","):
         if case.startswith("added_mass_x") and case not in cases:
             from tubeid.diagnose.testing import HandEffects
@@ -112,7 +123,9 @@ def main() -> None:
             R = np.real(np.diagonal(S, axis1=-2, axis2=-1))[(fr > 0) & (fr <= 100)]
             c = _coverage(R, lo, hi, fs)
             z = (_shifts(np.log(R), mean, fb) - mu) / sd
-            print(f"{case:14s} seed {seed}: {c[0]:.3f} / {c[1]:.3f} / {c[2]:.3f}   shifts {np.round(z, 1).tolist()}", flush=True)
+            t = (_tilt(R, fb) - tilts.mean()) / tilts.std(ddof=1)
+            print(f"{case:14s} seed {seed}: {c[0]:.3f} / {c[1]:.3f} / {c[2]:.3f}   shifts {np.round(z, 1).tolist()}"
+                  f"   tilt {t:+.2f}", flush=True)
     own = []
     for i in range(P.shape[0]):
         rest = np.delete(P, i, axis=0)

@@ -119,15 +119,19 @@ def test_the_test_refuses_what_it_cannot_calibrate():
         DiagnoseSettings(realisations=9, false_alarm=0.05)  # smallest p-value 1/10 > 5 %
 
 
-def _observations(rng, N, m=3, *, line=None, floor=None, kurtosis=None, sharp=1.0):
+def _observations(rng, N, m=3, *, line=None, floor=None, kurtosis=None, sharp=1.0, tilt=0.0):
     """N synthetic samples of what the simplified form's statistics read (:class:`Observations`):
     fine spectra (``_spectra`` at 4 × the resolution), conditional PSDs that are deep and uneven
     above the 100 Hz band (a structure driven there only by impacts) with a per-sample level, and
     excess kurtoses scattered per sensor. The departures of the record: a ``line`` at fine bin k,
     a white ``floor`` [m²/Hz] added to the conditional PSD, a ``kurtosis`` of −1 at sensor k,
-    resonances ``sharp`` × sharper."""
+    resonances ``sharp`` × sharper, fine spectra steeper by ``tilt`` decades per decade of
+    frequency. Every sample's fine spectra are tilted by a random log-log slope (standard deviation
+    0.2 decades per decade: what the random B of ``paper-simplified`` at δ = 0.63 gives, 0.23)."""
     f = np.linspace(0.0, 166.0, 120)
     ff, fine = _spectra(rng, N, F=480, m=m, line=line, sharp=sharp)
+    x = np.log10(np.maximum(ff, 1.0) / 20.0)
+    fine = fine * 10.0 ** ((0.2 * rng.standard_normal((N, 1, 1)) - tilt) * x[None, :, None])
     _, psd = _spectra(rng, N, m=m)
     level = 10.0 ** (-15.0 - 6.0 * (f > 100.0))[None, :, None] * 10 ** (0.2 * rng.standard_normal((N, 1, 1)))
     residual = level * 10.0 ** (0.7 * rng.standard_normal((N, f.size, m)))
@@ -140,7 +144,7 @@ def _observations(rng, N, m=3, *, line=None, floor=None, kurtosis=None, sharp=1.
 
 
 def test_the_simplified_test_is_exact_on_exchangeable_samples():
-    """The simplified form's statistics (line, floor, kurtosis, resonance) on samples of one law:
+    """The simplified form's statistics (line, floor, kurtosis, resonance, tilt) on samples of one law:
     over 300 draws the combined test rejects at 5 % within the binomial tolerance (exact size
     1/20: expected 15, sd 3.8; 3 sd: 4–26), and each statistic's p-value is uniform (KS at 1 %)."""
     rng = np.random.default_rng(4)
@@ -157,21 +161,43 @@ def test_the_simplified_test_is_exact_on_exchangeable_samples():
         assert scipy.stats.kstest(u, "uniform").pvalue > 0.01, k
 
 
-@pytest.mark.parametrize("what", ["line", "floor", "kurtosis", "resonance"])
+@pytest.mark.parametrize("what", ["line", "floor", "kurtosis", "resonance", "tilt", "tilt-"])
 def test_the_simplified_test_sees_each_departure_with_the_statistic_built_for_it(what):
-    """A line, a white floor, a clipped sensor and sharper resonances, each in the record only: the
-    statistic built for it gives the smallest p-value (1/20) and points to its catalog effect."""
+    """A line, a white floor, a clipped sensor, sharper resonances and a spectrum falling faster
+    (or slower: the tilt is two-sided) with frequency, each in the record only: the statistic built
+    for it gives the smallest p-value (1/20) and points to its catalog effect."""
     rng = np.random.default_rng(5)
     kw = {"line": {"line": 201}, "floor": {"floor": 1e-19}, "kurtosis": {"kurtosis": 1},
-          "resonance": {"sharp": 3.0}}[what]
+          "resonance": {"sharp": 3.0}, "tilt": {"tilt": 1.0}, "tilt-": {"tilt": -1.0}}[what]
+    what = what.rstrip("-")
     rec = _observations(rng, 1, **kw)
     obs = rec.stacked(_observations(rng, 19))
     d = detection_test(obs, model_form="simplified")
     assert d.detected and d.p_values[what] == 0.05, d
-    effect = {"line": "tone", "floor": "sensor_noise", "kurtosis": "stop", "resonance": "damping"}[what]
+    effect = {"line": "tone", "floor": "sensor_noise", "kurtosis": "stop", "resonance": "damping",
+              "tilt": "added_mass"}[what]
     assert effect in d.pointed_effects()
     if what == "line":
         assert d.scan_frequency_hz == pytest.approx(rec.frequency_fine[201], abs=0)
+
+
+def test_the_tilt_reads_the_band_only():
+    """The tilt's slope is fitted from 2 Hz to the band: the record's fine spectra × 100 above the
+    band (what stop impacts or a noise floor do there) or below 2 Hz leave its value unchanged, the
+    same × (f/20 Hz)^−1 inside the band moves it by −1 decade per decade."""
+    from tubeid.diagnose._detection import features
+
+    rng = np.random.default_rng(12)
+    obs = _observations(rng, 2)
+    f = obs.frequency_fine
+    base = features("tilt", obs)
+    for outside in (f > 100.5, f < 1.9):
+        moved = features("tilt", dataclasses.replace(obs, fine=obs.fine * np.where(outside, 100.0, 1.0)[None, :, None]))
+        np.testing.assert_allclose(moved, base, rtol=1e-12)
+    inband = (f >= 2.0) & (f <= 100.0)
+    steeper = np.where(inband, (np.maximum(f, 1.0) / 20.0) ** -1.0, 1.0)
+    moved = features("tilt", dataclasses.replace(obs, fine=obs.fine * steeper[None, :, None]))
+    np.testing.assert_allclose(moved - base, -1.0, rtol=1e-9)
 
 
 def test_the_strongest_departure_points_to_the_effect_explained_first():
@@ -179,7 +205,7 @@ def test_the_strongest_departure_points_to_the_effect_explained_first():
     stop): both statistics fire, the line's excess is the larger, so only the tone is a candidate
     of the first step; the exact form's statistics point to every effect (None)."""
     rng = np.random.default_rng(8)
-    obs = _observations(rng, 1, line=201, sharp=1.5).stacked(_observations(rng, 19))
+    obs = _observations(rng, 1, line=201, sharp=1.8).stacked(_observations(rng, 19))
     d = detection_test(obs, model_form="simplified")
     assert d.p_values["line"] == d.p_values["resonance"] == 0.05, d.p_values
     assert d.strongest() == "line" and d.pointed_effects() == ("tone",), d.excess
@@ -189,24 +215,28 @@ def test_the_strongest_departure_points_to_the_effect_explained_first():
 
 def test_the_floor_is_left_out_without_bins_above_the_band():
     """A record whose Nyquist frequency is the band's: the floor statistic has nothing to read and
-    the simplified test combines the three others."""
+    the simplified test combines the four others."""
     rng = np.random.default_rng(6)
     obs = _observations(rng, 20)
     obs = dataclasses.replace(obs, band_hz=165.0)
-    assert detection_test(obs, model_form="simplified").statistics == ("line", "kurtosis", "resonance")
+    assert detection_test(obs, model_form="simplified").statistics == ("line", "kurtosis", "resonance", "tilt")
 
 
 def test_what_a_simplified_test_cannot_read_is_left_out_not_a_crash():
     """The floor needs bins above the band and at least 2 averaged segments per sensor; the
-    resonance a 4·band_width chunk inside the band after the first; the line fine bins. Each left
+    resonance a 4·band_width chunk inside the band after the first; the tilt 8 fine bins between
+    2 Hz and the band; the line fine bins. Each left
     out when its observations cannot hold it; the test then combines the others. Observations
     without ``psd`` (the simplified statistics do not read it) are tested too (no display residual)."""
     rng = np.random.default_rng(9)
     obs = _observations(rng, 20)
     assert detection_test(dataclasses.replace(obs, segments=5), model_form="simplified").statistics == (
-        "line", "kurtosis", "resonance")  # 5 segments for 3 sensors
+        "line", "kurtosis", "resonance", "tilt")  # 5 segments for 3 sensors
     assert detection_test(dataclasses.replace(obs, segments=6), model_form="simplified").statistics == MODEL_FORMS["simplified"]
-    assert detection_test(obs, model_form="simplified", band_width_hz=30.0).statistics == ("line", "floor", "kurtosis")
+    assert detection_test(obs, model_form="simplified", band_width_hz=30.0).statistics == ("line", "floor", "kurtosis",
+                                                                                           "tilt")
+    narrow = dataclasses.replace(obs, band_hz=4.0)  # 6 fine bins in [2, 4] Hz: no tilt, no resonance chunk
+    assert detection_test(narrow, model_form="simplified").statistics == ("line", "floor", "kurtosis")
     d = detection_test(dataclasses.replace(obs, psd=None), model_form="simplified")
     assert d.z is None and np.isfinite(d.p_value)
 
@@ -609,12 +639,16 @@ def test_bad_input_is_refused(tmp_path, capsys):
     assert "--set nonsense" in capsys.readouterr().err
 
 
-def test_the_simplified_form_refuses_what_it_cannot_do():
+def test_the_simplified_form_refuses_what_it_cannot_do(monkeypatch):
     """A fine segment shorter than the test's, and candidates none of which a simplified model's
     statistics point to, are refused by name before any computation."""
     with pytest.raises(SpecificationError, match="settings.fine_segment_seconds"):
         DiagnoseSettings(fine_segment_seconds=1.0)
     data = record(duration=24.0)
+    from tubeid.diagnose import _detection
+
+    # every catalog effect has a robust statistic now: the guard is tested with the tilt's pointer removed
+    monkeypatch.setitem(_detection.STATISTICS, "tilt", dataclasses.replace(_detection.STATISTICS["tilt"], effects=()))
     with pytest.raises(SpecificationError, match="settings.candidates"):
         diagnose(data, "paper-simplified", SIMPLIFIED.replace(candidates=("added_mass",)))
 
@@ -879,15 +913,16 @@ def test_delta_identified_by_maximum_likelihood_against_a_reference():
 SIMPLIFIED = SMALL.replace(model_form="simplified", delta=0.6, max_effects=1)
 
 
-@pytest.mark.parametrize("case", ["control", "tone", "sensor_noise"])
+@pytest.mark.parametrize("case", ["control", "tone", "sensor_noise", "added_mass"])
 def test_a_simplified_model_declared_tells_model_uncertainty_from_a_missing_effect(case):
     """Records of ``paper-reference`` (made by hand, another code path), ``paper-simplified``
     declared at δ = 0.6 (about what the paper's maximum likelihood gives, MODEL.md §2) with the
     simplified model form: the model's own errors (+25 % mass, +42 % EI of B, a coarse mesh) are not
-    an alarm, a tone and a noise floor are named, each by the statistic built for it. (The exact
-    form's false alarms on such records are measured at full size by the campaign.)"""
+    an alarm; a tone, a noise floor and the centre tube's density × 2 are named, each by the
+    statistic built for it. (The exact form's false alarms on such records are measured at full
+    size by the campaign.)"""
     eff = {"control": HandEffects(), "tone": HandEffects(tones=(("centre", 4.6, 29.0, 100.0),)),
-           "sensor_noise": HandEffects(noise=3e-17)}[case]
+           "sensor_noise": HandEffects(noise=3e-17), "added_mass": HandEffects(density={"centre": 2.0})}[case]
     data = make_record(effects=eff, xs=SEVEN, duration=48.0, seed=11)
     rep = diagnose(data, "paper-simplified", SIMPLIFIED).report
     assert rep["model_form"] == "simplified" and rep["detection"]["model_form"] == "simplified"
@@ -895,7 +930,7 @@ def test_a_simplified_model_declared_tells_model_uncertainty_from_a_missing_effe
         assert not rep["detection"]["detected"] and rep["effects"] == [], rep["detection"]
     else:
         assert [e["name"] for e in rep["effects"]] == [case], json.dumps(rep["steps"], default=str)[:3000]
-        assert rep["detection"]["excess"][{"tone": "line", "sensor_noise": "floor"}[case]] == max(
+        assert rep["detection"]["excess"][{"tone": "line", "sensor_noise": "floor", "added_mass": "tilt"}[case]] == max(
             rep["detection"]["excess"].values())
 
 

@@ -27,7 +27,7 @@ its random subsystem B moves and scales resonances (what δ covers), but a coars
 also misses modes and mis-shapes the spectrum in ways no draw of B reproduces (measured with
 ``paper-simplified`` against 10 effect-free reference records: ``scan``, ``gof`` and ``sharpness``
 give p-values of 0.025–0.15 only, where a calibrated test spreads them over 0.025–1; README).
-These four look only at what such a model still gets right — the non-linear tube, its sensors
+These five look only at what such a model still gets right — the non-linear tube, its sensors
 and its declared damping — each through a local or scale-free feature (:func:`features`), and each
 points to the catalog effect that can explain it (``effects``):
 
@@ -52,7 +52,8 @@ points to the catalog effect that can explain it (``effects``):
                [:data:`TILT_LOW_HZ`, band] per sensor (the rate at which the response falls with
                frequency: the sensors' tube's mass against its stiffness, which a heavier tube
                steepens and a random B barely moves, where a simplified B mis-shapes the detail of
-               the spectrum); the absolute standardised mean over sensors (two-sided). → ``added_mass``.
+               the spectrum); the absolute standardised mean over sensors (two-sided); left out
+               with fewer than :data:`TILT_MIN_BINS` such bins. → ``added_mass``.
 ``resonance``  fine resolution: log roughness (as ``sharpness``, running mean over ±2 Hz) per
                4·``band_width_hz`` chunk in the load band, the first chunk left out (the lowest
                modes are B's, the most uncertain), lines left out (bins within ±2 Hz of a
@@ -107,6 +108,8 @@ FLOOR_MIN_BINS = 8
 RESONANCE_SMOOTH_HZ = 2.0
 #: Lowest frequency of the ``tilt`` fit [Hz] (below it the Welch estimate's first bins).
 TILT_LOW_HZ = 2.0
+#: Fewest fine bins between :data:`TILT_LOW_HZ` and the band the ``tilt`` statistic needs.
+TILT_MIN_BINS = 8
 
 
 @dataclass(frozen=True)
@@ -516,7 +519,7 @@ STATISTICS: dict[str, Statistic] = {
     "resonance": Statistic(_resonance, needs=("fine",), robust=True, effects=("damping",),
                            applies=lambda obs, width: bool(np.any(_chunks(obs, width)[1]))),
     "tilt": Statistic(_tilt, needs=("fine",), robust=True, effects=("added_mass",),
-                      applies=lambda obs, width: int(np.sum(_tilt_bins(obs))) >= 8),
+                      applies=lambda obs, width: int(np.sum(_tilt_bins(obs))) >= TILT_MIN_BINS),
 }
 
 #: The statistics a test combines, by what the declared model is taken to be.
