@@ -51,7 +51,7 @@ class DiagnoseSettings:
     realisations : int or None
         R, the records of the declared stochastic model shaped like the held-out set; the test is
         exact at level ⌊α(R+1)⌋/(R+1) (R = 39, α = 0.05: exactly 5 %). ``None``: 39 for the exact
-        model form, :data:`SIMPLIFIED_REALISATIONS` for the simplified one (its four statistics
+        model form, :data:`SIMPLIFIED_REALISATIONS` for the simplified one (its five statistics
         have heavy tails under a strongly random B; 1/(R+1) resolves the smallest p-value).
     false_alarm : float
         α, the stated false-alarm rate of the test, in (0, 0.5).
