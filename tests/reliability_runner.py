@@ -205,9 +205,9 @@ def parameters(tmp: Path, study: Path) -> dict:
     return out
 
 
-def _subprocess_run(study: Path, store: Path, *extra) -> subprocess.Popen:
+def _subprocess_run(study: Path, store: Path, *extra, env: dict | None = None) -> subprocess.Popen:
     return subprocess.Popen([*TUBEID, "run", str(study), "--store", str(store), "--workers", "0", "--no-progress", *extra],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
 
 
 def locks(tmp: Path, study: Path, ref: Path, trials: int) -> dict:
@@ -222,7 +222,8 @@ def locks(tmp: Path, study: Path, ref: Path, trials: int) -> dict:
               and store_digest(store) == ref_digest and len(read_attrs(store)["runs"]) == 1)
         out["two runs at once on a new store"]["handled" if ok else "wrong"] += 1
     # a runner killed (SIGKILL) after its first finished block leaves its lock and a partial store: the next run
-    # takes the lock over and completes identically
+    # takes the lock over and completes identically. The killed run's blocks are paced (0.5 s of sleep each, the
+    # values unchanged): unpaced, its 4 blocks of ~10-40 ms could all finish between the poll and the kill.
     from tubeid.runner.store import read_flags
 
     slow = write_study(tmp, name="slow.py", realisations=8, chunk=2, work=2000)
@@ -230,7 +231,7 @@ def locks(tmp: Path, study: Path, ref: Path, trials: int) -> dict:
     run(slow, slow_ref, workers=0, quiet=True)
     for k in range(2):
         store = tmp / f"killed{k}.zarr"
-        p = _subprocess_run(slow, store)
+        p = _subprocess_run(slow, store, env=dict(os.environ, TUBEID_TEST_BLOCK_SECONDS="0.5"))
         t0 = time.monotonic()
         while time.monotonic() - t0 < 120:
             with contextlib.suppress(Exception):
