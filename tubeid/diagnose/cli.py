@@ -99,7 +99,8 @@ def register(subparsers) -> None:
     p.add_argument("--model-form", choices=("exact", "simplified"), default=None,
                    help="what the declared model is: 'exact' (the structure up to its random B: the test reads the "
                         "spectrum's shape) or 'simplified' (the test reads only lines, the incoherent floor, kurtosis, "
-                        "resonance sharpness and the spectrum's log-log slope); default: simplified when --delta-reference is given, else exact")
+                        "resonance sharpness and the spectrum's log-log slope); default: simplified when "
+                        "--delta-reference is given, else exact")
     p.add_argument("--max-effects", type=int, default=None, help="effects selected at most (0: the test only; default 3)")
     p.add_argument("--seed", type=int, default=None, help="seed of all random streams (default 0)")
     p.add_argument("--set", dest="settings", action="append", type=_setting, default=[], metavar="NAME=VALUE",

@@ -21,8 +21,8 @@ resumable); this module holds the context every stage reads and assembles the re
    sharpness of resonances; *simplified* (the default when δ is identified against a reference
    model) — only what a simplified model is trusted for: lines at a fine resolution, the flatness
    of the sensors' incoherent floor, the kurtosis of each sensor, the sharpness of the in-band
-   resonances, the log-log slope of the in-band spectrum; each of these points to the catalog effect that can explain it. Not detected:
-   the answer is ``none``.
+   resonances, the log-log slope of the in-band spectrum; each of these points to the catalog
+   effect that can explain it. Not detected: the answer is ``none``.
 5. **Forward selection** (:mod:`tubeid.diagnose._selection`): at each step every catalog effect not
    yet chosen (:mod:`tubeid.diagnose.catalog`) is placed and sized from its signature, fitted by a
    trial grid of the mean model on the fitting blocks (the chosen effects held, the level

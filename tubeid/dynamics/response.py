@@ -178,7 +178,8 @@ def simulate_responses(
     loads = np.empty((len(realisations), int(round(settings.duration / settings.dt_load)) + 1, m))
     for i, s in enumerate(streams):
         spectrum = load if load_dispersion == 0.0 else randomised(load, sg_plus(m, load_dispersion, rng=s[1]))
-        gaussian_loads(spectrum, settings.duration, settings.dt_load, [s[2]], interpolation="linear", out=loads[i:i + 1])
+        gaussian_loads(spectrum, settings.duration, settings.dt_load, [s[2]], interpolation="linear",
+                       out=loads[i:i + 1])
     from tubeid.mechanics.effects import SensorNoise, Tone
 
     tones = [e for e in model.spec.effects if isinstance(e, Tone)]

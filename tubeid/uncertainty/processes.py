@@ -170,9 +170,8 @@ def gaussian_loads(spectrum: LoadSpectrum, duration: float, dt: float, rngs: Seq
     # covariance Re(B B^*) = S(0) df whatever the (possibly complex) factor B of the real S(0).
     coef[:, :, 0] = np.float32(np.sqrt(2.0)) * coef[:, :, 0].real
     x = scipy.fft.irfft(coef, n=N, axis=-1, workers=1, overwrite_x=True)  # coef is scratch
-    if out is None:
-        return np.ascontiguousarray(np.swapaxes(x[:, :, :n_t], 1, 2), dtype=np.float64)
-    np.copyto(out, np.swapaxes(x[:, :, :n_t], 1, 2))  # float32 -> float64: exact, the same values
+    out = np.empty((R, n_t, m)) if out is None else out
+    np.copyto(out, np.swapaxes(x[:, :, :n_t], 1, 2))  # float32 -> float64: exact
     return out
 
 
