@@ -27,7 +27,7 @@ its random subsystem B moves and scales resonances (what δ covers), but a coars
 also misses modes and mis-shapes the spectrum in ways no draw of B reproduces (measured with
 ``paper-simplified`` against 10 effect-free reference records: ``scan``, ``gof`` and ``sharpness``
 give p-values of 0.025–0.15 only, where a calibrated test spreads them over 0.025–1; README).
-These five look only at what such a model still gets right — the non-linear tube, its sensors
+These six look only at what such a model still gets right — the non-linear tube, its sensors
 and its declared damping — each through a local or scale-free feature (:func:`features`), and each
 points to the catalog effect that can explain it (``effects``):
 
@@ -54,6 +54,18 @@ points to the catalog effect that can explain it (``effects``):
                steepens and a random B barely moves, where a simplified B mis-shapes the detail of
                the spectrum); the absolute standardised mean over sensors (two-sided); left out
                with fewer than :data:`TILT_MIN_BINS` such bins. → ``added_mass``.
+``profile``    fine resolution: the spectral profile, the sensors' mean of log10 of the mean power in
+               :data:`PROFILE_WIDTH_HZ` bands over [:data:`TILT_LOW_HZ`, band] (level removed),
+               projected on the direction the catalog's added mass moves it: w = C⁻¹ (p̄ − μ),
+               μ and C the others' mean and covariance (shrunk by :data:`PROFILE_SHRINK` towards
+               its mean variance), p̄ the mean profile of the ``probe`` realisations (the declared
+               model with a probe added mass, simulated apart: not samples of the test); the
+               standardised projection w·(x − μ), one-sided (towards the probe: the catalog's
+               added mass only adds; a lighter tube does not move the profile along −w, the
+               shift of a resonance not being linear in the bands). Every draw of B moves the
+               profile too, but in other directions: the projection weighs the bands where B's
+               draws scatter least. Left out without probe realisations or with fewer than
+               :data:`PROFILE_MIN_BANDS` bands. → ``added_mass``.
 ``resonance``  fine resolution: log roughness (as ``sharpness``, running mean over ±2 Hz) per
                4·``band_width_hz`` chunk in the load band, the first chunk left out (the lowest
                modes are B's, the most uncertain), lines left out (bins within ±2 Hz of a
@@ -91,7 +103,7 @@ from tubeid.diagnose._spectra import analysis_bins, log10
 from tubeid.errors import Described, SpecificationError
 
 __all__ = ["Detection", "Observations", "Statistic", "detection_test", "band_moments", "features", "applicable", "STATISTICS",
-           "MODEL_FORMS", "LINE_RING_BINS", "SCALE_FLOOR"]
+           "MODEL_FORMS", "LINE_RING_BINS", "SCALE_FLOOR", "PROFILE_WIDTH_HZ", "PROFILE_SHRINK"]
 
 #: The ring of the line prominence, in fine bins: (inner, outer) distance from the bin.
 LINE_RING_BINS = (4, 8)
@@ -110,6 +122,13 @@ RESONANCE_SMOOTH_HZ = 2.0
 TILT_LOW_HZ = 2.0
 #: Fewest fine bins between :data:`TILT_LOW_HZ` and the band the ``tilt`` statistic needs.
 TILT_MIN_BINS = 8
+#: Width of the ``profile`` statistic's bands [Hz].
+PROFILE_WIDTH_HZ = 1.0
+#: Shrinkage of the ``profile`` covariance towards its mean variance times the identity (its
+#: dimension, the bands, exceeds the realisations).
+PROFILE_SHRINK = 0.3
+#: Fewest :data:`PROFILE_WIDTH_HZ` bands the ``profile`` statistic needs.
+PROFILE_MIN_BANDS = 8
 
 
 @dataclass(frozen=True)
@@ -135,6 +154,9 @@ class Observations:
         The load's band [Hz].
     segments : int or None
         Welch segments each sample's ``psd`` and ``residual`` average (all samples alike).
+    probe : numpy.ndarray or None
+        (K, F', m) fine auto-PSDs [m²/Hz] of K realisations of the declared model with the probe
+        effect (``profile`` statistic), on ``frequency_fine``; not samples of the test.
     """
 
     frequency: np.ndarray
@@ -145,6 +167,7 @@ class Observations:
     stats: np.ndarray | None = None
     band_hz: float | None = None
     segments: int | None = None
+    probe: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -157,7 +180,8 @@ class Observations:
         return next(int(a.shape[-1]) for a in (self.psd, self.residual, self.fine) if a is not None)
 
     def stacked(self, others: "Observations") -> "Observations":
-        """These samples followed by ``others``' (same frequencies and sensors).
+        """These samples followed by ``others``' (same frequencies and sensors; the probe
+        realisations of either).
 
         Parameters
         ----------
@@ -172,7 +196,7 @@ class Observations:
 
         return Observations(self.frequency, cat(self.psd, others.psd), self.frequency_fine, cat(self.fine, others.fine),
                             cat(self.residual, others.residual), cat(self.stats, others.stats), self.band_hz,
-                            self.segments)
+                            self.segments, self.probe if self.probe is not None else others.probe)
 
 
 @dataclass(frozen=True)
@@ -424,6 +448,34 @@ def _tilt_slopes(obs: Observations) -> np.ndarray:
     return np.einsum("f,nfm->nm", x, L) / np.dot(x, x)
 
 
+def _profile_bands(obs: Observations) -> np.ndarray:
+    """Band index (:data:`PROFILE_WIDTH_HZ` bands) of each of :func:`_tilt_bins`' fine bins."""
+    return _bands(obs.frequency_fine[_tilt_bins(obs)], PROFILE_WIDTH_HZ)
+
+
+def _profile_of(obs: Observations, fine: np.ndarray) -> np.ndarray:
+    """The spectral profile of fine auto-PSDs (N, F', m): the sensors' mean of log10 of the mean
+    power per :func:`_profile_bands` band, each sample's mean over the bands removed (N, G) [decades]."""
+    P = _group_mean(fine[:, _tilt_bins(obs)], _profile_bands(obs))
+    L = np.log10(np.maximum(P, 1e-300)).mean(axis=2)
+    return L - L.mean(axis=1, keepdims=True)
+
+
+def _profile_projection(obs: Observations) -> np.ndarray:
+    """Per sample i, w_i·(x_i − μ_i) with x the profile, μ_i and C_i the others' mean and shrunk
+    covariance, w_i = C_i⁻¹ (p̄ − μ_i), p̄ the probe realisations' mean profile (N,)."""
+    X = _profile_of(obs, obs.fine)
+    p = _profile_of(obs, obs.probe).mean(axis=0)
+    out = np.empty(X.shape[0])
+    for i in range(X.shape[0]):
+        others = np.delete(X, i, axis=0)
+        mu = others.mean(axis=0)
+        C = np.cov(others, rowvar=False)
+        C = (1 - PROFILE_SHRINK) * C + PROFILE_SHRINK * max(float(np.mean(np.diag(C))), 1e-30) * np.eye(C.shape[0])
+        out[i] = np.dot(np.linalg.solve(C, p - mu), X[i] - mu)
+    return out
+
+
 def applicable(model_form: str, obs: Observations, band_width_hz: float = 5.0) -> tuple[str, ...]:
     """The statistics of ``model_form`` (:data:`MODEL_FORMS`) whose ``applies`` holds for ``obs``
     (only frequencies, the band, the segment count and the sensor count are read)."""
@@ -435,7 +487,8 @@ def features(name: str, obs: Observations, band_width_hz: float = 5.0) -> np.nda
     """The feature a robust statistic standardises, per sample (N, ...): what the selection fits an
     effect to when the declared model is simplified (``line``: prominence (N, F'', m) [decades];
     ``floor``: level and spread of log10 conditional PSD (N, 2, m) [decades]; ``kurtosis``: excess
-    kurtosis (N, m); ``resonance``: log roughness (N, C, m); ``tilt``: log-log slopes (N, m))."""
+    kurtosis (N, m); ``resonance``: log roughness (N, C, m); ``tilt``: log-log slopes (N, m);
+    ``profile``: the spectral profile (N, G))."""
     if name == "line":
         return _prominence(obs)
     if name == "floor":
@@ -446,6 +499,8 @@ def features(name: str, obs: Observations, band_width_hz: float = 5.0) -> np.nda
         return _roughness_chunks(obs, band_width_hz)
     if name == "tilt":
         return _tilt_slopes(obs)
+    if name == "profile":
+        return _profile_of(obs, obs.fine)
     raise SpecificationError("statistic", name, f"has no feature; one of {[k for k, s in STATISTICS.items() if s.robust]}")
 
 
@@ -501,6 +556,10 @@ def _tilt(obs, band_width_hz, smooth_bins):
     return np.exp(np.abs(_loo_z(_tilt_slopes(obs).mean(axis=1), level_free=False)))
 
 
+def _profile(obs, band_width_hz, smooth_bins):
+    return np.exp(_loo_z(_profile_projection(obs), level_free=False))
+
+
 def _resonance(obs, band_width_hz, smooth_bins):
     return np.exp(np.abs(_loo_z(_roughness_chunks(obs, band_width_hz), level_free=False).mean(axis=(1, 2))))
 
@@ -520,12 +579,15 @@ STATISTICS: dict[str, Statistic] = {
                            applies=lambda obs, width: bool(np.any(_chunks(obs, width)[1]))),
     "tilt": Statistic(_tilt, needs=("fine",), robust=True, effects=("added_mass",),
                       applies=lambda obs, width: int(np.sum(_tilt_bins(obs))) >= TILT_MIN_BINS),
+    "profile": Statistic(_profile, needs=("fine", "probe"), robust=True, effects=("added_mass",),
+                         applies=lambda obs, width: obs.probe is not None
+                         and np.unique(_profile_bands(obs)).size >= PROFILE_MIN_BANDS),
 }
 
 #: The statistics a test combines, by what the declared model is taken to be.
 MODEL_FORMS: dict[str, tuple[str, ...]] = {
     "exact": ("scan", "gof", "sharpness"),
-    "simplified": ("line", "floor", "kurtosis", "resonance", "tilt"),
+    "simplified": ("line", "floor", "kurtosis", "resonance", "tilt", "profile"),
 }
 
 

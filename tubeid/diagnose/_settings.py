@@ -51,8 +51,12 @@ class DiagnoseSettings:
     realisations : int or None
         R, the records of the declared stochastic model shaped like the held-out set; the test is
         exact at level ⌊α(R+1)⌋/(R+1) (R = 39, α = 0.05: exactly 5 %). ``None``: 39 for the exact
-        model form, :data:`SIMPLIFIED_REALISATIONS` for the simplified one (its five statistics
+        model form, :data:`SIMPLIFIED_REALISATIONS` for the simplified one (its six statistics
         have heavy tails under a strongly random B; 1/(R+1) resolves the smallest p-value).
+    probe_realisations : int
+        With the simplified model form, realisations of the declared model (with the effects
+        chosen so far) plus the added-mass catalog entry's probe, simulated beside the R of each
+        test: the direction of the ``profile`` statistic (0: that statistic left out).
     false_alarm : float
         α, the stated false-alarm rate of the test, in (0, 0.5).
     band_width_hz : float
@@ -126,6 +130,7 @@ class DiagnoseSettings:
     segment_seconds: float = 2.0
     fine_segment_seconds: float = 8.0
     realisations: int | None = None
+    probe_realisations: int = 20
     false_alarm: float = 0.05
     band_width_hz: float = 5.0
     level: float = 0.95
@@ -168,6 +173,7 @@ class DiagnoseSettings:
         if self.realisations is not None:
             v.integer(f + "realisations", self.realisations, minimum=9)
         v.integer(f + "fit_realisations", self.fit_realisations, minimum=1)
+        v.integer(f + "probe_realisations", self.probe_realisations, minimum=0)
         v.integer(f + "delta_realisations", self.delta_realisations, minimum=10)
         v.integer(f + "delta_f_realisations", self.delta_f_realisations, minimum=5)
         v.integer(f + "delta_f_min_blocks", self.delta_f_min_blocks, minimum=2)

@@ -555,6 +555,15 @@ class AddedMassCandidate(_TubeFactor):
     parameters = {"tube": ("", True), "factor": ("1", True)}
     value_name = "factor"
     scan = tuple(np.geomspace(0.03, 1.0, 5))
+    #: The factor of the probe whose simulated realisations give the simplified form's ``profile``
+    #: statistic its direction (on the sensors' tube): inside the trial grid, not its edge.
+    probe_factor = 0.25
+
+    def probe(self, spec) -> AddedMass:
+        """The probe effect of the ``profile`` statistic: :attr:`probe_factor` on the tube that
+        carries the most sensors."""
+        tubes = [s.tube for s in spec.sensors]
+        return AddedMass(max(dict.fromkeys(tubes), key=tubes.count), self.probe_factor)
 
     def _trial_values(self, value, points) -> np.ndarray:
         return np.geomspace(0.05, 1.35, points)

@@ -32,7 +32,9 @@ fine-segment PSD and the conditional PSD (and, for trials, per fitting-layout re
 statistics).
 
 Every band stage also holds, as realisation −1, the mean model's prediction at its point (fitting
-layout, ``fit_realisations`` records): the held-out error of that point.
+layout, ``fit_realisations`` records): the held-out error of that point; with the simplified form,
+as realisations −2, −3, …, ``probe_realisations`` realisations with the added-mass catalog entry's
+probe on top of its effects (the ``profile`` statistic's direction; not samples of the test).
 """
 
 import dataclasses
@@ -340,6 +342,18 @@ def load_delta_f(results, *, data, data_sha256, model, settings):
 # -- bands and the test ----------------------------------------------------------------------------------
 #: The band stages' realisation that holds the mean model's prediction (fitting layout).
 MEAN_MODEL = -1
+#: The band stages' realisations from this one down (−2, −3, …) are the probe's (simplified form):
+#: the model with the added-mass catalog entry's probe, the ``profile`` statistic's direction.
+PROBE = -2
+
+
+def _probes(ctx) -> list[int]:
+    """The probe realisations of a band stage: ``probe_realisations`` with the simplified form when
+    added mass is a candidate, else none."""
+    if not _simplified(ctx) or "added_mass" not in ctx.candidate_names:
+        return []
+    return [PROBE - k for k in range(ctx.settings.probe_realisations)]
+
 
 
 def band_block(block, rng, *, data, data_sha256, model, settings, r, effects, delta, load_dispersion, step):
@@ -350,34 +364,41 @@ def band_block(block, rng, *, data, data_sha256, model, settings, r, effects, de
     keys = ("psd", "stats", "contact") + (OBSERVED if _simplified(ctx) else ())
     out = {}
     mean = [i for i, k in enumerate(reals) if k == MEAN_MODEL]
-    rest = [i for i, k in enumerate(reals) if k != MEAN_MODEL]
     for i in mean:  # the mean model's prediction, fitting layout, fit_realisations records
         o = _mean_model(ctx, r, eff, rng(s.seed, realisation=MEAN_MODEL))
         for k in keys:
             out.setdefault(k, np.empty((len(reals),) + o[k].shape[1:]))[i] = o[k].mean(axis=0)
-    if rest:
-        o = simulate_blocks(ctx.spec, r, eff, meas, meas.n_held_out_blocks, [reals[i] for i in rest], s, delta=delta,
-                            load_dispersion=load_dispersion, rngs=[rng(s.seed, realisation=reals[i]) for i in rest],
-                            observed=_simplified(ctx))
-        for k in keys:
-            out.setdefault(k, np.empty((len(reals),) + o[k].shape[1:]))[rest] = o[k]
+    probe = [CATALOG["added_mass"].probe(ctx.spec)]
+    for rows, with_effects in (([i for i, k in enumerate(reals) if k >= 0], eff),
+                               ([i for i, k in enumerate(reals) if k <= PROBE], eff + probe)):
+        if rows:
+            o = simulate_blocks(ctx.spec, r, with_effects, meas, meas.n_held_out_blocks, [reals[i] for i in rows], s,
+                                delta=delta, load_dispersion=load_dispersion,
+                                rngs=[rng(s.seed, realisation=reals[i]) for i in rows], observed=_simplified(ctx))
+            for k in keys:
+                out.setdefault(k, np.empty((len(reals),) + o[k].shape[1:]))[rows] = o[k]
     return out
 
 
 def band_samples(ds) -> tuple[np.ndarray, np.ndarray]:
     """The stochastic model's realisations of a band stage: psd (R, F, m), stats (R, m, 3)."""
-    b = ds.sel(realisation=ds["realisation"].values[ds["realisation"].values != MEAN_MODEL])
+    b = ds.sel(realisation=ds["realisation"].values[ds["realisation"].values >= 0])
     return (b["psd"].transpose("realisation", "frequency", "sensor").values,
             b["stats"].transpose("realisation", "sensor", "statistic").values)
 
 
 def band_observations(ctx, ds) -> Observations:
-    """The stochastic model's realisations of a band stage as :class:`Observations` (R samples)."""
-    b = ds.sel(realisation=ds["realisation"].values[ds["realisation"].values != MEAN_MODEL])
+    """The stochastic model's realisations of a band stage as :class:`Observations` (R samples; the
+    probe realisations' fine PSDs, if any, as its ``probe``)."""
+    real = ds["realisation"].values
+    b = ds.sel(realisation=real[real >= 0])
     P, stats = band_samples(ds)
     get = (lambda k, d: b[k].transpose("realisation", d, "sensor").values if k in b else None)
+    probe = None
+    if np.any(real <= PROBE) and "fine" in ds:
+        probe = ds["fine"].sel(realisation=real[real <= PROBE]).transpose("realisation", "frequency_fine", "sensor").values
     return Observations(ctx.meas.frequency, P, ctx.meas.frequency_fine, get("fine", "frequency_fine"),
-                        get("residual", "frequency"), stats, ctx.spec.band_hz, _segments(ctx, "held_out"))
+                        get("residual", "frequency"), stats, ctx.spec.band_hz, _segments(ctx, "held_out"), probe)
 
 
 def mean_prediction(ds) -> np.ndarray:
@@ -441,14 +462,15 @@ def _band_study(name, base, ctx, r, effects, delta, dF, step, what) -> Study:
     return Study(
         name=name, seed=SEED,
         description=f"{what}: stochastic model at delta = {delta:.4g}, delta_F = {dF:.4g}, r = {list(r)}, held-out layout",
-        axes={"realisation": [MEAN_MODEL, *range(s.n_realisations)]},
-        chunks={"realisation": _realisation_chunk(delta, s.n_realisations + 1)}, task=band_block,
+        axes={"realisation": [MEAN_MODEL, *range(s.n_realisations), *_probes(ctx)]},
+        chunks={"realisation": _realisation_chunk(delta, s.n_realisations + 1 + len(_probes(ctx)))}, task=band_block,
         coords={**_spectral_coords(ctx), "statistic": STATISTICS, **obs_coords},
         outputs={"psd": _psd_output("stochastic model, averaged over the held-out layout's blocks (realisation -1: the "
-                                    "mean model's prediction, fitting layout)"),
+                                    "mean model's prediction, fitting layout; -2 and below: with the added-mass probe)"),
                  "stats": Output(dims=("sensor", "statistic"), units="m | 1 | 1", long_name="RMS [m], skewness, excess kurtosis"),
                  "contact": Output(units="1", long_name="fraction of time the stops are closed (mean over the stops)"),
-                 **_observation_outputs(ctx, "stochastic model, held-out layout (realisation -1: mean model, fitting layout)")},
+                 **_observation_outputs(ctx, "stochastic model, held-out layout (realisation -1: mean model, fitting layout; "
+                                                        "-2 and below: with the added-mass probe)")},
         units={"frequency": "Hz", **obs_units},
         parameters={**base, "r": [float(v) for v in r], "effects": effects, "delta": float(delta),
                     "load_dispersion": float(dF), "step": int(step)},
