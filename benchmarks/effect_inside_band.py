@@ -17,7 +17,12 @@ control as often. Then, per 20 Hz chunk, the log-frequency shift (−25 … +25 
 the record's smoothed log-PSDs with the model's mean, in standard deviations of the same shift over
 the model's realisations (a frequency signature the band's coverage cannot see); and the tilt, the
 least-squares slope of log10 PSD against log10 f over 2–100 Hz averaged over the sensors (what
-the simplified form's ``tilt`` statistic reads), in standard deviations of the model's.
+the simplified form's ``tilt`` statistic reads), in standard deviations of the model's; and the
+profile projection (what the ``profile`` statistic reads, computed here apart from its code): the
+sensors' mean of log10 of the mean power in 1 Hz bands over 2–100 Hz, level removed, projected on
+C⁻¹(p̄ − μ), μ and C (shrunk by 0.3 towards its mean variance) of the first half of the model's
+realisations, p̄ the mean profile of 20 realisations of the model with the centre tube's density ×
+1.25 (the probe), in standard deviations of the projection over the second half.
 """
 
 from __future__ import annotations
@@ -75,6 +80,14 @@ def _tilt(P, f):
     return float(np.mean(np.polyfit(np.log10(f[sel]), np.log10(P[sel]), 1)[0]))
 
 
+def _profile(P, f):
+    """Sensor-mean log10 of the mean power per 1 Hz band over 2–100 Hz, level removed: P (R, F, m) → (R, G)."""
+    sel = (f >= 2.0) & (f <= 100.0)
+    band = np.floor(f[sel] + 1e-9).astype(int)
+    L = np.stack([np.log10(P[:, sel][:, band == b].mean(axis=1)).mean(axis=1) for b in np.unique(band)], axis=1)
+    return L - L.mean(axis=1, keepdims=True)
+
+
 def main() -> None:
     """Print the coverage of each record and of the model's own draws."""
     from tubeid.diagnose.testing import make_record, sensors
@@ -106,13 +119,25 @@ def main() -> None:
     model_shifts = np.array([_shifts(np.log(x), mean, fb) for x in P])
     mu, sd = model_shifts.mean(0), model_shifts.std(0, ddof=1)
     tilts = np.array([_tilt(x, fb) for x in P])
+    from tubeid.diagnose.testing import HandEffects
+
+    probe = simulate_responses(reduce(HandEffects(density={"centre": 1.25}).spec(builtin_spec("paper-simplified")
+                                                                                .replace(sensors=sensors(xs)))),
+                               coherent_forces(level=1.3), range(10_000, 10_020), seed=2026,
+                               dispersion=Dispersion(stiffness=a.delta), settings=ResponseSettings(segment_seconds=8.0))
+    X = _profile(P, fb)
+    half = X.shape[0] // 2
+    mu_p = X[:half].mean(axis=0)
+    C = np.cov(X[:half], rowvar=False)
+    C = 0.7 * C + 0.3 * np.mean(np.diag(C)) * np.eye(C.shape[0])
+    w = np.linalg.solve(C, _profile(np.real(np.diagonal(probe.psd.values, axis1=-2, axis2=-1))[:, sel], fb).mean(axis=0) - mu_p)
+    proj = (X[half:] - mu_p) @ w
     print(f"paper-simplified at delta = {a.delta}, {a.realisations} realisations; coverage 0-100 / 0-35 / 35-100 Hz; "
           f"frequency shift per chunk {CHUNKS} in model standard deviations (those: {np.round(sd, 3).tolist()}); "
           f"tilt in model standard deviations (the model's: mean {tilts.mean():.3f}, standard deviation "
-          f"{tilts.std(ddof=1):.3f} decade per decade)")
+          f"{tilts.std(ddof=1):.3f} decade per decade); profile projection in standard deviations of the second half's")
     for case in a.cases.split(","):
         if case.startswith("added_mass_x") and case not in cases:
-            from tubeid.diagnose.testing import HandEffects
 
             effects, positions = HandEffects(density={"centre": float(case.removeprefix("added_mass_x"))}), xs
         else:
@@ -124,8 +149,9 @@ def main() -> None:
             c = _coverage(R, lo, hi, fs)
             z = (_shifts(np.log(R), mean, fb) - mu) / sd
             t = (_tilt(R, fb) - tilts.mean()) / tilts.std(ddof=1)
+            pr = (float((_profile(R[None], fb)[0] - mu_p) @ w) - proj.mean()) / proj.std(ddof=1)
             print(f"{case:14s} seed {seed}: {c[0]:.3f} / {c[1]:.3f} / {c[2]:.3f}   shifts {np.round(z, 1).tolist()}"
-                  f"   tilt {t:+.2f}", flush=True)
+                  f"   tilt {t:+.2f}   profile {pr:+.2f}", flush=True)
     own = []
     for i in range(P.shape[0]):
         rest = np.delete(P, i, axis=0)
