@@ -947,7 +947,7 @@ def test_a_simplified_model_declared_tells_model_uncertainty_from_a_missing_effe
     data = make_record(effects=eff, xs=SEVEN, duration=48.0, seed=11)
     rep = diagnose(data, "paper-simplified", SIMPLIFIED).report
     assert rep["model_form"] == "simplified" and rep["detection"]["model_form"] == "simplified"
-    assert tuple(rep["detection"]["p_values"]) == MODEL_FORMS["simplified"]  # the probe realisations reached the test
+    assert set(rep["detection"]["p_values"]) == set(MODEL_FORMS["simplified"])  # the probe realisations reached the test
     if case == "control":
         assert not rep["detection"]["detected"] and rep["effects"] == [], rep["detection"]
     else:
