@@ -173,19 +173,24 @@ def test_the_simplified_test_is_exact_on_exchangeable_samples():
 
 @pytest.mark.parametrize("what", ["line", "floor", "kurtosis", "resonance", "tilt", "tilt-", "profile"])
 def test_the_simplified_test_sees_each_departure_with_the_statistic_built_for_it(what):
-    """A line, a white floor, a clipped sensor, sharper resonances and a spectrum falling faster
-    (or slower: the tilt is two-sided) with frequency, resonances lower than the model's (at 0.93 ×,
-    beyond the probe realisations' 0.95 ×), each in the record only: the statistic built for it gives the smallest
-    p-value (1/20) and points to its catalog effect."""
+    """A line, a white floor, a clipped sensor, sharper resonances, a spectrum falling faster (or
+    slower: the tilt is two-sided) with frequency, resonances lower than the model's (at 0.945 ×,
+    beyond the probe realisations' 0.95 ×), each in the record only, against 79 realisations and 20
+    probe realisations (the simplified form's defaults): the statistic built for it gives the
+    smallest p-value (1/80), the test detects (p = 1/80 or 2/80: on this toy law a realisation's
+    largest standardised statistic, often the profile's, can beat the record's) and points to its
+    catalog effect. (On this toy law the profile's own power depends on the draw: at 0.945 × its p
+    is 1/80 for seeds 5, 7, 8, 9 and 6/80 for seed 6; the real records are its measure: the slow
+    test and the README.)"""
     rng = np.random.default_rng(5)
     kw = {"line": {"line": 201}, "floor": {"floor": 1e-19}, "kurtosis": {"kurtosis": 1},
           "resonance": {"sharp": 3.0}, "tilt": {"tilt": 1.0}, "tilt-": {"tilt": -1.0},
-          "profile": {"scale": 0.93}}[what]
+          "profile": {"scale": 0.945}}[what]
     what = what.rstrip("-")
     rec = _observations(rng, 1, **kw)
-    obs = rec.stacked(_observations(rng, 19, probe=10 if what == "profile" else 0))
-    d = detection_test(obs, model_form="simplified")
-    assert d.detected and d.p_values[what] == 0.05, d
+    band = _observations(rng, 79, probe=20)
+    d = detection_test(rec.stacked(band), model_form="simplified")
+    assert d.detected and d.p_value <= 2 / 80 and d.p_values[what] == 1 / 80, d
     effect = {"line": "tone", "floor": "sensor_noise", "kurtosis": "stop", "resonance": "damping",
               "tilt": "added_mass", "profile": "added_mass"}[what]
     assert effect in d.pointed_effects()
@@ -948,6 +953,7 @@ def test_a_simplified_model_declared_tells_model_uncertainty_from_a_missing_effe
     rep = diagnose(data, "paper-simplified", SIMPLIFIED).report
     assert rep["model_form"] == "simplified" and rep["detection"]["model_form"] == "simplified"
     assert set(rep["detection"]["p_values"]) == set(MODEL_FORMS["simplified"])  # the probe realisations reached the test
+    assert rep["detection"]["n_realisations"] == SIMPLIFIED.n_realisations  # ... and are not among its samples
     if case == "control":
         assert not rep["detection"]["detected"] and rep["effects"] == [], rep["detection"]
     else:

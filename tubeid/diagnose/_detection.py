@@ -57,7 +57,7 @@ points to the catalog effect that can explain it (``effects``):
 ``profile``    fine resolution: the spectral profile, the sensors' mean of log10 of the mean power in
                :data:`PROFILE_WIDTH_HZ` bands over [:data:`TILT_LOW_HZ`, band] (level removed),
                projected on the direction the catalog's added mass moves it: w = C⁻¹ (p̄ − μ),
-               μ and C the others' mean and covariance (shrunk by :data:`PROFILE_SHRINK` towards
+               μ and C the samples' mean and covariance (shrunk by :data:`PROFILE_SHRINK` towards
                its mean variance), p̄ the mean profile of the ``probe`` realisations (the declared
                model with a probe added mass, simulated apart: not samples of the test); the
                standardised projection w·(x − μ), one-sided (towards the probe: the catalog's
@@ -129,6 +129,9 @@ PROFILE_WIDTH_HZ = 1.0
 PROFILE_SHRINK = 0.3
 #: Fewest :data:`PROFILE_WIDTH_HZ` bands the ``profile`` statistic needs.
 PROFILE_MIN_BANDS = 8
+#: Largest standardised value a statistic of the form exp(z) is given (exp stays finite: a band of
+#: zeros in one sample must not turn the combination into NaN).
+EXP_CAP = 700.0
 
 
 @dataclass(frozen=True)
@@ -462,18 +465,17 @@ def _profile_of(obs: Observations, fine: np.ndarray) -> np.ndarray:
 
 
 def _profile_projection(obs: Observations) -> np.ndarray:
-    """Per sample i, w_i·(x_i − μ_i) with x the profile, μ_i and C_i the others' mean and shrunk
-    covariance, w_i = C_i⁻¹ (p̄ − μ_i), p̄ the probe realisations' mean profile (N,)."""
+    """w·(x_i − μ) per sample i, x the profile, μ and C the mean and shrunk covariance of all N
+    samples and w = C⁻¹ (p̄ − μ), p̄ the probe realisations' mean profile (N,). One direction for
+    all samples, a function of their set (the test stays exact); a direction left out per sample
+    (μ and C of the others) would give each sample its own estimation error, a null with heavy
+    tails (measured on 20 synthetic samples: a largest excess of 145 against 11 with one direction)."""
     X = _profile_of(obs, obs.fine)
     p = _profile_of(obs, obs.probe).mean(axis=0)
-    out = np.empty(X.shape[0])
-    for i in range(X.shape[0]):
-        others = np.delete(X, i, axis=0)
-        mu = others.mean(axis=0)
-        C = np.cov(others, rowvar=False)
-        C = (1 - PROFILE_SHRINK) * C + PROFILE_SHRINK * max(float(np.mean(np.diag(C))), 1e-30) * np.eye(C.shape[0])
-        out[i] = np.dot(np.linalg.solve(C, p - mu), X[i] - mu)
-    return out
+    mu = X.mean(axis=0)
+    C = np.cov(X, rowvar=False)
+    C = (1 - PROFILE_SHRINK) * C + PROFILE_SHRINK * max(float(np.mean(np.diag(C))), 1e-30) * np.eye(C.shape[0])
+    return (X - mu) @ np.linalg.solve(C, p - mu)
 
 
 def applicable(model_form: str, obs: Observations, band_width_hz: float = 5.0) -> tuple[str, ...]:
@@ -545,7 +547,7 @@ def _line_peak(obs, band_width_hz, smooth_bins):
 
 def _floor(obs, band_width_hz, smooth_bins):
     z = _loo_z(np.log(np.maximum(_floor_spread(obs), 1e-300)), level_free=False)
-    return np.exp(-z.mean(axis=1))
+    return np.exp(np.clip(-z.mean(axis=1), -EXP_CAP, EXP_CAP))
 
 
 def _kurtosis(obs, band_width_hz, smooth_bins):
@@ -553,15 +555,16 @@ def _kurtosis(obs, band_width_hz, smooth_bins):
 
 
 def _tilt(obs, band_width_hz, smooth_bins):
-    return np.exp(np.abs(_loo_z(_tilt_slopes(obs).mean(axis=1), level_free=False)))
+    return np.exp(np.minimum(np.abs(_loo_z(_tilt_slopes(obs).mean(axis=1), level_free=False)), EXP_CAP))
 
 
 def _profile(obs, band_width_hz, smooth_bins):
-    return np.exp(_loo_z(_profile_projection(obs), level_free=False))
+    return np.exp(np.clip(_loo_z(_profile_projection(obs), level_free=False), -EXP_CAP, EXP_CAP))
 
 
 def _resonance(obs, band_width_hz, smooth_bins):
-    return np.exp(np.abs(_loo_z(_roughness_chunks(obs, band_width_hz), level_free=False).mean(axis=(1, 2))))
+    return np.exp(np.minimum(np.abs(_loo_z(_roughness_chunks(obs, band_width_hz), level_free=False).mean(axis=(1, 2))),
+                              EXP_CAP))
 
 
 #: The statistics, by name (variants as data, as scipy's ``METHODS``).
