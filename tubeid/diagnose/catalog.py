@@ -561,7 +561,8 @@ class AddedMassCandidate(_TubeFactor):
 
     def probe(self, spec) -> AddedMass:
         """The probe effect of the ``profile`` statistic: :attr:`probe_factor` on the tube that
-        carries the most sensors."""
+        carries the most sensors (ties: the first in sensor order). An added mass on another tube
+        moves the profile in another direction, which that statistic does not look for."""
         tubes = [s.tube for s in spec.sensors]
         return AddedMass(max(dict.fromkeys(tubes), key=tubes.count), self.probe_factor)
 
