@@ -130,7 +130,8 @@ def main() -> None:
     mu_p = X[:half].mean(axis=0)
     C = np.cov(X[:half], rowvar=False)
     C = 0.7 * C + 0.3 * np.mean(np.diag(C)) * np.eye(C.shape[0])
-    w = np.linalg.solve(C, _profile(np.real(np.diagonal(probe.psd.values, axis1=-2, axis2=-1))[:, sel], fb).mean(axis=0) - mu_p)
+    probe_profile = _profile(np.real(np.diagonal(probe.psd.values, axis1=-2, axis2=-1))[:, sel], fb).mean(axis=0)
+    w = np.linalg.solve(C, probe_profile - mu_p)
     proj = (X[half:] - mu_p) @ w
     print(f"paper-simplified at delta = {a.delta}, {a.realisations} realisations; coverage 0-100 / 0-35 / 35-100 Hz; "
           f"frequency shift per chunk {CHUNKS} in model standard deviations (those: {np.round(sd, 3).tolist()}); "

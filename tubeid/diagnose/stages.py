@@ -355,7 +355,6 @@ def _probes(ctx) -> list[int]:
     return [PROBE - k for k in range(ctx.settings.probe_realisations)]
 
 
-
 def band_block(block, rng, *, data, data_sha256, model, settings, r, effects, delta, load_dispersion, step):
     ctx = method.load_context(data, data_sha256, model, settings)
     s, meas = ctx.settings, ctx.meas
@@ -396,7 +395,8 @@ def band_observations(ctx, ds) -> Observations:
     get = (lambda k, d: b[k].transpose("realisation", d, "sensor").values if k in b else None)
     probe = None
     if np.any(real <= PROBE) and "fine" in ds:
-        probe = ds["fine"].sel(realisation=real[real <= PROBE]).transpose("realisation", "frequency_fine", "sensor").values
+        probe = ds["fine"].sel(realisation=real[real <= PROBE])
+        probe = probe.transpose("realisation", "frequency_fine", "sensor").values
     return Observations(ctx.meas.frequency, P, ctx.meas.frequency_fine, get("fine", "frequency_fine"),
                         get("residual", "frequency"), stats, ctx.spec.band_hz, _segments(ctx, "held_out"), probe)
 
