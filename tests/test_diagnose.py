@@ -171,6 +171,36 @@ def test_the_simplified_test_is_exact_on_exchangeable_samples():
         assert scipy.stats.kstest(u, "uniform").pvalue > 0.01 / len(ps), k
 
 
+def test_the_simplified_combination_extrapolates_each_tail_by_hand():
+    """One statistic, u = 0, 1, …, 9 over N = 10 samples: its 0.9 quantile is 8.1 and the one
+    value above it exceeds it by 0.9 (β = 0.9), so u = 9 has tail probability 0.1·e^(−0.9/0.9) and
+    u = 5 the fraction 5/10 of samples at least 5; two statistics combine by the smaller."""
+    from tubeid.diagnose._detection import COMBINATIONS
+
+    u = np.arange(10.0)
+    c = COMBINATIONS["simplified"](u[:, None])
+    assert c[9] == pytest.approx(-np.log(0.1 / np.e), rel=1e-12)
+    assert c[5] == pytest.approx(-np.log(0.5), rel=1e-12)
+    assert c[0] == pytest.approx(0.0, abs=1e-12)
+    two = COMBINATIONS["simplified"](np.column_stack([u, u[::-1]]))
+    assert two[0] == two[9] == pytest.approx(-np.log(0.1 / np.e), rel=1e-12)
+
+
+def test_a_heavy_tailed_statistic_no_longer_outranks_a_light_tailed_records_excess():
+    """A statistic with Student-t (2 dof) realisations beside a Gaussian one whose record sits at
+    3.2: the largest standardised value ranks the record behind the t realisations above 3.2 (p >
+    5 %), the tail-calibrated combination of the simplified form ranks it first or second."""
+    from tubeid.diagnose._detection import COMBINATIONS, _rank_p
+
+    rng = np.random.default_rng(8)
+    heavy, light = rng.standard_t(2, 80), rng.standard_normal(80)
+    heavy[0], light[0] = 0.0, 3.2
+    assert np.sum(heavy > 3.2) >= 4 and np.sum(light[1:] > 3.2) == 0  # what the test needs of the draw
+    U = np.column_stack([heavy, light])
+    assert _rank_p(COMBINATIONS["exact"](U)) > 0.05
+    assert _rank_p(COMBINATIONS["simplified"](U)) <= 2 / 80
+
+
 @pytest.mark.parametrize("what", ["line", "floor", "kurtosis", "resonance", "tilt", "tilt-", "profile"])
 def test_the_simplified_test_sees_each_departure_with_the_statistic_built_for_it(what):
     """A line, a white floor, a clipped sensor, sharper resonances, a spectrum falling faster (or
@@ -936,7 +966,7 @@ def test_delta_identified_by_maximum_likelihood_against_a_reference():
     assert abs(d["delta"] - 0.627) <= 0.3, d
 
 
-SIMPLIFIED = SMALL.replace(model_form="simplified", delta=0.6, max_effects=1)
+SIMPLIFIED = SMALL.replace(model_form="simplified", delta=0.6, max_effects=1, probe_realisations=20)
 
 
 @pytest.mark.parametrize("case", ["control", "tone", "sensor_noise", "added_mass"])

@@ -130,7 +130,7 @@ class DiagnoseSettings:
     segment_seconds: float = 2.0
     fine_segment_seconds: float = 8.0
     realisations: int | None = None
-    probe_realisations: int = 20
+    probe_realisations: int = 60
     false_alarm: float = 0.05
     band_width_hz: float = 5.0
     level: float = 0.95
