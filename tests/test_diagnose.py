@@ -991,6 +991,8 @@ def test_a_simplified_model_declared_tells_model_uncertainty_from_a_missing_effe
         assert [e["name"] for e in rep["effects"]] == [case], json.dumps(rep["steps"], default=str)[:3000]
         built = {"tone": ("line",), "sensor_noise": ("floor",), "added_mass": ("tilt", "profile")}[case]
         assert max(rep["detection"]["excess"][k] for k in built) == max(rep["detection"]["excess"].values())
+        fitted = {c["name"]: c["feature"] for c in rep["steps"][0]["candidates"]}
+        assert fitted[case] == {"tone": "line", "sensor_noise": "floor", "added_mass": "profile"}[case], fitted
 
 
 # ------------------------------------------------------------------------------------- slow
@@ -1010,6 +1012,8 @@ def test_full_size_simplified_names_the_catalogs_added_mass(seed):
     named = [(e["name"], e["parameters"]["tube"]["value"]) for e in rep["effects"]]
     assert named == [("added_mass", "centre")], rep["steps"]
     assert rep["detection"]["excess"]["profile"] == max(rep["detection"]["excess"].values()), rep["detection"]
+    # sized by the profile's feature: 0.35–0.4 on records 1–5 (the tilt's gave 0.52–0.63; README)
+    assert 0.2 <= rep["effects"][0]["parameters"]["factor"]["value"] <= 0.48, rep["effects"]
 
 
 @pytest.mark.slow

@@ -149,6 +149,9 @@ class Candidate:
     parameters: ClassVar[dict]
     #: True when :meth:`from_baseline` gives a trial's PSD exactly from another trial's
     exact_from_baseline: ClassVar[bool] = False
+    #: With the simplified form, the robust statistic whose feature the entry is fitted to and judged
+    #: by (None: the first robust statistic that points to it).
+    feature: ClassVar[str | None] = None
 
     def n_parameters(self, spec: BundleSpec) -> int:
         """The parameter count the selection penalises.
@@ -555,6 +558,9 @@ class AddedMassCandidate(_TubeFactor):
     parameters = {"tube": ("", True), "factor": ("1", True)}
     value_name = "factor"
     scan = tuple(np.geomspace(0.03, 1.0, 5))
+    #: Fitted to the spectral profile (sized right: × 1.3, × 1.6 and × 2 records of the reference
+    #: fitted at 0.35–0.4, 0.6–0.65 and 0.9–1.0 against the tilt's 0.5–0.55, 0.8 and 1.0–1.2; README).
+    feature = "profile"
     #: The factor of the probe whose simulated realisations give the simplified form's ``profile``
     #: statistic its direction (on the sensors' tube): inside the trial grid, not its edge.
     probe_factor = 0.25

@@ -611,8 +611,10 @@ def trial_observations(ctx, ds, trials) -> list[Observations]:
 
 
 def feature_name(candidate: str) -> str:
-    """The robust statistic whose feature a candidate is fitted to with the simplified form."""
-    return next(k for k, st in TEST_STATISTICS.items() if st.robust and candidate in st.effects)
+    """The robust statistic whose feature a candidate is fitted to with the simplified form: its
+    catalog entry's ``feature``, else the first robust statistic that points to it."""
+    return CATALOG[candidate].feature or next(k for k, st in TEST_STATISTICS.items()
+                                              if st.robust and candidate in st.effects)
 
 
 #: With the simplified form, the line's error is read where the record or the trial has a line: bins
