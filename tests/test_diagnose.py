@@ -172,18 +172,43 @@ def test_the_simplified_test_is_exact_on_exchangeable_samples():
 
 
 def test_the_simplified_combination_extrapolates_each_tail_by_hand():
-    """One statistic, u = 0, 1, …, 9 over N = 10 samples: its 0.9 quantile is 8.1 and the one
-    value above it exceeds it by 0.9 (β = 0.9), so u = 9 has tail probability 0.1·e^(−0.9/0.9) and
-    u = 5 the fraction 5/10 of samples at least 5; two statistics combine by the smaller."""
+    """One statistic, u = 0, 1, …, 58, 80 over N = 60 samples: its 0.9 quantile is 53.1 and the six
+    values above it exceed it by 0.9, 1.9, 2.9, 3.9, 4.9 and 26.9 (β = 6.9, their mean; the median
+    would be 3.4), so u = 80 has tail probability 0.1·e^(−26.9/6.9) and u = 30 the fraction 30/60
+    of samples at least 30; two statistics combine by the smaller. With N = 10 (fewer than
+    TAIL_MIN = 5 samples above a 0.9 quantile) the quantile is lowered to 0.5: u = 0, …, 8, 12 has
+    t = 4.5, excesses 0.5, 1.5, 2.5, 3.5, 7.5 (β = 3.1), and u = 12 the probability 0.5·e^(−7.5/3.1)."""
     from tubeid.diagnose._detection import COMBINATIONS
 
-    u = np.arange(10.0)
+    u = np.arange(60.0)
+    u[-1] = 80.0
     c = COMBINATIONS["simplified"](u[:, None])
-    assert c[9] == pytest.approx(-np.log(0.1 / np.e), rel=1e-12)
-    assert c[5] == pytest.approx(-np.log(0.5), rel=1e-12)
+    assert c[59] == pytest.approx(-np.log(0.1) + 26.9 / 6.9, rel=1e-12)
+    assert c[30] == pytest.approx(-np.log(0.5), rel=1e-12)
     assert c[0] == pytest.approx(0.0, abs=1e-12)
-    two = COMBINATIONS["simplified"](np.column_stack([u, u[::-1]]))
-    assert two[0] == two[9] == pytest.approx(-np.log(0.1 / np.e), rel=1e-12)
+    # a second statistic, 0 but at sample 30 (100): its quantile 0, one excess of 100 (β = 100)
+    two = COMBINATIONS["simplified"](np.column_stack([u, np.where(u == 30.0, 100.0, 0.0)]))
+    assert two[30] == pytest.approx(-np.log(0.1) + 1.0, rel=1e-12)
+    assert two[59] == pytest.approx(c[59], rel=1e-12)
+    small = np.r_[np.arange(9.0), 12.0]
+    assert COMBINATIONS["simplified"](small[:, None])[9] == pytest.approx(-np.log(0.5) + 7.5 / 3.1, rel=1e-12)
+
+
+def test_the_simplified_test_keeps_its_power_with_few_realisations():
+    """R = 9 (N = 10, α = 0.1: the record must rank first), a line in the record, 40 draws: the
+    tail-calibrated combination detects about as often as the largest standardised value (23 and
+    25 of 40 with these draws). With a 0.9 quantile and one sample above it, every statistic's
+    largest value had the same tail probability and the record tied with a realisation: 0 of 40."""
+    import tubeid.diagnose._detection as detection
+
+    counts = {}
+    for name, comb in (("largest", detection.COMBINATIONS["exact"]), ("tail", detection.COMBINATIONS["simplified"])):
+        rng = np.random.default_rng(1)
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setitem(detection.COMBINATIONS, "simplified", comb)
+            counts[name] = sum(detection_test(_observations(rng, 1, line=201).stacked(_observations(rng, 9, probe=5)),
+                                              model_form="simplified", false_alarm=0.1).detected for _ in range(40))
+    assert counts["largest"] >= 15 and counts["tail"] >= counts["largest"] - 5, counts
 
 
 def test_a_heavy_tailed_statistic_no_longer_outranks_a_light_tailed_records_excess():
@@ -273,7 +298,7 @@ def test_what_a_simplified_test_cannot_read_is_left_out_not_a_crash():
     resonance a 4·band_width chunk inside the band after the first; the tilt 8 fine bins between
     2 Hz and the band; the line fine bins. Each left
     out when its observations cannot hold it; the profile without probe realisations or with fewer
-    than 8 bands of 1 Hz. The test then combines the others. Observations
+    than 8 bands of 2 Hz (a band of 17 Hz holds 8 from 2 Hz, 15.5 Hz 7). The test then combines the others. Observations
     without ``psd`` (the simplified statistics do not read it) are tested too (no display residual)."""
     rng = np.random.default_rng(9)
     obs = _observations(rng, 20, probe=10)
@@ -286,11 +311,31 @@ def test_what_a_simplified_test_cannot_read_is_left_out_not_a_crash():
                                                                                            "tilt", "profile")
     narrow = dataclasses.replace(obs, band_hz=4.0)  # 6 fine bins in [2, 4] Hz: no tilt, no resonance chunk, 3 bands
     assert detection_test(narrow, model_form="simplified").statistics == ("line", "floor", "kurtosis")
-    short = dataclasses.replace(obs, band_hz=8.5)  # 7 bands of 1 Hz from 2 Hz: no profile; the tilt has its 8 bins
+    short = dataclasses.replace(obs, band_hz=8.5)  # 4 bands of 2 Hz from 2 Hz: no profile; the tilt has its 8 bins
     assert "tilt" in detection_test(short, model_form="simplified").statistics
     assert "profile" not in detection_test(short, model_form="simplified").statistics
+    assert "profile" not in detection_test(dataclasses.replace(obs, band_hz=15.5), model_form="simplified").statistics
+    assert "profile" in detection_test(dataclasses.replace(obs, band_hz=17.0), model_form="simplified").statistics
     d = detection_test(dataclasses.replace(obs, psd=None), model_form="simplified")
     assert d.z is None and np.isfinite(d.p_value)
+
+
+def test_added_mass_is_fitted_to_the_profile_only_where_the_record_holds_its_bands(monkeypatch):
+    """With the simplified form the added mass is fitted to the profile's feature (its catalog
+    entry's ``feature``), which needs 8 bands of 2 Hz from 2 Hz below the load's band; with a band
+    of 8.5 Hz it falls back to the first robust statistic pointing to it, the tilt (the profile's
+    feature would be 4 bands; below 4 Hz identically 0, and added mass never chosen). The probe
+    realisations are not needed for the feature."""
+    import types
+
+    from tubeid.diagnose import stages
+
+    obs = dataclasses.replace(_observations(np.random.default_rng(2), 3), probe=None)
+    ctx = types.SimpleNamespace(settings=DiagnoseSettings())
+    for band, expected in ((100.0, "profile"), (17.0, "profile"), (8.5, "tilt")):
+        monkeypatch.setattr(stages, "record_observations", lambda c, w, b=band: dataclasses.replace(obs, band_hz=b))
+        assert stages.feature_name(ctx, "added_mass") == expected, band
+    assert stages.feature_name(ctx, "tone") == "line"
 
 
 def test_the_strongest_statistic_with_a_candidate_left_points():

@@ -108,7 +108,8 @@ from tubeid.diagnose._spectra import analysis_bins, log10
 from tubeid.errors import Described, SpecificationError
 
 __all__ = ["Detection", "Observations", "Statistic", "detection_test", "band_moments", "features", "applicable", "STATISTICS",
-           "MODEL_FORMS", "LINE_RING_BINS", "SCALE_FLOOR", "PROFILE_WIDTH_HZ", "PROFILE_SHRINK", "TAIL_QUANTILE", "COMBINATIONS"]
+           "MODEL_FORMS", "LINE_RING_BINS", "SCALE_FLOOR", "PROFILE_WIDTH_HZ", "PROFILE_SHRINK", "TAIL_QUANTILE", "TAIL_MIN", "COMBINATIONS",
+           "feature_applies"]
 
 #: The ring of the line prominence, in fine bins: (inner, outer) distance from the bin.
 LINE_RING_BINS = (4, 8)
@@ -128,7 +129,7 @@ TILT_LOW_HZ = 2.0
 #: Fewest fine bins between :data:`TILT_LOW_HZ` and the band the ``tilt`` statistic needs.
 TILT_MIN_BINS = 8
 #: Width of the ``profile`` statistic's bands [Hz] (2 Hz: half the dimension of 1 Hz bands for a
-#: covariance estimated from ~80 samples; measured better on reference records, README).
+#: covariance estimated from the R + 1 samples; measured better on reference records, README).
 PROFILE_WIDTH_HZ = 2.0
 #: Shrinkage of the ``profile`` covariance towards its mean variance times the identity (its
 #: dimension, the bands, exceeds the realisations).
@@ -141,6 +142,10 @@ EXP_CAP = 700.0
 #: The ``simplified`` combination's tail: above this quantile (over the N samples) of a statistic's
 #: standardised value, its tail probability is extrapolated exponentially (module docstring).
 TAIL_QUANTILE = 0.9
+#: Fewest samples the extrapolated tail holds on average: with N < TAIL_MIN / (1 − TAIL_QUANTILE)
+#: samples the quantile is lowered to 1 − TAIL_MIN / N (one sample above it would give every
+#: statistic's largest value the same tail probability).
+TAIL_MIN = 5
 
 
 @dataclass(frozen=True)
@@ -245,7 +250,9 @@ class Detection:
     p_values, values, null_median, excess : dict
         Per statistic combined (those of ``model_form`` whose ``applies`` holds: the
         :attr:`statistics`): its p-value, the record's value, the realisations' median, the
-        record's standardised log value (what the combination takes the largest of).
+        record's standardised log value (the exact form's combination takes the largest of these;
+        the simplified form's first calibrates each one's tail, but the effects are still pointed
+        to in the order of these values: :meth:`pointed_effects`).
     scan_frequency_hz : float
         Where the record's line evidence peaks [Hz] (the ``scan``'s, else the ``line``'s; NaN when
         neither is used).
@@ -494,6 +501,16 @@ def applicable(model_form: str, obs: Observations, band_width_hz: float = 5.0) -
                  if STATISTICS[k].applies is None or STATISTICS[k].applies(obs, band_width_hz))
 
 
+def feature_applies(name: str, obs: Observations, band_width_hz: float = 5.0) -> bool:
+    """Whether :func:`features` of ``name`` is informative for ``obs``: its statistic's ``applies``,
+    except that the profile's feature needs only its bands (not the probe realisations, which only
+    the statistic's direction reads)."""
+    if name == "profile":
+        return obs.frequency_fine is not None and np.unique(_profile_bands(obs)).size >= PROFILE_MIN_BANDS
+    st = STATISTICS[name]
+    return st.applies is None or bool(st.applies(obs, band_width_hz))
+
+
 def features(name: str, obs: Observations, band_width_hz: float = 5.0) -> np.ndarray:
     """The feature a robust statistic standardises, per sample (N, ...): what the selection fits an
     effect to when the declared model is simplified (``line``: prominence (N, F'', m) [decades];
@@ -611,20 +628,23 @@ def _largest(U: np.ndarray) -> np.ndarray:
 def _tail_calibrated(U: np.ndarray) -> np.ndarray:
     """The combined statistic of the ``simplified`` form (N, K) → (N,): −log of the smallest, over
     the statistics, of each one's tail probability. Per statistic k, over the N samples: t_k its
-    :data:`TAIL_QUANTILE` quantile and β_k the mean excess over t_k; a value u ≤ t_k has the
-    fraction of samples at least u, a value u > t_k has (1 − q)·exp(−(u − t_k)/β_k). A heavy-tailed
-    statistic (a maximum over frequencies or chunks) gets a large β_k, so its largest realisations
-    no longer outrank a lighter-tailed statistic's record at a similar standardised value. Every
-    quantity is a function of the sample's own value and of the set of N: the test stays exact."""
+    q-quantile (q = :data:`TAIL_QUANTILE`, lowered to 1 − :data:`TAIL_MIN`/N for small N) and β_k
+    the mean excess over t_k; a value u ≤ t_k has the fraction of samples at least u, a value
+    u > t_k has (1 − q)·exp(−(u − t_k)/β_k). A statistic with a heavier tail (a maximum over
+    frequencies or chunks) gets a larger β_k, so its largest realisations outrank a lighter-tailed
+    statistic's record at a similar standardised value less often (an exponential tail fitted to a
+    power-law one corrects only part of it). Every quantity is a function of the sample's own
+    value and of the set of N: the test stays exact."""
     N, K = U.shape
+    q = min(TAIL_QUANTILE, 1.0 - TAIL_MIN / N)
     logp = np.empty((N, K))
     for k in range(K):
         u = U[:, k]
-        t = float(np.quantile(u, TAIL_QUANTILE))
+        t = float(np.quantile(u, q))
         above = u > t
         beta = max(float(np.mean(u[above] - t)) if np.any(above) else 0.0, 1e-12)
         frac = np.mean(u[None, :] >= u[:, None] - 1e-12 * np.abs(u[:, None]), axis=1)
-        logp[:, k] = np.where(above, np.log1p(-TAIL_QUANTILE) - (u - t) / beta, np.log(frac))
+        logp[:, k] = np.where(above, np.log1p(-q) - (u - t) / beta, np.log(frac))
     return -logp.min(axis=1)
 
 

@@ -25,7 +25,7 @@ LOAD_MODELS = ("distributed", "force_and_moment")
 MODEL_FORM_CHOICES = ("exact", "simplified")
 
 #: R of the simplified model form's test when ``realisations`` is not given: 159, because the
-#: ``profile`` statistic's covariance (49 bands) and each statistic's tail are estimated from the
+#: ``profile`` statistic's covariance (50 bands of 2 Hz) and each statistic's tail are estimated from the
 #: R + 1 samples (reference records with added mass × 1.3: detected in 8 of 10 at 159, 5 of the
 #: same 10 at 79; README).
 SIMPLIFIED_REALISATIONS = 159

@@ -558,8 +558,8 @@ class AddedMassCandidate(_TubeFactor):
     parameters = {"tube": ("", True), "factor": ("1", True)}
     value_name = "factor"
     scan = tuple(np.geomspace(0.03, 1.0, 5))
-    #: Fitted to the spectral profile (sized right: × 1.3, × 1.6 and × 2 records of the reference
-    #: fitted at 0.35–0.4, 0.6–0.65 and 0.9–1.0 against the tilt's 0.5–0.55, 0.8 and 1.0–1.2; README).
+    #: Fitted to the spectral profile: the reference's × 1.3, × 1.6 and × 2 records sized 0.32, 0.63
+    #: and 0.96, where the tilt's slopes gave 0.52–0.63 for × 1.3 (README).
     feature = "profile"
     #: The factor of the probe whose simulated realisations give the simplified form's ``profile``
     #: statistic its direction (on the sensors' tube): inside the trial grid, not its edge.

@@ -44,7 +44,7 @@ import json
 import numpy as np
 
 from tubeid.diagnose._detection import SCALE_FLOOR, STATISTICS as TEST_STATISTICS, Observations, applicable, \
-    band_moments, detection_test, features
+    band_moments, detection_test, feature_applies, features
 from tubeid.diagnose._load import delta_f_identification, grid_minimum, r_coarse_grid, r_distance, r_fine_grid, scaled_r
 from tubeid.diagnose._selection import Scored, choose, keeps_moved_point, level_offset, line_minimum, near_ties, prediction_error
 from tubeid.diagnose._settings import MAX_EFFECTS, DiagnoseSettings
@@ -610,11 +610,15 @@ def trial_observations(ctx, ds, trials) -> list[Observations]:
                          ctx.spec.band_hz, _segments(ctx, "fit")) for i in range(len(trials))]
 
 
-def feature_name(candidate: str) -> str:
+def feature_name(ctx, candidate: str) -> str:
     """The robust statistic whose feature a candidate is fitted to with the simplified form: its
-    catalog entry's ``feature``, else the first robust statistic that points to it."""
-    return CATALOG[candidate].feature or next(k for k, st in TEST_STATISTICS.items()
-                                              if st.robust and candidate in st.effects)
+    catalog entry's ``feature`` when the record's fitting blocks can give it
+    (:func:`~tubeid.diagnose._detection.feature_applies`: the profile needs its bands), else the
+    first robust statistic that points to it."""
+    own = CATALOG[candidate].feature
+    if own is not None and feature_applies(own, record_observations(ctx, "fit"), ctx.settings.band_width_hz):
+        return own
+    return next(k for k, st in TEST_STATISTICS.items() if st.robust and candidate in st.effects)
 
 
 #: With the simplified form, the line's error is read where the record or the trial has a line: bins
@@ -743,7 +747,7 @@ def selection(ctx, results, k: int) -> dict:
         if fe is None:
             errs, feat = {j: spectrum[j] for j in [0, *idx]}, "spectrum"
         else:
-            feat = feature_name(n)
+            feat = feature_name(ctx, n)
             errs = {j: (0.0, *fe(feat, obs[j])) for j in [0, *idx]}
         i = min(idx, key=lambda j: errs[j][1])
         kk = CATALOG[n].n_parameters(ctx.spec)
@@ -824,7 +828,7 @@ def fit_errors(ctx, results, ds) -> list[float]:
     if not _simplified(ctx):
         return [prediction_error(ctx.meas.fit, q, _sigma(results), ctx.meas.frequency) for q in _trial_psds(ds, trials)]
     fe = FeatureErrors(ctx, results)
-    names = list(dict.fromkeys(feature_name(e["kind"]) for e in trials[0]["effects"]))
+    names = list(dict.fromkeys(feature_name(ctx, e["kind"]) for e in trials[0]["effects"]))
     return [sum(fe(n, o)[0] for n in names) for o in trial_observations(ctx, ds, trials)]
 
 
