@@ -1048,9 +1048,9 @@ def test_full_size_simplified_names_the_catalogs_added_mass(seed):
     """The issue's target with the simplified model declared: 220 s, 7 sensors, ``paper-simplified``
     with δ by maximum likelihood against ``paper-reference`` (default settings otherwise), the
     centre tube's density × 1.3 written by hand into the reference: named ``added_mass`` alone on
-    the centre tube by the ``profile`` statistic, with the diagnosis's default seed (record seeds
-    beyond the README's 1–5). Not a rate: with other diagnosis seeds (other model draws) the same
-    record is named about 2 times in 3, and the campaign names 1 of its 5 (README)."""
+    the centre tube by the ``profile`` statistic and sized by its feature, with the diagnosis's
+    default seed (record seeds beyond the README's). Not a rate: the campaign, where every record
+    has its own diagnosis seed, names 4 of its 5 (README)."""
     rep = diagnose(make_record(effects=HandEffects(density={"centre": 1.3}), xs=SEVEN, seed=seed), "paper-simplified",
                    DiagnoseSettings(delta_reference="paper-reference"), workers=2).report
     named = [(e["name"], e["parameters"]["tube"]["value"]) for e in rep["effects"]]
