@@ -107,9 +107,9 @@ from tubeid._validation import integer, one_of, open_unit, positive
 from tubeid.diagnose._spectra import analysis_bins, log10
 from tubeid.errors import Described, SpecificationError
 
-__all__ = ["Detection", "Observations", "Statistic", "detection_test", "band_moments", "features", "applicable", "STATISTICS",
-           "MODEL_FORMS", "LINE_RING_BINS", "SCALE_FLOOR", "PROFILE_WIDTH_HZ", "PROFILE_SHRINK", "TAIL_QUANTILE", "TAIL_MIN", "COMBINATIONS",
-           "feature_applies"]
+__all__ = ["Detection", "Observations", "Statistic", "detection_test", "band_moments", "features", "feature_applies",
+           "applicable", "STATISTICS", "MODEL_FORMS", "COMBINATIONS", "LINE_RING_BINS", "SCALE_FLOOR", "PROFILE_WIDTH_HZ",
+           "PROFILE_SHRINK", "TAIL_QUANTILE", "TAIL_MIN"]
 
 #: The ring of the line prominence, in fine bins: (inner, outer) distance from the bin.
 LINE_RING_BINS = (4, 8)
@@ -472,6 +472,11 @@ def _profile_bands(obs: Observations) -> np.ndarray:
     return _bands(obs.frequency_fine[_tilt_bins(obs)], PROFILE_WIDTH_HZ)
 
 
+def _profile_has_bands(obs: Observations) -> bool:
+    """Whether the fine bins hold at least :data:`PROFILE_MIN_BANDS` profile bands."""
+    return obs.frequency_fine is not None and np.unique(_profile_bands(obs)).size >= PROFILE_MIN_BANDS
+
+
 def _profile_of(obs: Observations, fine: np.ndarray) -> np.ndarray:
     """The spectral profile of fine auto-PSDs (N, F', m): the sensors' mean of log10 of the mean
     power per :func:`_profile_bands` band, each sample's mean over the bands removed (N, G) [decades]."""
@@ -506,7 +511,7 @@ def feature_applies(name: str, obs: Observations, band_width_hz: float = 5.0) ->
     except that the profile's feature needs only its bands (not the probe realisations, which only
     the statistic's direction reads)."""
     if name == "profile":
-        return obs.frequency_fine is not None and np.unique(_profile_bands(obs)).size >= PROFILE_MIN_BANDS
+        return _profile_has_bands(obs)
     st = STATISTICS[name]
     return st.applies is None or bool(st.applies(obs, band_width_hz))
 
@@ -609,8 +614,7 @@ STATISTICS: dict[str, Statistic] = {
     "tilt": Statistic(_tilt, needs=("fine",), robust=True, effects=("added_mass",),
                       applies=lambda obs, width: int(np.sum(_tilt_bins(obs))) >= TILT_MIN_BINS),
     "profile": Statistic(_profile, needs=("fine", "probe"), robust=True, effects=("added_mass",),
-                         applies=lambda obs, width: obs.probe is not None
-                         and np.unique(_profile_bands(obs)).size >= PROFILE_MIN_BANDS),
+                         applies=lambda obs, width: obs.probe is not None and _profile_has_bands(obs)),
 }
 
 #: The statistics a test combines, by what the declared model is taken to be.

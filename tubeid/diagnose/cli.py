@@ -85,7 +85,9 @@ def register(subparsers) -> None:
     p.add_argument("--overwrite", action="store_true",
                    help="replace the diagnosis --out holds: removes only the files its manifest lists, unchanged "
                         "(default: resume the same diagnosis, refuse another)")
-    p.add_argument("--realisations", type=int, default=None, help="Monte Carlo size of the test (default 39 with the exact model form: exact 5 %%; 159 with the simplified one)")
+    p.add_argument("--realisations", type=int, default=None,
+                   help="Monte Carlo size of the test (default 39 with the exact model form: exact 5 %%; 159 with "
+                        "the simplified one)")
     p.add_argument("--false-alarm", type=float, default=None, help="stated false-alarm rate of the test (default 0.05)")
     p.add_argument("--blocks", type=int, default=None, help="time blocks; even ones fit, odd ones held out (default 4)")
     p.add_argument("--segment-seconds", type=float, default=None, help="Welch segment in s (default 2)")
