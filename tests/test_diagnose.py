@@ -841,7 +841,7 @@ def test_control_is_none_through_the_command_line(control):
     rep, out = control["report"], control["out"]
     assert rep["effect"] == "none" and rep["effects"] == [] and rep["steps"] == [], rep
     det = rep["detection"]
-    assert not det["detected"] and det["p_value"] > 0.05 and set(det["p_values"]) == {"scan", "gof", "sharpness"}
+    assert not det["detected"] and det["p_value"] > 0.05 and set(det["p_values"]) == set(MODEL_FORMS["exact"])
     assert det["size"] == 0.05 and det["n_realisations"] == 19
     assert rep["explained_before"] and rep["explained_after"] and rep["error_after"] == rep["error_before"]
     assert rep["load"]["delta_F_given"] and "fitting blocks" in rep["load"]["delta_F_source"]
@@ -891,7 +891,9 @@ def test_a_partial_store_resumes_on_two_workers_to_the_uninterrupted_result(cont
     for stage in [f"step{k}_{s}" for k in (1, 2, 3) for s in ("trials", "refit", "band")]:
         shutil.rmtree(store / stage)
     g = zarr.open_group(str(store), mode="r+", path="band")
-    g["psd"][11:] = np.nan  # realisations 10-18: the second task
+    first = g["psd"].chunks[0]
+    assert 0 < first < g["psd"].shape[0]
+    g["psd"][first:] = np.nan  # the second task (with δ = 0 two tasks: the second holds the probe realisations)
     clear_flag(store, (1,), "band")
     update_attrs(store, "band", finished="")
     assert store_status(store)["complete"] is False
@@ -1109,25 +1111,41 @@ def test_a_store_of_another_diagnosis_version_is_refused_saying_so(tmp_path):
 
 
 def test_the_probe_realisations_are_simulated_only_where_the_profile_reads_them(tmp_path):
-    """The band stages hold ``probe_realisations`` probe realisations (−2, −3, …) with the simplified
-    form when added mass is a candidate, and none with the exact form, without added mass among the
-    candidates, or with ``probe_realisations = 0``; the probe is the catalog's added mass on the tube
-    with the most sensors (checked on paper-reference's tubes too)."""
-    from tubeid.diagnose.stages import _probes
+    """The band stages hold ``n_probe_realisations`` probe realisations (−2, −3, …) when added mass
+    is a candidate (60 with the simplified form, 20 with the exact one, unless given), and none
+    without added mass among the candidates or with ``probe_realisations = 0``; the probe is the
+    catalog's added mass on the tube with the most sensors (simplified form) or on the first tube
+    without a sensor (exact form; checked on paper-reference's tubes too)."""
+    from tubeid.diagnose.stages import _band_observed, _probes
 
     data = record(duration=24.0)
     path = write_measurements(data, tmp_path / "d.nc")
     model = json.dumps(spec_to_dict(builtin_spec("paper-simplified")), sort_keys=True)
     path_ctx = []
-    for settings, expected in ((SIMPLIFIED, [-2 - k for k in range(20)]), (SMALL, []),
+    exact = SMALL.replace(probe_realisations=None)
+    for settings, expected in ((SIMPLIFIED, [-2 - k for k in range(20)]),
+                               (SIMPLIFIED.replace(probe_realisations=None), [-2 - k for k in range(60)]),
+                               (exact, [-2 - k for k in range(20)]),
+                               (exact.replace(probe_realisations=2), [-2, -3]),
+                               (exact.replace(probe_realisations=0), []),
                                (SIMPLIFIED.replace(candidates=("tone", "stop")), []),
+                               (exact.replace(candidates=("tone", "stop")), []),
                                (SIMPLIFIED.replace(probe_realisations=3), [-2, -3, -4]),
                                (SIMPLIFIED.replace(probe_realisations=0), [])):
         ctx = load_context(str(path), data_hash(data), model, settings.to_json())
         assert _probes(ctx) == expected, settings
+        # the fine PSDs are stored where a statistic reads them: the simplified form, or probes
+        assert _band_observed(ctx) == (settings.form == "simplified" or bool(expected)), settings
         path_ctx.append(ctx)
     probe = CATALOG["added_mass"].probe(path_ctx[0].spec)
     assert (probe.tube, probe.factor) == ("centre", 0.25)
+    assert CATALOG["added_mass"].probe(path_ctx[0].spec, "exact").tube == "equivalent"
+    reference = builtin_spec("paper-reference")
+    assert CATALOG["added_mass"].probe(reference, "exact").tube == "outer1"  # the first tube without a sensor
+    assert CATALOG["added_mass"].probe(reference, "simplified").tube == "centre"
+    everywhere = reference.replace(sensors=reference.sensors + sum(
+        (sensors((4.0,), tube=t, prefix="o" + t[-1]) for t in ("outer1", "outer2", "outer3", "outer4")), ()))
+    assert CATALOG["added_mass"].probe(everywhere, "exact").tube == "centre"  # every tube has one: the sensors'
     mixed = builtin_spec("paper-reference").replace(
         sensors=sensors((4.0,), tube="outer2", prefix="o") + sensors((2.0, 6.0), tube="outer1", prefix="p"))
     assert CATALOG["added_mass"].probe(mixed).tube == "outer1"  # the tube with the most sensors, not the first

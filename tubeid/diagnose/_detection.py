@@ -21,6 +21,13 @@ Statistics that take the declared model's spectral *shape* as right (``model_for
                log roughness, roughness = the mean square of log10 PSD minus its running mean over
                ±``smooth_bins`` bins: sharper or blunter resonances (damping) change it, whereas a
                random shift of the resonances (what δ does) does not.
+``profile``    (below, with the probe on a tube that carries no sensor: the catalog's
+               :meth:`~tubeid.diagnose.catalog.AddedMassCandidate.probe`) another tube's added
+               mass reaches the sensors through the grids only; ``gof``'s mean over every band
+               dilutes that shift (the reference's outer tube × 1.3: p = 0.125–0.25), whereas its
+               projection on the probe's direction puts six such records at +2.2 to +4.8 standard
+               deviations and twelve effect-free ones at −0.9 to −3.6 (R = 39; the records are the
+               nominal, symmetric bundle, which every draw of B makes less so; README).
 
 Statistics that a *simplified* declared model can be trusted for (``model_form="simplified"``):
 its random subsystem B moves and scales resonances (what δ covers), but a coarser or homogenised B
@@ -304,9 +311,13 @@ class Detection:
         Returns
         -------
         tuple of str or None
-            None when that statistic points to any effect (the exact form's); () when no statistic
-            points to an available one.
+            None when that statistic points to any effect, and always with the exact form (its
+            selection compares every candidate's held-out error; its ``profile`` looks for another
+            tube's mass, but a heavier tube elsewhere is not the only departure that moves it); ()
+            when no statistic points to an available one.
         """
+        if self.model_form == "exact":
+            return None
         for name in sorted(self.excess, key=lambda k: -self.excess[k]):
             eff = STATISTICS[name].effects
             if not eff:
@@ -619,7 +630,7 @@ STATISTICS: dict[str, Statistic] = {
 
 #: The statistics a test combines, by what the declared model is taken to be.
 MODEL_FORMS: dict[str, tuple[str, ...]] = {
-    "exact": ("scan", "gof", "sharpness"),
+    "exact": ("scan", "gof", "sharpness", "profile"),
     "simplified": ("line", "floor", "kurtosis", "resonance", "tilt", "profile"),
 }
 

@@ -561,15 +561,25 @@ class AddedMassCandidate(_TubeFactor):
     #: Fitted to the spectral profile: the reference's × 1.3, × 1.6 and × 2 records sized 0.32, 0.63
     #: and 0.96, where the tilt's slopes gave 0.52–0.63 for × 1.3 (README).
     feature = "profile"
-    #: The factor of the probe whose simulated realisations give the simplified form's ``profile``
-    #: statistic its direction (on the sensors' tube): inside the trial grid, not its edge.
+    #: The factor of the probe whose simulated realisations give the ``profile`` statistic its
+    #: direction: inside the trial grid, not its edge.
     probe_factor = 0.25
 
-    def probe(self, spec) -> AddedMass:
-        """The probe effect of the ``profile`` statistic: :attr:`probe_factor` on the tube that
-        carries the most sensors (ties: the first in sensor order). An added mass on another tube
-        moves the profile in another direction, which that statistic does not look for."""
+    def probe(self, spec, form: str = "simplified") -> AddedMass:
+        """The probe effect of the ``profile`` statistic, :attr:`probe_factor` on one tube. With the
+        ``simplified`` form, the tube that carries the most sensors (ties: the first in sensor
+        order): its own resonances, which the simplified model mis-shapes, move. With the ``exact``
+        form, the first tube (in the specification's order) that carries no sensor, or the sensors'
+        tube if every tube carries one: the sensors' own tube's mass moves their resonances, which
+        the exact form's ``gof`` sees, whereas another tube's mass reaches the sensors through the
+        grids only, a shift that ``gof``'s mean over every band dilutes (the reference's outer tube
+        × 1.3: p = 0.125–0.25 without the profile; README). An added mass on a tube unlike the
+        probe's moves the profile in another direction, which the statistic does not look for."""
         tubes = [s.tube for s in spec.sensors]
+        if form == "exact":
+            free = [t.name for t in spec.tubes if t.name not in tubes]
+            if free:
+                return AddedMass(free[0], self.probe_factor)
         return AddedMass(max(dict.fromkeys(tubes), key=tubes.count), self.probe_factor)
 
     def _trial_values(self, value, points) -> np.ndarray:

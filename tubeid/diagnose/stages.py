@@ -29,12 +29,13 @@ realisation; the trials of one stage share one stream (common random numbers).
 
 With the simplified model form the band and trial stages also store what its statistics read: the
 fine-segment PSD and the conditional PSD (and, for trials, per fitting-layout record with the time
-statistics).
+statistics); with the exact form the band stages store them too when they hold probe realisations.
 
 Every band stage also holds, as realisation −1, the mean model's prediction at its point (fitting
-layout, ``fit_realisations`` records): the held-out error of that point; with the simplified form,
-as realisations −2, −3, …, ``probe_realisations`` realisations with the added-mass catalog entry's
-probe on top of its effects (the ``profile`` statistic's direction; not samples of the test).
+layout, ``fit_realisations`` records): the held-out error of that point; when added mass is a
+candidate, as realisations −2, −3, …, ``n_probe_realisations`` realisations with the added-mass
+catalog entry's probe on top of its effects (the ``profile`` statistic's direction; not samples of
+the test).
 """
 
 import dataclasses
@@ -118,9 +119,16 @@ def _simplified(ctx) -> bool:
 OBSERVED = ("fine", "residual")
 
 
-def _observation_outputs(ctx, what: str, per: tuple = ()) -> dict:
-    """The outputs of :data:`OBSERVED` over the extra dims ``per`` (none for the exact form)."""
-    if not _simplified(ctx):
+def _band_observed(ctx) -> bool:
+    """Whether the band stages store :data:`OBSERVED`: the simplified form's statistics read them,
+    and with the exact form the ``profile`` statistic reads the fine PSDs when there are probes."""
+    return _simplified(ctx) or bool(_probes(ctx))
+
+
+def _observation_outputs(ctx, what: str, per: tuple = (), observed: bool | None = None) -> dict:
+    """The outputs of :data:`OBSERVED` over the extra dims ``per`` (none unless ``observed``; None:
+    with the simplified form)."""
+    if not (_simplified(ctx) if observed is None else observed):
         return {}
     return {"fine": Output(dims=per + ("frequency_fine", "sensor"), units="m^2/Hz", finite=False,
                            long_name=f"auto-PSD at the sensors, two-sided, fine Welch segment: {what}"),
@@ -128,10 +136,10 @@ def _observation_outputs(ctx, what: str, per: tuple = ()) -> dict:
                                long_name=f"conditional PSD of each sensor given the others, two-sided: {what}")}
 
 
-def _observation_coords(ctx, per_record: bool = False) -> tuple[dict, dict]:
+def _observation_coords(ctx, per_record: bool = False, observed: bool | None = None) -> tuple[dict, dict]:
     """Coordinates and units of :func:`_observation_outputs`' dims (``per_record``: with the
-    ``fit_realisation`` dim of the trials)."""
-    if not _simplified(ctx):
+    ``fit_realisation`` dim of the trials; ``observed`` as there)."""
+    if not (_simplified(ctx) if observed is None else observed):
         return {}, {}
     coords = {"frequency_fine": ctx.meas.frequency_fine}
     if per_record:
@@ -342,17 +350,17 @@ def load_delta_f(results, *, data, data_sha256, model, settings):
 # -- bands and the test ----------------------------------------------------------------------------------
 #: The band stages' realisation that holds the mean model's prediction (fitting layout).
 MEAN_MODEL = -1
-#: The band stages' realisations from this one down (−2, −3, …) are the probe's (simplified form):
-#: the model with the added-mass catalog entry's probe, the ``profile`` statistic's direction.
+#: The band stages' realisations from this one down (−2, −3, …) are the probe's: the model with the
+#: added-mass catalog entry's probe, the ``profile`` statistic's direction.
 PROBE = -2
 
 
 def _probes(ctx) -> list[int]:
-    """The probe realisations of a band stage: ``probe_realisations`` with the simplified form when
-    added mass is a candidate, else none."""
-    if not _simplified(ctx) or "added_mass" not in ctx.candidate_names:
+    """The probe realisations of a band stage: ``n_probe_realisations`` when added mass is a
+    candidate, else none."""
+    if "added_mass" not in ctx.candidate_names:
         return []
-    return [PROBE - k for k in range(ctx.settings.probe_realisations)]
+    return [PROBE - k for k in range(ctx.settings.n_probe_realisations)]
 
 
 def band_block(block, rng, *, data, data_sha256, model, settings, r, effects, delta, load_dispersion, step):
@@ -360,20 +368,21 @@ def band_block(block, rng, *, data, data_sha256, model, settings, r, effects, de
     s, meas = ctx.settings, ctx.meas
     eff = method.effects_from_json(effects)
     reals = [int(k) for k in block["realisation"]]
-    keys = ("psd", "stats", "contact") + (OBSERVED if _simplified(ctx) else ())
+    observed = _band_observed(ctx)
+    keys = ("psd", "stats", "contact") + (OBSERVED if observed else ())
     out = {}
     mean = [i for i, k in enumerate(reals) if k == MEAN_MODEL]
     for i in mean:  # the mean model's prediction, fitting layout, fit_realisations records
-        o = _mean_model(ctx, r, eff, rng(s.seed, realisation=MEAN_MODEL))
+        o = _mean_model(ctx, r, eff, rng(s.seed, realisation=MEAN_MODEL), observed=observed)
         for k in keys:
             out.setdefault(k, np.empty((len(reals),) + o[k].shape[1:]))[i] = o[k].mean(axis=0)
-    probe = [CATALOG["added_mass"].probe(ctx.spec)]
+    probe = [CATALOG["added_mass"].probe(ctx.spec, s.form)]
     for rows, with_effects in (([i for i, k in enumerate(reals) if k >= 0], eff),
                                ([i for i, k in enumerate(reals) if k <= PROBE], eff + probe)):
         if rows:
             o = simulate_blocks(ctx.spec, r, with_effects, meas, meas.n_held_out_blocks, [reals[i] for i in rows], s,
                                 delta=delta, load_dispersion=load_dispersion,
-                                rngs=[rng(s.seed, realisation=reals[i]) for i in rows], observed=_simplified(ctx))
+                                rngs=[rng(s.seed, realisation=reals[i]) for i in rows], observed=observed)
             for k in keys:
                 out.setdefault(k, np.empty((len(reals),) + o[k].shape[1:]))[rows] = o[k]
     return out
@@ -458,7 +467,8 @@ def summarize_band(ds):
 
 def _band_study(name, base, ctx, r, effects, delta, dF, step, what) -> Study:
     s = ctx.settings
-    obs_coords, obs_units = _observation_coords(ctx)
+    observed = _band_observed(ctx)
+    obs_coords, obs_units = _observation_coords(ctx, observed=observed)
     return Study(
         name=name, seed=SEED,
         description=f"{what}: stochastic model at delta = {delta:.4g}, delta_F = {dF:.4g}, r = {list(r)}, held-out layout",
@@ -470,7 +480,7 @@ def _band_study(name, base, ctx, r, effects, delta, dF, step, what) -> Study:
                  "stats": Output(dims=("sensor", "statistic"), units="m | 1 | 1", long_name="RMS [m], skewness, excess kurtosis"),
                  "contact": Output(units="1", long_name="fraction of time the stops are closed (mean over the stops)"),
                  **_observation_outputs(ctx, "stochastic model, held-out layout (realisation -1: mean model, fitting layout; "
-                                                        "-2 and below: with the added-mass probe)")},
+                                                        "-2 and below: with the added-mass probe)", observed=observed)},
         units={"frequency": "Hz", **obs_units},
         parameters={**base, "r": [float(v) for v in r], "effects": effects, "delta": float(delta),
                     "load_dispersion": float(dF), "step": int(step)},
