@@ -547,6 +547,11 @@ class _TubeFactor(Candidate):
         return {self.value_name: _line(effect, self, self.value_name, (1 / 1.4, 1.0, 1.4))}
 
 
+#: What a tube's fit cannot say, in the added-mass and damping assumptions.
+_TWINS = ("tubes the sensors see alike (identical tubes tied alike to the rest: their fits tie) cannot be told "
+          "apart; the first of them in the model's order is reported")
+
+
 class AddedMassCandidate(_TubeFactor):
     """Added mass on one tube: mass per length × (1 + factor). The two best tubes by the
     surrogate's fit of the residual (factors 0.03–1, amplitude of the shift free: the surrogate's
@@ -586,7 +591,8 @@ class AddedMassCandidate(_TubeFactor):
         return np.geomspace(0.05, 1.35, points)
 
     def assumptions(self, spec) -> list[str]:
-        return ["added_mass: uniform along one tube (its mass per length × (1 + factor)); stiffness unchanged"]
+        return ["added_mass: uniform along one tube (its mass per length × (1 + factor)); stiffness unchanged; "
+                + _TWINS]
 
 
 class DampingCandidate(_TubeFactor):
@@ -635,7 +641,7 @@ class DampingCandidate(_TubeFactor):
         return out
 
     def assumptions(self, spec) -> list[str]:
-        return ["damping: one modal damping ratio for all the modes of one tube (as declared models carry it)"]
+        return ["damping: one modal damping ratio for all the modes of one tube (as declared models carry it); " + _TWINS]
 
 
 class SensorNoiseCandidate(Candidate):
