@@ -5,7 +5,8 @@ import pytest
 import scipy.signal
 import xarray as xr
 
-from tubeid.dynamics.spectra import confidence_band, distance, j_s, log_level, psd_dataset, psd_matrix, variance_from_psd
+from tubeid.dynamics.spectra import (auto_psd, confidence_band, distance, j_s, log_level, psd_dataset, psd_matrix,
+                                     variance_from_psd)
 from tubeid.errors import SpecificationError
 from tubeid.seeds import rng_for
 
@@ -42,6 +43,21 @@ def test_matches_scipy_csd_and_convention():
             np.testing.assert_allclose(f[:-1], f2[keep])
             np.testing.assert_allclose(S[:-1, a, b], P[keep], rtol=1e-12, atol=1e-15)
             np.testing.assert_allclose(S[-1, a, b], P[f2 == -50.0][0], rtol=1e-12)  # Nyquist bin
+
+
+def test_auto_psd_is_psd_matrix_diagonal_and_scipy_welch():
+    """The auto-PSDs alone: bit-identical to the diagonal of the matrix estimate (batched records,
+    Hann, 50 % overlap) and, against scipy's two-sided Welch, equal to round-off (1e-12)."""
+    rng = rng_for(2, "auto")
+    x = rng.standard_normal((2, 3, 4096, 4)) * 1e-6
+    dt = 0.01
+    f, S = psd_matrix(x, dt, segment_seconds=2.56)
+    fa, P = auto_psd(x, dt, segment_seconds=2.56)
+    assert P.shape == (2, 3, f.size, 4) and P.dtype == np.float64
+    assert np.array_equal(fa, f) and np.array_equal(P, np.real(np.diagonal(S, axis1=-2, axis2=-1)))
+    f2, W = scipy.signal.welch(x[1, 2, :, 3], fs=1 / dt, nperseg=256, detrend=False, return_onesided=False)
+    keep = f2 >= 0
+    np.testing.assert_allclose(P[1, 2, :-1, 3], W[keep], rtol=1e-12, atol=0)
 
 
 def test_phase_convention_with_a_delay():

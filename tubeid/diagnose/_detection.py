@@ -24,7 +24,7 @@ Statistics that take the declared model's spectral *shape* as right (``model_for
 ``profile``    (below, with the probe on a tube that carries no sensor: the catalog's
                :meth:`~tubeid.diagnose.catalog.AddedMassCandidate.probe`) another tube's added
                mass reaches the sensors through the grids only; ``gof``'s mean over every band
-               dilutes that shift (the reference's outer tube × 1.3: p = 0.125–0.25), whereas its
+               dilutes that shift (the reference's outer tube × 1.3: p = 0.125–0.8), whereas its
                projection on the probe's direction puts six such records at +2.2 to +4.8 standard
                deviations and twelve effect-free ones at −0.9 to −3.6 (R = 39; the records are the
                nominal, symmetric bundle, which every draw of B makes less so; README).

@@ -83,12 +83,12 @@ def simulate_series(spec: BundleSpec, r, effects, meas: MeasuredSpectra, n_sampl
 
 def simulate_blocks(spec: BundleSpec, r, effects, meas: MeasuredSpectra, n_blocks: int, realisations,
                     settings: DiagnoseSettings, *, delta: float = 0.0, load_dispersion: float = 0.0,
-                    rngs=None, observed: bool = False) -> dict:
+                    rngs=None, observed: tuple[str, ...] = ()) -> dict:
     """Model records cut like the data, per realisation (R of them), each quantity averaged over
     ``n_blocks`` blocks of the data's block length (:func:`~tubeid.diagnose._spectra.block_observations`):
     ``psd`` (R, F, m) [m²/Hz], ``stats`` (R, m, 3) and ``contact`` (R,), the stops' contact fraction
-    (see :func:`simulate_series`); with ``observed`` (the simplified model form's statistics) also
-    ``residual`` (R, F, m) and ``fine`` (R, F', m) [m²/Hz] at the data's fine segment.
+    (see :func:`simulate_series`); and those of ``fine`` (R, F', m) [m²/Hz] at the data's fine
+    segment and ``residual`` (R, F, m) [m²/Hz] that ``observed`` names (what the test's statistics read).
 
     The mean model (``delta`` = ``load_dispersion`` = 0) has one structure and one load spectrum:
     its R "realisations" are then consecutive stretches of one record of the first realisation's
@@ -107,5 +107,9 @@ def simulate_blocks(spec: BundleSpec, r, effects, meas: MeasuredSpectra, n_block
         y = y.reshape(R, n_blocks * meas.block_samples, y.shape[2])
         cf = np.repeat(cf, R)
     blocks = y.reshape(y.shape[0], n_blocks, meas.block_samples, y.shape[2])
-    out = block_observations(blocks, meas.dt, settings.segment_seconds, meas.fine_seconds if observed else None)
-    return {k: out[k] for k in ("psd", "fine", "residual", "stats") if k in out} | {"contact": cf}
+    unknown = set(observed) - {"fine", "residual"}
+    if unknown:
+        raise ValueError(f"observed: {sorted(unknown)} are not among 'fine', 'residual'")
+    out = block_observations(blocks, meas.dt, settings.segment_seconds, meas.fine_seconds if observed else None,
+                             residual="residual" in observed)
+    return {k: out[k] for k in ("psd", "stats", *observed)} | {"contact": cf}

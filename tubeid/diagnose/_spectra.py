@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import xarray as xr
 
+from tubeid.dynamics.spectra import auto_psd as welch_auto_psd
 from tubeid.dynamics.spectra import psd_matrix
 from tubeid.errors import SpecificationError
 
@@ -96,27 +97,29 @@ def fine_segment(block_seconds: float, fine_seconds: float) -> float:
     return min(float(fine_seconds), 0.5 * float(block_seconds))
 
 
-def block_observations(blocks: np.ndarray, dt: float, segment_seconds: float, fine_seconds: float | None) -> dict:
+def block_observations(blocks: np.ndarray, dt: float, segment_seconds: float, fine_seconds: float | None,
+                       residual: bool = True) -> dict:
     """What the test's statistics read of records cut into blocks (..., n_blocks, L, m), each
     quantity averaged over the blocks: ``psd`` (..., F, m) at ``segment_seconds``, ``stats``
     (..., m, 3) of all the blocks' samples and the frequencies ``frequency`` (F,) [Hz]; unless
-    ``fine_seconds`` is None (the exact model form reads neither), also ``residual`` (..., F, m)
-    [m²/Hz] from the block-averaged PSD matrix and ``fine`` (..., F', m) at ``fine_seconds`` with
-    ``frequency_fine`` (F',) [Hz]."""
+    ``fine_seconds`` is None (nothing reads them), also ``fine`` (..., F', m) at ``fine_seconds``
+    with ``frequency_fine`` (F',) [Hz] and, with ``residual``, ``residual`` (..., F, m) [m²/Hz]
+    from the block-averaged PSD matrix."""
     f, S = psd_matrix(blocks, dt, segment_seconds=segment_seconds)
     S = S.mean(axis=-4)
     y = blocks.reshape(blocks.shape[:-3] + (-1, blocks.shape[-1]))
     out = {"frequency": f, "psd": np.real(np.diagonal(S, axis1=-2, axis2=-1)), "stats": time_statistics(y)}
     if fine_seconds is not None:
         ff, Pf = auto_psd(blocks, dt, fine_seconds)
-        out |= {"residual": conditional_psd(S), "frequency_fine": ff, "fine": Pf.mean(axis=-3)}
+        out |= {"frequency_fine": ff, "fine": Pf.mean(axis=-3)}
+        if residual:
+            out["residual"] = conditional_psd(S)
     return out
 
 
 def auto_psd(blocks: np.ndarray, dt: float, segment_seconds: float) -> tuple[np.ndarray, np.ndarray]:
     """Records (..., n_t, m) → frequencies (F,) [Hz] and auto-PSDs (..., F, m) [m²/Hz, two-sided]."""
-    f, S = psd_matrix(blocks, dt, segment_seconds=segment_seconds)
-    return f, np.real(np.diagonal(S, axis1=-2, axis2=-1))
+    return welch_auto_psd(blocks, dt, segment_seconds=segment_seconds)
 
 
 def time_statistics(y: np.ndarray) -> np.ndarray:

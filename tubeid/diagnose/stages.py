@@ -29,7 +29,8 @@ realisation; the trials of one stage share one stream (common random numbers).
 
 With the simplified model form the band and trial stages also store what its statistics read: the
 fine-segment PSD and the conditional PSD (and, for trials, per fitting-layout record with the time
-statistics); with the exact form the band stages store them too when they hold probe realisations.
+statistics); with the exact form the band stages store the fine-segment PSD when they hold probe
+realisations (the ``profile`` statistic reads it).
 
 Every band stage also holds, as realisation −1, the mean model's prediction at its point (fitting
 layout, ``fit_realisations`` records): the held-out error of that point; when added mass is a
@@ -97,17 +98,17 @@ def _psd_output(what: str, *, finite: bool = True) -> Output:
                   finite=finite)
 
 
-def _mean_model(ctx, r, effects, gen, observed: bool | None = None) -> dict:
+def _mean_model(ctx, r, effects, gen, observed: tuple[str, ...] | None = None) -> dict:
     """The mean model on the fitting layout, ``fit_realisations`` records (:func:`simulate_blocks`;
-    ``observed`` None: what the model form's statistics read)."""
+    ``observed`` None: what the model form's trials read)."""
     s, meas = ctx.settings, ctx.meas
     return simulate_blocks(ctx.spec, r, effects, meas, meas.n_fit_blocks, range(s.fit_realisations), s, rngs=[gen],
-                           observed=_simplified(ctx) if observed is None else observed)
+                           observed=_form_observed(ctx) if observed is None else observed)
 
 
 def _mean_psd(ctx, r, effects, gen) -> np.ndarray:
     """Mean-model auto-PSD (F, m) on the fitting layout, averaged over ``fit_realisations`` records."""
-    return _mean_model(ctx, r, effects, gen, observed=False)["psd"].mean(axis=0)
+    return _mean_model(ctx, r, effects, gen, observed=())["psd"].mean(axis=0)
 
 
 def _simplified(ctx) -> bool:
@@ -119,27 +120,32 @@ def _simplified(ctx) -> bool:
 OBSERVED = ("fine", "residual")
 
 
-def _band_observed(ctx) -> bool:
-    """Whether the band stages store :data:`OBSERVED`: the simplified form's statistics read them,
-    and with the exact form the ``profile`` statistic reads the fine PSDs when there are probes."""
-    return _simplified(ctx) or bool(_probes(ctx))
+def _form_observed(ctx) -> tuple[str, ...]:
+    """What of :data:`OBSERVED` the model form's statistics and features read: all of it with the
+    simplified form, nothing with the exact one."""
+    return OBSERVED if _simplified(ctx) else ()
 
 
-def _observation_outputs(ctx, what: str, per: tuple = (), observed: bool | None = None) -> dict:
-    """The outputs of :data:`OBSERVED` over the extra dims ``per`` (none unless ``observed``; None:
-    with the simplified form)."""
-    if not (_simplified(ctx) if observed is None else observed):
-        return {}
-    return {"fine": Output(dims=per + ("frequency_fine", "sensor"), units="m^2/Hz", finite=False,
-                           long_name=f"auto-PSD at the sensors, two-sided, fine Welch segment: {what}"),
-            "residual": Output(dims=per + ("frequency", "sensor"), units="m^2/Hz", finite=False,
-                               long_name=f"conditional PSD of each sensor given the others, two-sided: {what}")}
+def _band_observed(ctx) -> tuple[str, ...]:
+    """What of :data:`OBSERVED` the band stages store: the model form's, and with the exact form the
+    fine PSDs when there are probe realisations (its ``profile`` statistic reads them)."""
+    return _form_observed(ctx) or (("fine",) if _probes(ctx) else ())
 
 
-def _observation_coords(ctx, per_record: bool = False, observed: bool | None = None) -> tuple[dict, dict]:
+def _observation_outputs(ctx, what: str, per: tuple = (), observed: tuple[str, ...] | None = None) -> dict:
+    """The outputs of ``observed`` (None: :func:`_form_observed`) over the extra dims ``per``."""
+    observed = _form_observed(ctx) if observed is None else observed
+    outputs = {"fine": Output(dims=per + ("frequency_fine", "sensor"), units="m^2/Hz", finite=False,
+                              long_name=f"auto-PSD at the sensors, two-sided, fine Welch segment: {what}"),
+               "residual": Output(dims=per + ("frequency", "sensor"), units="m^2/Hz", finite=False,
+                                  long_name=f"conditional PSD of each sensor given the others, two-sided: {what}")}
+    return {k: outputs[k] for k in observed}
+
+
+def _observation_coords(ctx, per_record: bool = False, observed: tuple[str, ...] | None = None) -> tuple[dict, dict]:
     """Coordinates and units of :func:`_observation_outputs`' dims (``per_record``: with the
     ``fit_realisation`` dim of the trials; ``observed`` as there)."""
-    if not (_simplified(ctx) if observed is None else observed):
+    if not (_form_observed(ctx) if observed is None else observed):
         return {}, {}
     coords = {"frequency_fine": ctx.meas.frequency_fine}
     if per_record:
@@ -369,7 +375,7 @@ def band_block(block, rng, *, data, data_sha256, model, settings, r, effects, de
     eff = method.effects_from_json(effects)
     reals = [int(k) for k in block["realisation"]]
     observed = _band_observed(ctx)
-    keys = ("psd", "stats", "contact") + (OBSERVED if observed else ())
+    keys = ("psd", "stats", "contact") + observed
     out = {}
     mean = [i for i, k in enumerate(reals) if k == MEAN_MODEL]
     for i in mean:  # the mean model's prediction, fitting layout, fit_realisations records

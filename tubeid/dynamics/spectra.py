@@ -38,7 +38,7 @@ from numpy.typing import ArrayLike
 
 from tubeid.errors import SpecificationError
 
-__all__ = ["psd_matrix", "psd_dataset", "variance_from_psd", "confidence_band", "j_s", "distance", "log_level",
+__all__ = ["psd_matrix", "auto_psd", "psd_dataset", "variance_from_psd", "confidence_band", "j_s", "distance", "log_level",
            "log_band_energies"]
 
 _DETRENDS = (False, "constant", "linear")
@@ -87,6 +87,34 @@ def psd_matrix(x: ArrayLike, dt: float, segment_seconds: float = 2.0, window: An
     S : numpy.ndarray
         (..., F, m, m) complex, S[..., k, a, b] = S_ab(f_k) in [x]^2/Hz, Hermitian per bin.
     """
+    f, X, scale = _welch_transforms(x, dt, segment_seconds, window, overlap, detrend)
+    m = X.shape[-3]
+    S = np.einsum("...asf,...bsf->...fab", X, np.conj(X)) * (scale / X.shape[-2])
+    idx = np.arange(m)
+    S[..., idx, idx] = S[..., idx, idx].real
+    return f, S
+
+
+def auto_psd(x: ArrayLike, dt: float, segment_seconds: float = 2.0, window: Any = "hann", overlap: float = 0.5,
+             detrend: bool | str = False) -> tuple[np.ndarray, np.ndarray]:
+    """The diagonal of :func:`psd_matrix` (same arguments, same estimator) without the cross
+    spectra: m products per bin and segment instead of m².
+
+    Returns
+    -------
+    f : numpy.ndarray
+        (F,) in Hz from 0 to the Nyquist frequency.
+    P : numpy.ndarray
+        (..., F, m) real, P[..., k, a] = S_aa(f_k) in [x]^2/Hz.
+    """
+    f, X, scale = _welch_transforms(x, dt, segment_seconds, window, overlap, detrend)
+    P = np.sum(X.real**2 + X.imag**2, axis=-2) * (scale / X.shape[-2])  # (..., m, F)
+    return f, np.moveaxis(P, -2, -1)
+
+
+def _welch_transforms(x, dt, segment_seconds, window, overlap, detrend) -> tuple[np.ndarray, np.ndarray, float]:
+    """The checked arguments' Welch segments, windowed and transformed: f (F,) [Hz], X (..., m,
+    n_seg, F) and the density scale dt/Σw² [s]."""
     try:
         x = np.asarray(x, dtype=float)
     except (TypeError, ValueError):
@@ -101,7 +129,7 @@ def psd_matrix(x: ArrayLike, dt: float, segment_seconds: float = 2.0, window: An
         raise SpecificationError("dt", dt, "must be a number (s)") from None
     if not np.isfinite(dt) or dt <= 0:
         raise SpecificationError("dt", dt, "must be > 0 (s)")
-    n_t, m = x.shape[-2], x.shape[-1]
+    n_t = x.shape[-2]
     nper = _segment_length(segment_seconds, dt, n_t)
     try:
         ov = float(overlap)
@@ -125,12 +153,7 @@ def psd_matrix(x: ArrayLike, dt: float, segment_seconds: float = 2.0, window: An
     if detrend:
         seg = scipy.signal.detrend(seg, type=detrend, axis=-1)
     X = np.fft.rfft(seg * win, axis=-1)  # (..., m, n_seg, F)
-    scale = dt / float(np.sum(win * win))
-    S = np.einsum("...asf,...bsf->...fab", X, np.conj(X)) * (scale / X.shape[-2])
-    f = np.fft.rfftfreq(nper, dt)
-    idx = np.arange(m)
-    S[..., idx, idx] = S[..., idx, idx].real
-    return np.asarray(f, dtype=float), S
+    return np.asarray(np.fft.rfftfreq(nper, dt), dtype=float), X, dt / float(np.sum(win * win))
 
 
 def psd_dataset(x: ArrayLike | xr.DataArray, dt: float | None = None, segment_seconds: float = 2.0,
