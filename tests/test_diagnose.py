@@ -610,6 +610,23 @@ def test_tone_signature_finds_frequency_position_and_amplitude_of_a_line_compute
     assert est["amplitude"] == pytest.approx(30.0, rel=0.1, abs=0)
 
 
+@pytest.mark.parametrize("name, effect", [("added_mass", lambda t: AddedMass(t, 0.3)), ("damping", lambda t: Damping(t, 0.005))])
+def test_alike_tubes_are_reported_as_the_first_in_the_models_order(name, effect):
+    """The record's fitting PSD = the surrogate's with the effect on outer3 or outer4: the four outer
+    tubes, identical and tied alike to the centre tube, score alike to round-off (1e-13), so the
+    signature names outer1, the first of them in the model's order (as report.md says), and its
+    runner-up is the centre tube, not another twin."""
+    spec = builtin_spec("paper-reference").replace(sensors=sensors(XS)).replace(stops=())
+    f = np.arange(241) / 2.0
+    sur = LinearSurrogate(spec, coherent_forces(), f)
+    sur.contact = 0.0
+    base = sur.psd()
+    for tube in ("outer3", "outer4"):
+        ev = _evidence(spec, sur.psd([effect(tube)]), np.log10(np.maximum(base, 1e-300)))
+        est = CATALOG[name].signature(ev)["estimate"]
+        assert est["tube"] == "outer1" and est["second"]["tube"] == "centre", est
+
+
 def test_noise_signature_and_exact_trials():
     spec = builtin_spec("paper-reference").replace(sensors=sensors(XS))
     F = 334
@@ -908,8 +925,8 @@ def test_user_files_survive_every_command_and_overwrite_removes_only_the_manifes
 
 
 def test_a_partial_store_resumes_on_two_workers_to_the_uninterrupted_result(control, tmp_path):
-    """The control's store made partial as a run killed during the band leaves it (its second task
-    unwritten, later stages never started); the same diagnosis resumes it on a real LocalCluster of
+    """The control's store made partial as a run killed during the band leaves it (its first task,
+    the mean model and the test's realisations, unwritten; later stages never started); the same diagnosis resumes it on a real LocalCluster of
     2 worker processes: only the missing tasks run, the stored results are byte-identical to the
     uninterrupted in-process run's and the report is equal. A changed record, other settings or
     another model are refused before any work, leaving the store as it was."""
@@ -920,8 +937,10 @@ def test_a_partial_store_resumes_on_two_workers_to_the_uninterrupted_result(cont
     g = zarr.open_group(str(store), mode="r+", path="band")
     first = g["psd"].chunks[0]
     assert 0 < first < g["psd"].shape[0]
-    g["psd"][first:] = np.nan  # the second task (with δ = 0 two tasks: the second holds the probe realisations)
-    clear_flag(store, (1,), "band")
+    real = g["realisation"][:]
+    assert real[0] == -1 and list(real[1:first]) == list(range(first - 1))  # the test's own realisations
+    g["psd"][:first] = np.nan  # the first task (δ = 0: two tasks, the second the probe realisations)
+    clear_flag(store, (0,), "band")
     update_attrs(store, "band", finished="")
     assert store_status(store)["complete"] is False
     settings = DiagnoseSettings(**CONTROL_SET)
@@ -1196,6 +1215,8 @@ def test_the_probe_realisations_are_simulated_only_where_the_profile_reads_them(
     reference = builtin_spec("paper-reference")
     assert CATALOG["added_mass"].probe(reference, "exact").tube == "outer1"  # the first tube without a sensor
     assert CATALOG["added_mass"].probe(reference, "simplified").tube == "centre"
+    with pytest.raises(SpecificationError, match="form"):
+        CATALOG["added_mass"].probe(reference, "Exact")
     everywhere = reference.replace(sensors=reference.sensors + sum(
         (sensors((4.0,), tube=t, prefix="o" + t[-1]) for t in ("outer1", "outer2", "outer3", "outer4")), ()))
     assert CATALOG["added_mass"].probe(everywhere, "exact").tube == "centre"  # every tube has one: the sensors'

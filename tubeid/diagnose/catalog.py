@@ -30,6 +30,8 @@ from typing import ClassVar
 
 import numpy as np
 
+from tubeid._validation import one_of
+from tubeid.diagnose._settings import MODEL_FORM_CHOICES
 from tubeid.diagnose._spectra import log10
 from tubeid.mechanics.effects import AddedMass, Damping, ExtraStop, SensorNoise, Tone
 from tubeid.mechanics.spec import BundleSpec
@@ -525,12 +527,17 @@ class _TubeFactor(Candidate):
                     best = (s, float(v))
             scores[t.name] = best
         order = sorted(scores, key=lambda n: -scores[n][0])
-        top = order[0]
+        best = scores[order[0]][0]
+
+        def twin(n):  # identical tubes seen alike: their scores differ by round-off only
+            return abs(scores[n][0] - best) <= 1e-9 * max(best, 1e-300)
+
+        top = next(n for n in scores if twin(n))  # the first of the best's twins in the model's order
         est = {"tube": top, self.value_name: scores[top][1]}
-        # the runner-up: the best tube that is not a twin of the first (identical tubes seen alike)
-        twins = [n for n in order[1:] if abs(scores[n][0] - scores[top][0]) > 1e-9 * max(scores[top][0], 1e-300)]
-        if twins:
-            est["second"] = {"tube": twins[0], self.value_name: scores[twins[0]][1]}
+        # the runner-up: the best tube that is not a twin of the first
+        others = [n for n in order if not twin(n)]
+        if others:
+            est["second"] = {"tube": others[0], self.value_name: scores[others[0]][1]}
         return {"score": scores[top][0], "estimate": est}
 
     def _trial_values(self, value, points) -> np.ndarray:
@@ -581,7 +588,7 @@ class AddedMassCandidate(_TubeFactor):
         × 1.3: p = 0.125–0.8 without the profile; README). An added mass on a tube unlike the
         probe's moves the profile in another direction, which the statistic does not look for."""
         tubes = [s.tube for s in spec.sensors]
-        if form == "exact":
+        if one_of("form", form, MODEL_FORM_CHOICES) == "exact":
             free = [t.name for t in spec.tubes if t.name not in tubes]
             if free:
                 return AddedMass(free[0], self.probe_factor)

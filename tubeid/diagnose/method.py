@@ -18,7 +18,8 @@ resumable); this module holds the context every stage reads and assembles the re
    (δ, δ_F, r): a Monte Carlo test, exact at the stated false-alarm rate
    (:mod:`tubeid.diagnose._detection`). Its statistics depend on what the declared model is taken
    to be (``model_form``): *exact* — a scan for lines, a goodness-of-fit of log band energies, the
-   sharpness of resonances; *simplified* (the default when δ is identified against a reference
+   sharpness of resonances and, when added mass is a candidate, the spectral profile along another
+   tube's added mass; *simplified* (the default when δ is identified against a reference
    model) — only what a simplified model is trusted for: lines at a fine resolution, the flatness
    of the sensors' incoherent floor, the kurtosis of each sensor, the sharpness of the in-band
    resonances, the log-log slope of the in-band spectrum; each of these points to the catalog

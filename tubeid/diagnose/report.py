@@ -204,7 +204,9 @@ def _assumptions(ctx) -> list[str]:
     else:
         out += ["model form: exact (the declared model is the structure up to its random B): the test reads the "
                 "spectrum's shape; if the model simplifies the structure, set model_form=simplified"]
-        if st._probes(ctx):
+        from tubeid.diagnose._detection import feature_applies
+
+        if st._probes(ctx) and feature_applies("profile", st.record_observations(ctx, "held_out"), s.band_width_hz):
             probe = CATALOG["added_mass"].probe(ctx.spec, "exact")
             out += [f"the test's profile looks for added mass in one direction, its probe's (factor {probe.factor:g} "
                     f"on {probe.tube!r}): a mass on a tube unlike that one is left to the shape statistics"]
