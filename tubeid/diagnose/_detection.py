@@ -23,11 +23,10 @@ Statistics that take the declared model's spectral *shape* as right (``model_for
                random shift of the resonances (what δ does) does not.
 ``profile``    (below, with the probe on a tube that carries no sensor: the catalog's
                :meth:`~tubeid.diagnose.catalog.AddedMassCandidate.probe`) another tube's added
-               mass reaches the sensors through the grids only; ``gof``'s mean over every band
-               dilutes that shift (the reference's outer tube × 1.3: p = 0.125–0.8), whereas its
-               projection on the probe's direction puts six such records at +2.2 to +4.8 standard
-               deviations and twelve effect-free ones at −0.9 to −3.6 (R = 39; the records are the
-               nominal, symmetric bundle, which every draw of B makes less so; README).
+               mass reaches the sensors through the grids only, a shift ``gof``'s mean over every
+               band dilutes and the projection on the probe's direction keeps (measured on the
+               reference's outer tubes: README). One-sided: effect-free records of a nominal,
+               symmetric bundle sit on its negative side, every draw of B making it less so.
 
 Statistics that a *simplified* declared model can be trusted for (``model_form="simplified"``):
 its random subsystem B moves and scales resonances (what δ covers), but a coarser or homogenised B
@@ -230,7 +229,9 @@ class Statistic:
     trusted with a simplified declared model (module docstring); ``effects``: the catalog effects
     whose absence it points to (empty: any); ``peak``: its frequency of largest excess for the
     record, or None; ``applies(obs, band_width_hz) -> bool``: whether the observations hold what it
-    reads (None: always), else the test leaves it out."""
+    and its feature read (None: always), else the test leaves it out; ``optional``: those of
+    ``needs`` without which the test leaves it out rather than refusing (its feature does not read
+    them)."""
 
     compute: Callable
     needs: tuple[str, ...] = ()
@@ -238,6 +239,7 @@ class Statistic:
     effects: tuple[str, ...] = ()
     peak: Callable | None = None
     applies: Callable | None = None
+    optional: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -511,18 +513,17 @@ def _profile_projection(obs: Observations) -> np.ndarray:
 
 
 def applicable(model_form: str, obs: Observations, band_width_hz: float = 5.0) -> tuple[str, ...]:
-    """The statistics of ``model_form`` (:data:`MODEL_FORMS`) whose ``applies`` holds for ``obs``
-    (only frequencies, the band, the segment count and the sensor count are read)."""
+    """The statistics of ``model_form`` (:data:`MODEL_FORMS`) that ``obs`` holds their ``optional``
+    fields for and whose ``applies`` holds (only which fields are present, the frequencies, the band,
+    the segment count and the sensor count are read)."""
     return tuple(k for k in MODEL_FORMS[model_form]
-                 if STATISTICS[k].applies is None or STATISTICS[k].applies(obs, band_width_hz))
+                 if all(getattr(obs, f) is not None for f in STATISTICS[k].optional)
+                 and feature_applies(k, obs, band_width_hz))
 
 
 def feature_applies(name: str, obs: Observations, band_width_hz: float = 5.0) -> bool:
-    """Whether :func:`features` of ``name`` is informative for ``obs``: its statistic's ``applies``,
-    except that the profile's feature needs only its bands (not the probe realisations, which only
-    the statistic's direction reads)."""
-    if name == "profile":
-        return _profile_has_bands(obs)
+    """Whether :func:`features` of ``name`` is informative for ``obs``: its statistic's ``applies``
+    (the ``optional`` fields, e.g. the profile's probe realisations, only the statistic reads)."""
     st = STATISTICS[name]
     return st.applies is None or bool(st.applies(obs, band_width_hz))
 
@@ -625,7 +626,7 @@ STATISTICS: dict[str, Statistic] = {
     "tilt": Statistic(_tilt, needs=("fine",), robust=True, effects=("added_mass",),
                       applies=lambda obs, width: int(np.sum(_tilt_bins(obs))) >= TILT_MIN_BINS),
     "profile": Statistic(_profile, needs=("fine", "probe"), robust=True, effects=("added_mass",),
-                         applies=lambda obs, width: obs.probe is not None and _profile_has_bands(obs)),
+                         applies=lambda obs, width: _profile_has_bands(obs), optional=("probe",)),
 }
 
 #: The statistics a test combines, by what the declared model is taken to be.

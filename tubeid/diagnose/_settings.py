@@ -32,8 +32,7 @@ SIMPLIFIED_REALISATIONS = 159
 
 #: Probe realisations (the ``profile`` statistic's direction) when ``probe_realisations`` is not
 #: given: with the simplified form the direction is taken against B's scatter around a mis-shaped
-#: mean, 60; with the exact form, 20 (10 and 20 gave the same ranks on the reference's records
-#: with an outer tube × 1.3; README).
+#: mean, 60; with the exact form, 20 (README: what fewer gave).
 SIMPLIFIED_PROBE_REALISATIONS = 60
 EXACT_PROBE_REALISATIONS = 20
 

@@ -107,9 +107,6 @@ def simulate_blocks(spec: BundleSpec, r, effects, meas: MeasuredSpectra, n_block
         y = y.reshape(R, n_blocks * meas.block_samples, y.shape[2])
         cf = np.repeat(cf, R)
     blocks = y.reshape(y.shape[0], n_blocks, meas.block_samples, y.shape[2])
-    unknown = set(observed) - {"fine", "residual"}
-    if unknown:
-        raise ValueError(f"observed: {sorted(unknown)} are not among 'fine', 'residual'")
     out = block_observations(blocks, meas.dt, settings.segment_seconds, meas.fine_seconds if observed else None,
                              residual="residual" in observed)
     return {k: out[k] for k in ("psd", "stats", *observed)} | {"contact": cf}

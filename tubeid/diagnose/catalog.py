@@ -584,9 +584,9 @@ class AddedMassCandidate(_TubeFactor):
         form, the first tube (in the specification's order) that carries no sensor, or the sensors'
         tube if every tube carries one: the sensors' own tube's mass moves their resonances, which
         the exact form's ``gof`` sees, whereas another tube's mass reaches the sensors through the
-        grids only, a shift that ``gof``'s mean over every band dilutes (the reference's outer tube
-        × 1.3: p = 0.125–0.8 without the profile; README). An added mass on a tube unlike the
-        probe's moves the profile in another direction, which the statistic does not look for."""
+        grids only, a shift that ``gof``'s mean over every band dilutes (README). An added mass on
+        a tube unlike the probe's moves the profile in another direction, which the statistic does
+        not look for."""
         tubes = [s.tube for s in spec.sensors]
         if one_of("form", form, MODEL_FORM_CHOICES) == "exact":
             free = [t.name for t in spec.tubes if t.name not in tubes]
