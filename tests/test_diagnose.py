@@ -120,6 +120,20 @@ def test_the_test_refuses_what_it_cannot_calibrate():
         DiagnoseSettings(realisations=9, false_alarm=0.05)  # smallest p-value 1/10 > 5 %
 
 
+def test_the_tests_after_a_step_share_the_false_alarm_rate_between_them():
+    """Bonferroni over the tests that could continue the loop: α / (max_effects − 1) each by
+    default, refused where R cannot resolve it, at most α when given."""
+    s = DiagnoseSettings()
+    assert (s.alarm_at(0), s.alarm_at(1), s.alarm_at(2)) == (0.05, 0.025, 0.025)
+    assert DiagnoseSettings(max_effects=2).alarm_at(1) == 0.05
+    assert DiagnoseSettings(false_alarm=0.1, continuation_alarm=0.04, realisations=49).alarm_at(2) == 0.04
+    with pytest.raises(SpecificationError, match=r"settings.continuation_alarm = 0.025.*1/20"):
+        DiagnoseSettings(realisations=19)  # 0.025 < 1/20
+    with pytest.raises(SpecificationError, match=r"settings.continuation_alarm = 0.1"):
+        DiagnoseSettings(continuation_alarm=0.1)  # above α
+    assert DiagnoseSettings(realisations=19, max_effects=1).continuation_rate == 0.05  # never used: no refusal
+
+
 def _observations(rng, N, m=3, *, line=None, floor=None, kurtosis=None, sharp=1.0, tilt=0.0, scale=1.0, probe=0):
     """N synthetic samples of what the simplified form's statistics read (:class:`Observations`):
     fine spectra (``_spectra`` at 4 × the resolution), conditional PSDs that are deep and uneven
@@ -839,7 +853,7 @@ def _set_args(settings: dict) -> list[str]:
     return [a for k, v in settings.items() for a in ("--set", f"{k}={v!r}")]
 
 
-CONTROL_SET = {"realisations": 19, "delta": 0.0, "fit_realisations": 1, "r0": (4.0,), "r_fine_points": 3}
+CONTROL_SET = {"realisations": 19, "delta": 0.0, "fit_realisations": 1, "r0": (4.0,), "r_fine_points": 3, "max_effects": 2}
 
 
 @pytest.fixture(scope="module")
@@ -1017,8 +1031,12 @@ def test_sensor_noise_is_chosen_over_a_first_improving_candidate_and_the_load_re
 
 def test_two_effects_at_once_are_both_named():
     """A second stop at x = 4 m (a node between the sensors at 2 and 6 m; gap 3 µm) and sensor noise
-    at once, both written by hand: both named, the stop within one element of 4 m."""
-    rep = diagnose(record(HandEffects(stops=(("centre", 4.0, 3e-6, 1e8),), noise=3e-17)), "paper-reference", SMALL).report
+    at once, both written by hand: both named, the stop within one element of 4 m. The first test at
+    α = 0.1, the one after step 1 at the continuation rate 0.05."""
+    settings = SMALL.replace(false_alarm=0.1, continuation_alarm=0.05)
+    rep = diagnose(record(HandEffects(stops=(("centre", 4.0, 3e-6, 1e8),), noise=3e-17)), "paper-reference", settings).report
+    assert rep["detection"]["false_alarm"] == 0.1
+    assert [s["detection_after"]["false_alarm"] for s in rep["steps"]] == [0.05] * len(rep["steps"])
     _check_named(rep, ["stop", "sensor_noise"])
     stop = next(e for e in rep["effects"] if e["name"] == "stop")
     assert abs(stop["parameters"]["x"]["value"] - 4.0) <= 2.0

@@ -68,7 +68,14 @@ class DiagnoseSettings:
         ``profile`` statistic (0: that statistic left out). ``None``: :data:`EXACT_PROBE_REALISATIONS`
         with the exact model form, :data:`SIMPLIFIED_PROBE_REALISATIONS` with the simplified one.
     false_alarm : float
-        α, the stated false-alarm rate of the test, in (0, 0.5).
+        α, the stated false-alarm rate of the test, in (0, 0.5): the record's first test (is
+        anything missing?).
+    continuation_alarm : float or None
+        The rate of the tests after each step (is anything *still* missing?), in (0, α]. ``None``:
+        α / (``max_effects`` − 1), so that on a record the chosen effects explain, the
+        ``max_effects`` − 1 tests that could continue the loop add a spurious effect with
+        probability at most α in all (Bonferroni); without it each of them would, at α. Must be
+        at least 1/(R+1), the smallest p-value, when ``max_effects`` ≥ 2.
     band_width_hz : float
         Width [Hz] of the bands of the goodness-of-fit of log band energies (chunks of the
         sharpness and resonance statistics: 4 × this).
@@ -142,6 +149,7 @@ class DiagnoseSettings:
     realisations: int | None = None
     probe_realisations: int | None = None
     false_alarm: float = 0.05
+    continuation_alarm: float | None = None
     band_width_hz: float = 5.0
     level: float = 0.95
     model_form: str | None = None
@@ -209,6 +217,14 @@ class DiagnoseSettings:
             raise SpecificationError(f + "false_alarm", self.false_alarm,
                                      f"needs realisations + 1 >= 1/false_alarm: with {self.n_realisations} realisations "
                                      f"the smallest p-value is 1/{self.n_realisations + 1}")
+        if self.continuation_alarm is not None:
+            v.real(f + "continuation_alarm", self.continuation_alarm, low=0.0, high=self.false_alarm, low_open=True)
+        if self.max_effects >= 2 and int(self.continuation_rate * (self.n_realisations + 1) + 1e-9) < 1:
+            given = "" if self.continuation_alarm is not None else "(false_alarm / (max_effects - 1)) "
+            raise SpecificationError(f + "continuation_alarm", self.continuation_rate,
+                                     f"{given}needs realisations + 1 >= 1/continuation_alarm: with {self.n_realisations} "
+                                     f"realisations the smallest p-value is 1/{self.n_realisations + 1}; give more "
+                                     "realisations, a larger continuation_alarm (at most false_alarm) or a smaller max_effects")
         v.real(f + "delta", self.delta, low=0.0, high=1.0, high_open=True)
         if self.delta_reference is not None and (not isinstance(self.delta_reference, str) or not self.delta_reference):
             raise SpecificationError(f + "delta_reference", self.delta_reference,
@@ -262,6 +278,19 @@ class DiagnoseSettings:
         if self.probe_realisations is not None:
             return self.probe_realisations
         return SIMPLIFIED_PROBE_REALISATIONS if self.form == "simplified" else EXACT_PROBE_REALISATIONS
+
+    @property
+    def continuation_rate(self) -> float:
+        """The continuation tests' rate in effect: ``continuation_alarm``, else α / (``max_effects`` − 1)
+        (α when ``max_effects`` ≤ 2)."""
+        if self.continuation_alarm is not None:
+            return self.continuation_alarm
+        return self.false_alarm / max(1, self.max_effects - 1)
+
+    def alarm_at(self, step: int) -> float:
+        """The test's rate after ``step`` effects: α before any (``step`` 0), else
+        :attr:`continuation_rate`."""
+        return self.false_alarm if step == 0 else self.continuation_rate
 
     @property
     def test_size(self) -> float:

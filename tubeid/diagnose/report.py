@@ -142,12 +142,21 @@ def _selection_rule(s) -> str:
                 "fitted on the fitting blocks (the chosen effects held) to that statistic's feature and scored by its "
                 "held-out error relative to the current model's in the same feature; the lowest ratio x "
                 f"(1 - {s.penalty})^-k (k parameters) is added if it is below 1; then every chosen effect's parameters "
-                "are re-fitted jointly on their features (r held) and the augmented model is tested again" + _tie_rule(s))
+                "are re-fitted jointly on their features (r held) and the augmented model is tested again"
+                + _continuation_rule(s) + _tie_rule(s))
     return ("at each step every catalog effect not yet chosen is fitted on the fitting blocks (the chosen effects "
             "held, the level profiled) and scored by its held-out error; the lowest held-out error x "
             f"(1 - {s.penalty})^-k (k parameters) is added if it is below the current model's held-out error; then r "
             "and every chosen effect's parameters are re-fitted jointly and the augmented model is tested again"
-            + _tie_rule(s))
+            + _continuation_rule(s) + _tie_rule(s))
+
+
+def _continuation_rule(s) -> str:
+    if s.max_effects < 2:
+        return ""
+    return (f", at the false-alarm rate {s.continuation_rate:g} (the first test's {s.false_alarm:g} shared among the "
+            f"{s.max_effects - 1} tests that could continue the loop)" if s.continuation_alarm is None
+            else f", at the false-alarm rate {s.continuation_rate:g} (given)")
 
 
 def _tie_rule(s) -> str:

@@ -454,7 +454,7 @@ def summarize_band(ds):
     ctx = _ctx(p)
     s = ctx.settings
     obs = record_observations(ctx, "held_out").stacked(band_observations(ctx, ds))
-    det = detection_test(obs, false_alarm=s.false_alarm, band_width_hz=s.band_width_hz, model_form=s.form)
+    det = detection_test(obs, false_alarm=s.alarm_at(p["step"]), band_width_hz=s.band_width_hz, model_form=s.form)
     out = {"detection": json.dumps(det.to_dict(), sort_keys=True), "detected": det.detected, "p_value": det.p_value}
     chosen = [e["kind"] for e in json.loads(p["effects"])]
     available = tuple(n for n in ctx.candidate_names if n not in chosen)
