@@ -550,6 +550,22 @@ def test_the_refit_keeps_the_moved_point_only_if_it_is_no_worse_than_the_best_ev
     assert not keeps_moved_point(float("nan"), 1.0)
 
 
+def test_a_line_whose_best_is_at_an_end_is_extended_one_step_and_kept_only_if_better():
+    from tubeid.diagnose._selection import line_extension, refit_choice
+
+    # measured (added mass on outer1 × 1.3, seed 1): the line 0.107 / 0.15 / 0.21 (×1.4) gave fit errors
+    # 1.57 / 1.24 / 0.84: the next step is 0.21 × 1.4 = 0.294
+    assert line_extension([0.15, 0.107, 0.21], [1.24, 1.57, 0.84], log=True) == pytest.approx(0.21 * 1.4, rel=1e-3, abs=0)
+    assert line_extension([0.5, 1.0, 2.0], [0.2, 0.5, 0.9], log=True) == pytest.approx(0.25, rel=1e-12, abs=0)
+    assert line_extension([4.0, 5.0, 6.0], [3.0, 2.0, 1.0], log=False) == pytest.approx(7.0, rel=1e-12, abs=0)
+    assert line_extension([0.5, 1.0, 2.0], [0.9, 0.5, 0.7], log=True) is None  # interior
+    assert line_extension([0.5, 1.0, 2.0], [0.9, 0.5, float("nan")], log=True) is None
+    assert refit_choice(0.84, 0.84, 0.61) == "extended"
+    assert refit_choice(0.84, 0.84, 0.90) == "moved" and refit_choice(0.84, 0.84) == "moved"
+    assert refit_choice(3.46, 1.89, 1.95) == "best" and refit_choice(3.46, 1.89, 1.5) == "extended"
+    assert refit_choice(0.8, 1.0, float("nan")) == "moved"
+
+
 def test_line_minimum_is_the_parabola_vertex_in_log_and_keeps_an_end():
     x = np.array([0.5, 1.0, 2.0])
     y = (np.log10(x) - np.log10(1.3)) ** 2

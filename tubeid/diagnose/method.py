@@ -34,8 +34,12 @@ resumable); this module holds the context every stage reads and assembles the re
    sweep: each parameter and r along a line of 3 trials around the current point, the others
    held; each moved to its line's parabola vertex; the moved point is then evaluated, and if its
    fitting-block error is worse than the best point the lines evaluated — the moves overshoot when
-   parameters trade off — that point is kept instead), and the augmented model's band is tested
-   again. The loop stops when the test no longer detects anything (``explained``), when no
+   parameters trade off — that point is kept instead; a scale line whose best is at its end is
+   extended one step, evaluated beside the moved point, and kept if better than both), and the
+   augmented model's band is tested again, at ``continuation_alarm`` (default α / (``max_effects`` −
+   1): the tests that could continue the loop share α, so a record the chosen effects explain gains
+   a spurious effect with probability at most α). The loop stops when the test no longer detects
+   anything (``explained``), when no
    candidate pays its penalty, or after ``max_effects`` steps — except that a runner-up which also
    paid its penalty within ``tie`` (10 %) of the chosen one's ratio at an earlier step, and was
    never chosen, is first offered once more, alone (``stages.runner_ups``): the data could not order
@@ -45,8 +49,8 @@ resumable); this module holds the context every stage reads and assembles the re
 ``report.json``: ``effect`` (the first effect's name, or ``none``), ``effects`` ([{name,
 parameters}]), ``detection`` (p-values before), ``steps`` (per step: the candidates' errors, the
 ``continuation`` that offered them after an explained step (or null), the choice, the re-fitted
-effects and r, ``refit_check`` (the moved point's and the best evaluated point's fitting errors,
-``fallback``), the held-out error and the test after), ``error_before``,
+effects and r, ``refit_check`` (the moved point's, the best evaluated point's and the extended point's fitting
+errors, which was ``kept``, ``fallback``), the held-out error and the test after), ``error_before``,
 ``error_after``, ``explained_before``/``explained_after``, ``load``, ``delta``, ``assumptions``.
 """
 

@@ -85,7 +85,8 @@ def assemble(store, ctx):
         chk = st.refit_point(ctx, results, k, rf)
         det_k = json.loads(results[f"step{k}_band"].attrs["detection"])
         step.update({"refit": rf["lines"],
-                     "refit_check": {key: chk[key] for key in ("moved_fit_error", "best_fit_error", "fallback")},
+                     "refit_check": {key: chk[key] for key in ("moved_fit_error", "best_fit_error", "extended_fit_error",
+                                                                 "kept", "fallback")},
                      "effects_after": [_describe(e) for e in pt["effects"]], "r_after": pt["r"],
                      "error_after": pt["held_out_error"], "fit_error_after": pt["fit_error"],
                      "detection_after": det_k})

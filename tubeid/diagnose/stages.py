@@ -23,7 +23,8 @@ realisation; the trials of one stage share one stream (common random numbers).
 ``step{k}_refit``   lines of 3 trials around (r — exact form only —, every chosen effect's
                     parameters) → joint re-fit
 ``step{k}_check``   the point the re-fit's lines moved to, evaluated (kept only if no worse than the
-                    best trial the lines evaluated)
+                    best trial the lines evaluated), and the same point with the log lines whose
+                    best was at an end moved one step further (kept if better than both)
 ``step{k}_band``    R realisations with the re-fitted effects → the test after step k (and the
                     signatures for step k + 1)
 
@@ -48,13 +49,15 @@ import numpy as np
 from tubeid.diagnose._detection import SCALE_FLOOR, STATISTICS as TEST_STATISTICS, Observations, applicable, \
     band_moments, detection_test, feature_applies, features
 from tubeid.diagnose._load import delta_f_identification, grid_minimum, r_coarse_grid, r_distance, r_fine_grid, scaled_r
-from tubeid.diagnose._selection import Scored, choose, keeps_moved_point, level_offset, line_minimum, near_ties, prediction_error
+from tubeid.diagnose._selection import (Scored, choose, level_offset, line_extension, line_minimum, near_ties, prediction_error,
+                                        refit_choice)
 from tubeid.diagnose._settings import MAX_EFFECTS, DiagnoseSettings
 from tubeid.diagnose._simulate import load_spectrum, simulate_blocks, simulate_series
 from tubeid.diagnose._spectra import welch_segments
 from tubeid.diagnose.catalog import CATALOG, Evidence
 from tubeid.dynamics import warmup
 from tubeid.dynamics.spectra import j_s, psd_matrix
+from tubeid.errors import SpecificationError
 from tubeid.identification.loads import JS_UNITS
 from tubeid.mechanics.effects import apply_effects, effect_from_dict, effect_to_dict
 from tubeid.runner.pipeline import Pipeline
@@ -856,22 +859,36 @@ def refit_result(ctx, results, k: int) -> dict:
     p = _params(ds)
     trials, lines = json.loads(p["trials"]), json.loads(p["lines"])
     fit_err = fit_errors(ctx, results, ds)
-    effects = [effect_from_dict(e) for e in trials[0]["effects"]]
-    r = list(trials[0]["r"])
-    report, best_of = [], {}
+    centre = [effect_from_dict(e) for e in trials[0]["effects"]]
+    r, r_ext = list(trials[0]["r"]), list(trials[0]["r"])
+    report, best_of, ext_of = [], {}, {}
     for ln in lines:
         errs = [fit_err[i] for i in ln["trials"]]
         best = line_minimum(ln["values"], errs, ln["log"])
-        report.append({**{k_: ln[k_] for k_ in ("what", "index", "parameter", "values")}, "errors": errs, "best": best})
+        # a log line (every scale: r, amplitudes, gaps, factors, ratios, levels) at its edge is extended one
+        # step in the check; a tone's position line is not (its grid is the tube's half-element nodes)
+        ext = line_extension(ln["values"], errs, ln["log"]) if ln["log"] else None
+        report.append({**{k_: ln[k_] for k_ in ("what", "index", "parameter", "values")}, "errors": errs, "best": best,
+                       "extension": ext})
         if ln["what"] == "r":
             r[ln["index"]] = best
+            r_ext[ln["index"]] = best if ext is None else ext
         else:
             best_of.setdefault(ln["index"], {})[ln["parameter"]] = best
-    sur = _surrogate(ctx, results, effects, trials[0]["r"], "band" if k == 1 else f"step{k - 1}_band")
+            ext_of.setdefault(ln["index"], {})[ln["parameter"]] = best if ext is None else ext
+    sur = _surrogate(ctx, results, centre, trials[0]["r"], "band" if k == 1 else f"step{k - 1}_band")
+    effects, extended = list(centre), list(centre)
     for i, best in best_of.items():
-        effects[i] = CATALOG[effects[i].name].combine(effects[i], best, ctx.spec, sur)
+        effects[i] = CATALOG[centre[i].name].combine(centre[i], best, ctx.spec, sur)
+    for i, ext in ext_of.items():
+        try:
+            extended[i] = CATALOG[centre[i].name].combine(centre[i], ext, ctx.spec, sur)
+        except SpecificationError:  # beyond what the effect allows (a ratio above 1): that line stays at its edge
+            extended[i] = effects[i]
+    moved = {"effects": method.effects_to_json(effects), "r": [float(v) for v in r]}
+    ext_point = {"effects": method.effects_to_json(extended), "r": [float(v) for v in r_ext]}
     b = int(np.argmin(fit_err))
-    return {"effects": method.effects_to_json(effects), "r": [float(v) for v in r], "lines": report,
+    return {**moved, "lines": report, "extended": None if ext_point == moved else ext_point,
             "centre_fit_error": fit_err[0],
             "best_trial": {"effects": json.dumps(trials[b]["effects"], sort_keys=True), "r": [float(v) for v in trials[b]["r"]],
                            "fit_error": fit_err[b]}}
@@ -886,8 +903,9 @@ def _check(k, results, base):
     if skipped(results[f"step{k}_refit"]):
         return _skipped(name, "no effect chosen at this step")
     rf = refit_result(ctx, results, k)
-    trials = [{"effects": json.loads(rf["effects"]), "r": rf["r"]}]
-    st = _trial_study(name, base, ctx, trials, f"step {k}: the re-fit's moved point, evaluated")
+    trials = [{"effects": json.loads(p["effects"]), "r": p["r"]} for p in (rf, rf["extended"]) if p is not None]
+    st = _trial_study(name, base, ctx, trials, f"step {k}: the re-fit's moved point (and with its edge lines one step "
+                                               "further), evaluated")
     return dataclasses.replace(st, stream_key=(f"step{k}_refit",))
 
 
@@ -896,12 +914,13 @@ def refit_point(ctx, results, k: int, rf: dict | None = None) -> dict:
     worse than the best point the re-fit evaluated, else that point → {"effects" (JSON), "r",
     "moved_fit_error", "best_fit_error", "fallback" (bool)}. ``rf``: :func:`refit_result` if at hand."""
     rf = refit_result(ctx, results, k) if rf is None else rf
-    moved = fit_errors(ctx, results, results[f"step{k}_check"])[0]
+    errs = fit_errors(ctx, results, results[f"step{k}_check"])
+    moved, extended = errs[0], (errs[1] if rf["extended"] is not None else None)
     best = rf["best_trial"]
-    fallback = not keeps_moved_point(moved, best["fit_error"])
-    chosen = best if fallback else {"effects": rf["effects"], "r": rf["r"]}
+    which = refit_choice(moved, best["fit_error"], extended)
+    chosen = {"best": best, "moved": rf, "extended": rf["extended"]}[which]
     return {"effects": chosen["effects"], "r": chosen["r"], "moved_fit_error": moved, "best_fit_error": best["fit_error"],
-            "fallback": fallback}
+            "extended_fit_error": extended, "kept": which, "fallback": which == "best"}
 
 
 def _band_k(k, results, base):
