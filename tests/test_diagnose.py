@@ -131,7 +131,10 @@ def test_the_tests_after_a_step_share_the_false_alarm_rate_between_them():
         DiagnoseSettings(realisations=19)  # 0.025 < 1/20
     with pytest.raises(SpecificationError, match=r"settings.continuation_alarm = 0.1"):
         DiagnoseSettings(continuation_alarm=0.1)  # above α
-    assert DiagnoseSettings(realisations=19, max_effects=1).continuation_rate == 0.05  # never used: no refusal
+    assert DiagnoseSettings(realisations=19, max_effects=1).continuation_rate == 0.05  # the test after step 1
+    with pytest.raises(SpecificationError, match=r"settings.continuation_alarm = 0.001"):
+        DiagnoseSettings(realisations=19, max_effects=1, continuation_alarm=0.001)  # step 1's test could never detect
+    assert DiagnoseSettings(realisations=19, max_effects=0, continuation_alarm=0.001).max_effects == 0  # no test after
 
 
 def _observations(rng, N, m=3, *, line=None, floor=None, kurtosis=None, sharp=1.0, tilt=0.0, scale=1.0, probe=0):
@@ -564,6 +567,59 @@ def test_a_line_whose_best_is_at_an_end_is_extended_one_step_and_kept_only_if_be
     assert refit_choice(0.84, 0.84, 0.90) == "moved" and refit_choice(0.84, 0.84) == "moved"
     assert refit_choice(3.46, 1.89, 1.95) == "best" and refit_choice(3.46, 1.89, 1.5) == "extended"
     assert refit_choice(0.8, 1.0, float("nan")) == "moved"
+    assert refit_choice(0.5, 1.0, 0.7) == "moved" and refit_choice(0.5, 1.0, 0.5) == "moved"  # not better than moved
+    assert refit_choice(0.5, float("nan"), 0.4) == "extended" and refit_choice(0.5, float("nan")) == "moved"
+
+
+def test_the_refit_extends_its_edge_lines_and_the_check_decides(monkeypatch):
+    """The stages' wiring with fitting errors given by hand (no simulation): an added mass's line
+    0.107 / 0.15 / 0.21 with its best at the end and r's line with an interior best; the check's two
+    trials are the moved point (mass 0.21) and the extended one (mass 0.294, r the same); the
+    extended point is kept only when its error is the lowest, and a NaN trial never wins."""
+    from types import SimpleNamespace
+
+    import xarray as xr
+
+    from tubeid.diagnose import stages
+    from tubeid.mechanics.effects import effect_from_dict, effect_to_dict
+
+    mass = AddedMass("outer1", 0.15)
+    trials = [{"effects": [effect_to_dict(mass)], "r": [1.3]}]
+    lines = []
+    for what, par, values in (("r", "r", [1.3 * 10**-0.1, 1.3, 1.3 * 10**0.1]), ("effect", "factor", [0.15 / 1.4, 0.15, 0.21])):
+        idx = []
+        for v in values:
+            if v in (1.3, 0.15):
+                idx.append(0)
+                continue
+            trials.append({"effects": [effect_to_dict(AddedMass("outer1", v) if what == "effect" else mass)],
+                           "r": [v if what == "r" else 1.3]})
+            idx.append(len(trials) - 1)
+        lines.append({"what": what, "index": 0, "parameter": par, "log": True, "values": values, "trials": idx})
+    refit = xr.Dataset(attrs={"parameters": json.dumps({"trials": json.dumps(trials), "lines": json.dumps(lines)}),
+                              "name": "refit"})
+    errors = {"refit": [1.24, 1.40, 1.30, 1.57, 0.84], "check": [0.80, 0.61]}
+    monkeypatch.setattr(stages, "fit_errors", lambda ctx, results, ds: errors[ds.attrs["name"]])
+    monkeypatch.setattr(stages, "_surrogate", lambda *a: None)
+    ctx = SimpleNamespace(spec=None)
+    results = {"step1_refit": refit, "step1_check": xr.Dataset(attrs={"name": "check"})}
+    rf = stages.refit_result(ctx, results, 1)
+    moved, ext = json.loads(rf["effects"]), json.loads(rf["extended"]["effects"])
+    assert effect_from_dict(moved[0]).factor == pytest.approx(0.21, rel=1e-12, abs=0)
+    assert effect_from_dict(ext[0]).factor == pytest.approx(0.294, rel=1e-12, abs=0)
+    assert rf["r"] == rf["extended"]["r"] and 1.3 < rf["r"][0] < 1.3 * 10**0.1  # r's best is interior: not extended
+    assert [ln["extension"] is None for ln in rf["lines"]] == [True, False]
+    pt = stages.refit_point(ctx, results, 1, rf)
+    assert pt["point"] == "extended" and pt["effects"] == rf["extended"]["effects"] and pt["extended_fit_error"] == 0.61
+    errors["check"] = [0.80, 0.90]
+    pt = stages.refit_point(ctx, results, 1, rf)
+    assert pt["point"] == "moved" and pt["effects"] == rf["effects"]
+    errors["check"] = [0.90, 0.86]  # both worse than the best trial (0.84, the line's end)
+    pt = stages.refit_point(ctx, results, 1, rf)
+    assert pt["point"] == "best" and pt["fallback"] and effect_from_dict(json.loads(pt["effects"])[0]).factor == 0.21
+    errors["refit"] = [1.24, float("nan"), 1.30, 1.57, 0.84]  # a failed trial of r's line: never the best
+    rf = stages.refit_result(ctx, results, 1)
+    assert rf["best_trial"]["fit_error"] == 0.84
 
 
 def test_line_minimum_is_the_parabola_vertex_in_log_and_keeps_an_end():

@@ -129,7 +129,8 @@ def line_minimum(values, errors, log: bool) -> float:
 def line_extension(values, errors, log: bool) -> float | None:
     """One more step of a line whose discrete minimum is at an end: the end value moved away from
     the line by the spacing of its last two values (a ratio when ``log``, a difference otherwise);
-    None when the minimum is interior (or an error is NaN at the end).
+    None when the minimum is interior or any of the line's errors is NaN (a failed trial: the line
+    says nothing reliable about its end).
 
     A line of 3 trials bounds a parameter's move to one spacing a step: a parameter fitted far from
     its first estimate (added mass on another tube, sized 0.21 for 0.3 by a line of ×1.4 that ends
@@ -152,11 +153,14 @@ def refit_choice(moved: float, best_evaluated: float, extended: float | None = N
     """Which point a joint re-fit keeps, from fitting-block errors: ``"extended"`` (the moved point
     with its edge lines one step further, :func:`line_extension`) if it is better than both others,
     else ``"moved"`` if :func:`keeps_moved_point`, else ``"best"`` (the best point the lines
-    evaluated). NaN errors never win."""
-    base = moved if keeps_moved_point(moved, best_evaluated) else best_evaluated
+    evaluated). NaN errors never win (a NaN best evaluated error counts as +inf)."""
+    if not np.isfinite(best_evaluated):
+        best_evaluated = np.inf
+    keep = keeps_moved_point(moved, best_evaluated)
+    base = moved if keep else best_evaluated
     if extended is not None and extended < base:
         return "extended"
-    return "moved" if keeps_moved_point(moved, best_evaluated) else "best"
+    return "moved" if keep else "best"
 
 
 def keeps_moved_point(moved_fit_error: float, best_evaluated_fit_error: float) -> bool:

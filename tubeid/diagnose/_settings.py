@@ -73,9 +73,12 @@ class DiagnoseSettings:
     continuation_alarm : float or None
         The rate of the tests after each step (is anything *still* missing?), in (0, α]. ``None``:
         α / (``max_effects`` − 1), so that on a record the chosen effects explain, the
-        ``max_effects`` − 1 tests that could continue the loop add a spurious effect with
-        probability at most α in all (Bonferroni); without it each of them would, at α. Must be
-        at least 1/(R+1), the smallest p-value, when ``max_effects`` ≥ 2.
+        ``max_effects`` − 1 tests that could continue the loop raise an alarm — and so a further,
+        spurious effect — with probability at most α in all (Bonferroni); without it each of them
+        would, at α. The test after the last step, which cannot continue the loop, is at the same
+        rate (``explained_after``). The near-tie rule (``tie``) adds a runner-up without an alarm;
+        the bound is not about it. Must be at least 1/(R+1), the smallest p-value, when
+        ``max_effects`` ≥ 1.
     band_width_hz : float
         Width [Hz] of the bands of the goodness-of-fit of log band energies (chunks of the
         sharpness and resonance statistics: 4 × this).
@@ -219,7 +222,7 @@ class DiagnoseSettings:
                                      f"the smallest p-value is 1/{self.n_realisations + 1}")
         if self.continuation_alarm is not None:
             v.real(f + "continuation_alarm", self.continuation_alarm, low=0.0, high=self.false_alarm, low_open=True)
-        if self.max_effects >= 2 and int(self.continuation_rate * (self.n_realisations + 1) + 1e-9) < 1:
+        if self.max_effects >= 1 and int(self.continuation_rate * (self.n_realisations + 1) + 1e-9) < 1:
             given = "" if self.continuation_alarm is not None else "(false_alarm / (max_effects - 1)) "
             raise SpecificationError(f + "continuation_alarm", self.continuation_rate,
                                      f"{given}needs realisations + 1 >= 1/continuation_alarm: with {self.n_realisations} "

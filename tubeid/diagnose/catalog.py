@@ -444,7 +444,7 @@ class ToneCandidate(Candidate):
     def assumptions(self, spec) -> list[str]:
         return ["tone: one sinusoidal transverse force (not a moment) with a random phase; its frequency is the "
                 "excess-weighted centroid of the record's peak bins (resolution: one Welch bin); its position is "
-                "searched on every tube at half-element steps"]
+                "searched on every tube at half-element steps; " + _TWINS]
 
 
 class StopCandidate(Candidate):
@@ -628,6 +628,11 @@ class DampingCandidate(_TubeFactor):
 
     def _effect(self, tube, value):
         return Damping(tube, float(min(value, 0.9)))
+
+    def with_value(self, effect, parameter, value):
+        """The ratio changed, at most 0.9 as in the scan (a re-fit line or its extension can reach past
+        it: a ratio of 1 or more is no damping ratio)."""
+        return self._effect(effect.tube, value)
 
     @staticmethod
     def _between(declared: float, estimated: float, points: int) -> np.ndarray:

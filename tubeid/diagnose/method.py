@@ -37,8 +37,9 @@ resumable); this module holds the context every stage reads and assembles the re
    parameters trade off — that point is kept instead; a scale line whose best is at its end is
    extended one step, evaluated beside the moved point, and kept if better than both), and the
    augmented model's band is tested again, at ``continuation_alarm`` (default α / (``max_effects`` −
-   1): the tests that could continue the loop share α, so a record the chosen effects explain gains
-   a spurious effect with probability at most α). The loop stops when the test no longer detects
+   1): the tests that could continue the loop share α, so on a record the chosen effects explain they
+   raise an alarm, and so a spurious further effect, with probability at most α; the near-tie rule
+   below adds a runner-up without an alarm). The loop stops when the test no longer detects
    anything (``explained``), when no
    candidate pays its penalty, or after ``max_effects`` steps — except that a runner-up which also
    paid its penalty within ``tie`` (10 %) of the chosen one's ratio at an earlier step, and was
@@ -50,7 +51,7 @@ resumable); this module holds the context every stage reads and assembles the re
 parameters}]), ``detection`` (p-values before), ``steps`` (per step: the candidates' errors, the
 ``continuation`` that offered them after an explained step (or null), the choice, the re-fitted
 effects and r, ``refit_check`` (the moved point's, the best evaluated point's and the extended point's fitting
-errors, which was ``kept``, ``fallback``), the held-out error and the test after), ``error_before``,
+errors, which ``point`` was kept, ``fallback``), the held-out error and the test after), ``error_before``,
 ``error_after``, ``explained_before``/``explained_after``, ``load``, ``delta``, ``assumptions``.
 """
 

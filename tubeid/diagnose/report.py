@@ -86,7 +86,7 @@ def assemble(store, ctx):
         det_k = json.loads(results[f"step{k}_band"].attrs["detection"])
         step.update({"refit": rf["lines"],
                      "refit_check": {key: chk[key] for key in ("moved_fit_error", "best_fit_error", "extended_fit_error",
-                                                                 "kept", "fallback")},
+                                                                 "point", "fallback")},
                      "effects_after": [_describe(e) for e in pt["effects"]], "r_after": pt["r"],
                      "error_after": pt["held_out_error"], "fit_error_after": pt["fit_error"],
                      "detection_after": det_k})
@@ -153,11 +153,14 @@ def _selection_rule(s) -> str:
 
 
 def _continuation_rule(s) -> str:
-    if s.max_effects < 2:
+    if s.max_effects < 1:
         return ""
+    if s.continuation_alarm is not None:
+        return f", at the false-alarm rate {s.continuation_rate:g} (given)"
+    if s.max_effects <= 2:
+        return f", at the false-alarm rate {s.continuation_rate:g} (the first test's: at most one test can continue the loop)"
     return (f", at the false-alarm rate {s.continuation_rate:g} (the first test's {s.false_alarm:g} shared among the "
-            f"{s.max_effects - 1} tests that could continue the loop)" if s.continuation_alarm is None
-            else f", at the false-alarm rate {s.continuation_rate:g} (given)")
+            f"{s.max_effects - 1} tests that could continue the loop)")
 
 
 def _tie_rule(s) -> str:

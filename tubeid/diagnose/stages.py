@@ -853,8 +853,10 @@ def fit_errors(ctx, results, ds) -> list[float]:
 
 def refit_result(ctx, results, k: int) -> dict:
     """The joint re-fit of step k: each line's minimiser (fitting blocks, no level profiling: r is
-    one of the lines, exact form) → {"effects" (JSON), "r", "lines" ([{what, parameter, values,
-    errors, best}])}."""
+    one of the lines, exact form) → {"effects" (JSON), "r" (the moved point), "lines" ([{what,
+    parameter, values, errors, best, extension}]), "extended" ({"effects", "r"}: the moved point with
+    every log line whose best is at an end one step further, or None when none is), "centre_fit_error",
+    "best_trial" ({"effects", "r", "fit_error"}: the best trial the lines evaluated)}."""
     ds = results[f"step{k}_refit"]
     p = _params(ds)
     trials, lines = json.loads(p["trials"]), json.loads(p["lines"])
@@ -887,7 +889,8 @@ def refit_result(ctx, results, k: int) -> dict:
             extended[i] = effects[i]
     moved = {"effects": method.effects_to_json(effects), "r": [float(v) for v in r]}
     ext_point = {"effects": method.effects_to_json(extended), "r": [float(v) for v in r_ext]}
-    b = int(np.argmin(fit_err))
+    finite = np.isfinite(fit_err)
+    b = int(np.nanargmin(fit_err)) if finite.any() else 0
     return {**moved, "lines": report, "extended": None if ext_point == moved else ext_point,
             "centre_fit_error": fit_err[0],
             "best_trial": {"effects": json.dumps(trials[b]["effects"], sort_keys=True), "r": [float(v) for v in trials[b]["r"]],
@@ -910,9 +913,11 @@ def _check(k, results, base):
 
 
 def refit_point(ctx, results, k: int, rf: dict | None = None) -> dict:
-    """Where step k's band is computed: the re-fit's moved point if its fitting-block error is no
+    """Where step k's band is computed (:func:`~tubeid.diagnose._selection.refit_choice`): the re-fit's
+    extended point if its fitting-block error is lower than both others, else its moved point if no
     worse than the best point the re-fit evaluated, else that point → {"effects" (JSON), "r",
-    "moved_fit_error", "best_fit_error", "fallback" (bool)}. ``rf``: :func:`refit_result` if at hand."""
+    "moved_fit_error", "best_fit_error", "extended_fit_error" (None: no line at an end), "point"
+    ("moved", "best" or "extended"), "fallback" (bool: "best")}. ``rf``: :func:`refit_result` if at hand."""
     rf = refit_result(ctx, results, k) if rf is None else rf
     errs = fit_errors(ctx, results, results[f"step{k}_check"])
     moved, extended = errs[0], (errs[1] if rf["extended"] is not None else None)
@@ -920,7 +925,7 @@ def refit_point(ctx, results, k: int, rf: dict | None = None) -> dict:
     which = refit_choice(moved, best["fit_error"], extended)
     chosen = {"best": best, "moved": rf, "extended": rf["extended"]}[which]
     return {"effects": chosen["effects"], "r": chosen["r"], "moved_fit_error": moved, "best_fit_error": best["fit_error"],
-            "extended_fit_error": extended, "kept": which, "fallback": which == "best"}
+            "extended_fit_error": extended, "point": which, "fallback": which == "best"}
 
 
 def _band_k(k, results, base):
