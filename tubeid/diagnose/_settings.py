@@ -291,8 +291,18 @@ class DiagnoseSettings:
         return self.false_alarm / max(1, self.max_effects - 1)
 
     def alarm_at(self, step: int) -> float:
-        """The test's rate after ``step`` effects: α before any (``step`` 0), else
-        :attr:`continuation_rate`."""
+        """The test's rate after ``step`` effects.
+
+        Parameters
+        ----------
+        step : int
+            Effects chosen so far (0: the record's first test).
+
+        Returns
+        -------
+        float
+            α (``false_alarm``) at step 0, else :attr:`continuation_rate`.
+        """
         return self.false_alarm if step == 0 else self.continuation_rate
 
     @property
