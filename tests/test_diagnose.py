@@ -558,11 +558,12 @@ def test_a_line_whose_best_is_at_an_end_is_extended_one_step_and_kept_only_if_be
 
     # measured (added mass on outer1 × 1.3, seed 1): the line 0.107 / 0.15 / 0.21 (×1.4) gave fit errors
     # 1.57 / 1.24 / 0.84: the next step is 0.21 × 1.4 = 0.294
-    assert line_extension([0.15, 0.107, 0.21], [1.24, 1.57, 0.84], log=True) == pytest.approx(0.21 * 1.4, rel=1e-3, abs=0)
-    assert line_extension([0.5, 1.0, 2.0], [0.2, 0.5, 0.9], log=True) == pytest.approx(0.25, rel=1e-12, abs=0)
-    assert line_extension([4.0, 5.0, 6.0], [3.0, 2.0, 1.0], log=False) == pytest.approx(7.0, rel=1e-12, abs=0)
-    assert line_extension([0.5, 1.0, 2.0], [0.9, 0.5, 0.7], log=True) is None  # interior
-    assert line_extension([0.5, 1.0, 2.0], [0.9, 0.5, float("nan")], log=True) is None
+    assert line_extension([0.15, 0.107, 0.21], [1.24, 1.57, 0.84]) == pytest.approx(0.21 * 1.4, rel=1e-3, abs=0)
+    assert line_extension([0.5, 1.0, 2.0], [0.2, 0.5, 0.9]) == pytest.approx(0.25, rel=1e-12, abs=0)
+    assert line_extension([0.5, 1.0, 2.0], [0.9, 0.5, 0.7]) is None  # interior
+    assert line_extension([0.5, 1.0, 2.0], [0.9, 0.5, float("nan")]) is None
+    # a damping ratio moved by its line or extension stops at 0.9, as its scan does (1 is no damping ratio)
+    assert CATALOG["damping"].combine(Damping("outer1", 0.7), {"ratio": 0.7 * 1.4 ** 2}, None).ratio == 0.9
     assert refit_choice(0.84, 0.84, 0.61) == "extended"
     assert refit_choice(0.84, 0.84, 0.90) == "moved" and refit_choice(0.84, 0.84) == "moved"
     assert refit_choice(3.46, 1.89, 1.95) == "best" and refit_choice(3.46, 1.89, 1.5) == "extended"

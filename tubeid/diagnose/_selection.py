@@ -126,11 +126,11 @@ def line_minimum(values, errors, log: bool) -> float:
     return float(10.0**uv) if log else uv
 
 
-def line_extension(values, errors, log: bool) -> float | None:
-    """One more step of a line whose discrete minimum is at an end: the end value moved away from
-    the line by the spacing of its last two values (a ratio when ``log``, a difference otherwise);
-    None when the minimum is interior or any of the line's errors is NaN (a failed trial: the line
-    says nothing reliable about its end).
+def line_extension(values, errors) -> float | None:
+    """One more step of a line of positive scale values (log-spaced) whose discrete minimum is at an
+    end: the end value moved away from the line by the ratio of its last two values; None when the
+    minimum is interior or any of the line's errors is NaN (a failed trial: the line says nothing
+    reliable about its end).
 
     A line of 3 trials bounds a parameter's move to one spacing a step: a parameter fitted far from
     its first estimate (added mass on another tube, sized 0.21 for 0.3 by a line of ×1.4 that ends
@@ -143,9 +143,9 @@ def line_extension(values, errors, log: bool) -> float | None:
         return None
     i = int(np.argmin(y))
     if i == 0:
-        return float(x[0] ** 2 / x[1]) if log else float(2 * x[0] - x[1])
+        return float(x[0] ** 2 / x[1])
     if i == x.size - 1:
-        return float(x[-1] ** 2 / x[-2]) if log else float(2 * x[-1] - x[-2])
+        return float(x[-1] ** 2 / x[-2])
     return None
 
 

@@ -377,18 +377,16 @@ class ToneCandidate(Candidate):
         h = np.sqrt(H2)
         cos2 = (h @ a) ** 2 / np.maximum(np.sum(h**2, axis=1) * np.sum(a**2), 1e-300)
         amps = 2.0 * (h @ a) / np.maximum(np.sum(h**2, axis=1), 1e-300)
-        positions, seen = [], []
+        positions = []
         for i in np.argsort(-cos2, kind="stable"):
-            if any(abs(cos2[i] - c) <= 1e-9 * c for c in seen):
-                continue  # an identical tube seen alike
-            # identical tubes score alike to round-off: the first of them in the model's order
+            # identical tubes score alike to round-off: the first of them in the model's order (a later
+            # twin lands on that position, already kept, and is skipped below)
             i = int(np.flatnonzero(np.abs(cos2 - cos2[i]) <= 1e-9 * cos2[i])[0])
             tube, x = cands[i]
             le = ev.spec.tube(tube).length / ev.spec.tube(tube).n_elements
             if any(t == tube and abs(x - x2) <= le for t, x2, _, _ in positions):
-                continue  # within an element of a better position
+                continue  # the same position, or within an element of a better one
             positions.append((tube, float(x), float(amps[i]), float(cos2[i])))
-            seen.append(cos2[i])
             if len(positions) == 4:
                 break
         tube, x, amp, _ = positions[0]

@@ -57,7 +57,6 @@ from tubeid.diagnose._spectra import welch_segments
 from tubeid.diagnose.catalog import CATALOG, Evidence
 from tubeid.dynamics import warmup
 from tubeid.dynamics.spectra import j_s, psd_matrix
-from tubeid.errors import SpecificationError
 from tubeid.identification.loads import JS_UNITS
 from tubeid.mechanics.effects import apply_effects, effect_from_dict, effect_to_dict
 from tubeid.runner.pipeline import Pipeline
@@ -869,7 +868,7 @@ def refit_result(ctx, results, k: int) -> dict:
         best = line_minimum(ln["values"], errs, ln["log"])
         # a log line (every scale: r, amplitudes, gaps, factors, ratios, levels) at its edge is extended one
         # step in the check; a tone's position line is not (its grid is the tube's half-element nodes)
-        ext = line_extension(ln["values"], errs, ln["log"]) if ln["log"] else None
+        ext = line_extension(ln["values"], errs) if ln["log"] else None
         report.append({**{k_: ln[k_] for k_ in ("what", "index", "parameter", "values")}, "errors": errs, "best": best,
                        "extension": ext})
         if ln["what"] == "r":
@@ -882,11 +881,8 @@ def refit_result(ctx, results, k: int) -> dict:
     effects, extended = list(centre), list(centre)
     for i, best in best_of.items():
         effects[i] = CATALOG[centre[i].name].combine(centre[i], best, ctx.spec, sur)
-    for i, ext in ext_of.items():
-        try:
-            extended[i] = CATALOG[centre[i].name].combine(centre[i], ext, ctx.spec, sur)
-        except SpecificationError:  # beyond what the effect allows (a ratio above 1): that line stays at its edge
-            extended[i] = effects[i]
+    for i, ext in ext_of.items():  # a scale moved by a ratio stays positive; a damping ratio stops at 0.9
+        extended[i] = CATALOG[centre[i].name].combine(centre[i], ext, ctx.spec, sur)
     moved = {"effects": method.effects_to_json(effects), "r": [float(v) for v in r]}
     ext_point = {"effects": method.effects_to_json(extended), "r": [float(v) for v in r_ext]}
     finite = np.isfinite(fit_err)
