@@ -237,6 +237,32 @@ def test_interrupted_run_is_partial_readable_and_resumes_identically(tmp_path, m
     assert again.computed == 0
 
 
+def test_a_resume_removes_the_temporaries_a_killed_write_left_and_nothing_else(tmp_path, monkeypatch, capsys):
+    """A SIGKILL between zarr's write of ``<chunk>.<32 hex>.partial`` and its rename leaves that file
+    (seen in CI); the resume removes it (and tubeid's ``.tubeid-tmp-*``), never a user's look-alike."""
+    study = write_study(tmp_path, realisations=8, chunk=2, work=2)
+    run(study, tmp_path / "ref.zarr", workers=0, quiet=True)
+    monkeypatch.setenv("TUBEID_TEST_FAIL_AT", "5")
+    with pytest.raises(RuntimeError, match="on purpose"):
+        run(study, tmp_path / "s.zarr", workers=0, quiet=True)
+    monkeypatch.delenv("TUBEID_TEST_FAIL_AT")
+    store = tmp_path / "s.zarr"
+    left = [store / "x/c/0/2/0.f810c525c188462d986b9aa970a711e3.partial", store / ".tubeid-tmp-abc123"]
+    users = [store / "x/c/0/2/0.notes.partial", store / "x/notes.partial", store / "mine" / "a.0123456789abcdef0123456789abcdef.partial"]
+    for f in left + users:
+        f.parent.mkdir(parents=True, exist_ok=True)
+        f.write_bytes(b"")
+    run(study, store, workers=0)
+    err = capsys.readouterr().err
+    assert "removed 2 temporary file(s)" in err
+    assert not any(f.exists() for f in left)
+    assert all(f.exists() for f in users)
+    for f in users:
+        f.unlink()
+    (store / "mine").rmdir()
+    assert store_digest(store) == store_digest(tmp_path / "ref.zarr")
+
+
 def test_store_of_another_study_is_refused_unless_asked(tmp_path, capsys):
     study = write_study(tmp_path, realisations=4, work=2)
     run(study, tmp_path / "s.zarr", workers=0, quiet=True)

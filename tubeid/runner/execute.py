@@ -31,6 +31,7 @@ from tubeid.runner.lock import StoreLock
 from tubeid.runner.pipeline import Pipeline, stage_hash
 from tubeid.runner.store import (append_history, block_flags, check_blocks, check_stage, check_store, history_line,
                                  init_pipeline_store, init_stage, init_store, now, prepare_path, read_attrs, remove_store,
+                                 remove_temporaries,
                                  set_flags, tubeid_version, update_attrs, write_block)
 from tubeid.runner.study import _plain, load_definition, load_study
 
@@ -578,6 +579,8 @@ def run(study_path: str | os.PathLike, store: str | os.PathLike | None = None, *
     lock.acquire()
     try:
         state = "new" if overwrite else check_store(path, key)  # again, holding the lock
+        if state == "resume":
+            _remove_temporaries(path, quiet)
         if overwrite:
             kept = remove_store(path)
             if kept:
@@ -586,15 +589,23 @@ def run(study_path: str | os.PathLike, store: str | os.PathLike | None = None, *
         ctx = _Run(study=study, source=source, key=key, study_path=study_path, path=path, state=state,
                    workers=workers, scheduler=scheduler, client=client, overrides=overrides, verify=verify_blocks,
                    progress=progress and not quiet, quiet=quiet, lock=lock)
-        if isinstance(study, Pipeline):
-            return _run_pipeline(ctx)
-        return _run_study(ctx)
+        report = _run_pipeline(ctx) if isinstance(study, Pipeline) else _run_study(ctx)
+        _remove_temporaries(path, quiet)  # a worker killed mid-write, its block since rerun elsewhere
+        return report
     finally:
         lock.release()
         if lock.created_store and path.is_dir() and all(f.name.startswith(".tubeid-") for f in path.iterdir()):
             for f in path.iterdir():  # refused or failed before anything was written: leave no trace
                 f.unlink()
             path.rmdir()
+
+
+def _remove_temporaries(path, quiet) -> None:
+    """Remove the temporary files of writes killed before their rename (the caller holds the lock)."""
+    left = remove_temporaries(path)
+    if left:
+        _log(f"tubeid: removed {len(left)} temporary file(s) an interrupted write left in {path}: "
+             + ", ".join(left[:3]) + (" ..." if len(left) > 3 else ""), quiet)
 
 
 @dataclasses.dataclass

@@ -233,13 +233,40 @@ def _node_files(p: pathlib.Path, node: str, kind: str) -> list[pathlib.Path]:
     for name in ("zarr.json",):
         if (d / name).is_file():
             out.append(d / name)
-    out += [f for f in d.glob("*") if f.is_file() and (_PARTIAL.search(f.name) or f.name.startswith(".tubeid-tmp-"))]
+    out += [f for f in d.glob("*") if f.is_file() and _is_temporary(f)]
     if kind == "array" and (d / "c").is_dir():
         for f in (d / "c").rglob("*"):
             rel = f.relative_to(d).as_posix()
             if f.is_file() and (_CHUNK.match(rel) or (_PARTIAL.search(f.name) and _CHUNK.match(rel[:_PARTIAL.search(rel).start()]))):
                 out.append(f)
     return out
+
+
+def _is_temporary(f: pathlib.Path) -> bool:
+    """A temporary file of an atomic write: zarr's ``<key>.<32 hex>.partial`` or tubeid's ``.tubeid-tmp-*``."""
+    return bool(_PARTIAL.search(f.name)) or f.name.startswith(".tubeid-tmp-")
+
+
+def remove_temporaries(path) -> list[str]:
+    """Remove the temporary files that atomic writes left in the store ``path``'s recorded nodes.
+
+    A write killed between creating its temporary file and renaming it (``SIGKILL``, a lost node)
+    leaves ``<chunk>.<32 hex>.partial`` (zarr) or ``.tubeid-tmp-*`` (tubeid) behind; nothing reads
+    them, but a resumed store would then differ from one run without interruption. Only files of
+    the nodes the manifest records and named by those two rules are removed: tubeid wrote them. The
+    caller holds the store's lock (no write of ours is in flight). Returns their paths, relative to
+    the store.
+    """
+    p = pathlib.Path(path)
+    nodes = _read_manifest(p)
+    _check_nodes(p, nodes)
+    removed = []
+    for node, kind in nodes.items():
+        for f in _node_files(p, node, kind):
+            if _is_temporary(f):
+                f.unlink()
+                removed.append(f.relative_to(p).as_posix())
+    return sorted(removed)
 
 
 def _check_nodes(p: pathlib.Path, nodes: dict) -> None:
