@@ -32,7 +32,8 @@ resumable); this module holds the context every stage reads and assembles the re
    each judged by its statistic's feature instead of the whole spectrum, relative to the current
    model's error in that feature, r held); then all chosen effects and r are **re-fitted jointly** (one cross-design
    sweep: each parameter and r along a line of 3 trials around the current point, the others
-   held; each moved to its line's parabola vertex; the moved point is then evaluated, and if its
+   held — a tone's amplitude along its profile, derived from the centre and one trial without the
+   tone, as in the trial grid; each moved to its line's parabola vertex; the moved point is then evaluated, and if its
    fitting-block error is worse than the best point the lines evaluated — the moves overshoot when
    parameters trade off — that point is kept instead; a scale line whose best is at its end is
    extended one step, evaluated beside the moved point, and kept if better than both), and the

@@ -21,7 +21,8 @@ realisation; the trials of one stage share one stream (common random numbers).
                     statistic's feature, :class:`FeatureErrors`); after a step that explained the
                     record, only the near-tied runner-ups of earlier steps (:func:`runner_ups`)
 ``step{k}_refit``   lines of 3 trials around (r — exact form only —, every chosen effect's
-                    parameters) → joint re-fit
+                    parameters; a tone's amplitude along its profile, derived from one trial
+                    without the tone) → joint re-fit
 ``step{k}_check``   the point the re-fit's lines moved to, evaluated (kept only if no worse than the
                     best trial the lines evaluated), and the same point with the log lines whose
                     best was at an end moved one step further (kept if better than both)
@@ -823,6 +824,9 @@ def _refit(k, results, base):
     sur = _surrogate(ctx, results, effects, r, "band" if k == 1 else f"step{k - 1}_band")
     for i, e in enumerate(effects):
         cand = CATALOG[e.name]
+        if cand.profiled is not None:  # its line is derived from the centre and this baseline (refit_result)
+            trials.append({"effects": [x for j, x in enumerate(centre["effects"]) if j != i], "r": r, "baseline": i})
+            lines.append({"what": "effect", "index": i, "parameter": cand.profiled, "log": True, "baseline": len(trials) - 1})
         for par, (values, log, variants) in cand.refine(e, ctx.spec, sur).items():
             idx = []
             for v, ev in zip(values, variants):
@@ -850,12 +854,39 @@ def fit_errors(ctx, results, ds) -> list[float]:
     return [sum(fe(n, o)[0] for n in names) for o in trial_observations(ctx, ds, trials)]
 
 
+def _profiled_line(ctx, results, ds, trials, ln, centre_fit_error) -> tuple[list, list, list]:
+    """A profiled parameter's re-fit line (``Candidate.profiled``): the centre trial and its
+    :meth:`~tubeid.diagnose.catalog.Candidate.variants` against the baseline trial ``ln["baseline"]``
+    (the same model without the effect, the same streams) → (values, fitting errors, effect lists
+    as dicts), by increasing value. Errors as :func:`fit_errors` computes them."""
+    i, jb, f = ln["index"], ln["baseline"], ctx.meas.frequency
+    effect = effect_from_dict(trials[0]["effects"][i])
+    cand = CATALOG[effect.name]
+    psd = _trial_psds(ds, trials)
+    derived = cand.variants(effect, psd[0], psd[jb], f)
+    if _simplified(ctx):
+        obs = trial_observations(ctx, ds, trials)
+        ff = ctx.meas.frequency_fine
+        per = [cand.variants(effect, obs[0].fine[j], obs[jb].fine[j], ff) for j in range(obs[0].n)]
+        fe = FeatureErrors(ctx, results)
+        names = list(dict.fromkeys(feature_name(ctx, e["kind"]) for e in trials[0]["effects"]))
+        errs = [sum(fe(n, dataclasses.replace(obs[0], fine=np.stack([q[v][1] for q in per])))[0] for n in names)
+                for v in range(len(derived))]
+    else:
+        errs = [prediction_error(ctx.meas.fit, q, _sigma(results), f) for _, q in derived]
+    effects = [[effect_to_dict(e) if j == i else x for j, x in enumerate(trials[0]["effects"])] for e, _ in derived]
+    rows = sorted(zip([getattr(effect, ln["parameter"])] + [getattr(e, ln["parameter"]) for e, _ in derived],
+                      [centre_fit_error] + errs, [trials[0]["effects"]] + effects), key=lambda row: row[0])
+    return tuple(list(col) for col in zip(*rows))
+
+
 def refit_result(ctx, results, k: int) -> dict:
     """The joint re-fit of step k: each line's minimiser (fitting blocks, no level profiling: r is
     one of the lines, exact form) → {"effects" (JSON), "r" (the moved point), "lines" ([{what,
     parameter, values, errors, best, extension}]), "extended" ({"effects", "r"}: the moved point with
-    every log line whose best is at an end one step further, or None when none is), "centre_fit_error",
-    "best_trial" ({"effects", "r", "fit_error"}: the best trial the lines evaluated)}."""
+    every simulated log line whose best is at an end one step further, or None when none is),
+    "centre_fit_error", "best_trial" ({"effects", "r", "fit_error"}: the best trial the lines
+    evaluated, a profiled line's derived points included, the baselines of those lines not)}."""
     ds = results[f"step{k}_refit"]
     p = _params(ds)
     trials, lines = json.loads(p["trials"]), json.loads(p["lines"])
@@ -863,14 +894,21 @@ def refit_result(ctx, results, k: int) -> dict:
     centre = [effect_from_dict(e) for e in trials[0]["effects"]]
     r, r_ext = list(trials[0]["r"]), list(trials[0]["r"])
     report, best_of, ext_of = [], {}, {}
+    # every evaluated point but the profiled lines' baselines (models without a chosen effect): (error, effects, r)
+    evaluated = [(fit_err[j], t["effects"], t["r"]) for j, t in enumerate(trials) if "baseline" not in t]
     for ln in lines:
-        errs = [fit_err[i] for i in ln["trials"]]
-        best = line_minimum(ln["values"], errs, ln["log"])
-        # a log line (every scale: r, amplitudes, gaps, factors, ratios, levels) at its edge is extended one
-        # step in the check; a tone's position line is not (its grid is the tube's half-element nodes)
-        ext = line_extension(ln["values"], errs) if ln["log"] else None
-        report.append({**{k_: ln[k_] for k_ in ("what", "index", "parameter", "values")}, "errors": errs, "best": best,
-                       "extension": ext})
+        if "baseline" in ln:
+            values, errs, effs = _profiled_line(ctx, results, ds, trials, ln, fit_err[0])
+            evaluated += [(e, x, trials[0]["r"]) for e, x in zip(errs, effs) if x != trials[0]["effects"]]
+            ext = None  # the profile spans ±0.5 decades: a step further would add a simulation for little
+        else:
+            values, errs = ln["values"], [fit_err[i] for i in ln["trials"]]
+            # a log line (every scale: r, gaps, factors, ratios, levels) at its edge is extended one
+            # step in the check; a tone's position line is not (its grid is the tube's half-element nodes)
+            ext = line_extension(values, errs) if ln["log"] else None
+        best = line_minimum(values, errs, ln["log"])
+        report.append({**{k_: ln[k_] for k_ in ("what", "index", "parameter")}, "values": [float(v) for v in values],
+                       "errors": errs, "best": best, "extension": ext})
         if ln["what"] == "r":
             r[ln["index"]] = best
             r_ext[ln["index"]] = best if ext is None else ext
@@ -885,12 +923,12 @@ def refit_result(ctx, results, k: int) -> dict:
         extended[i] = CATALOG[centre[i].name].combine(centre[i], ext, ctx.spec, sur)
     moved = {"effects": method.effects_to_json(effects), "r": [float(v) for v in r]}
     ext_point = {"effects": method.effects_to_json(extended), "r": [float(v) for v in r_ext]}
-    finite = np.isfinite(fit_err)
-    b = int(np.nanargmin(fit_err)) if finite.any() else 0
+    errs = np.array([e for e, _, _ in evaluated], dtype=float)
+    b = int(np.nanargmin(errs)) if np.isfinite(errs).any() else 0
     return {**moved, "lines": report, "extended": None if ext_point == moved else ext_point,
             "centre_fit_error": fit_err[0],
-            "best_trial": {"effects": json.dumps(trials[b]["effects"], sort_keys=True), "r": [float(v) for v in trials[b]["r"]],
-                           "fit_error": fit_err[b]}}
+            "best_trial": {"effects": json.dumps(evaluated[b][1], sort_keys=True), "r": [float(v) for v in evaluated[b][2]],
+                           "fit_error": evaluated[b][0]}}
 
 
 def _check(k, results, base):
