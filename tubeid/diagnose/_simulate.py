@@ -69,7 +69,7 @@ def simulate_series(spec: BundleSpec, r, effects, meas: MeasuredSpectra, n_sampl
     duration = settings.discard + (n_samples + 2) * dt
     rs = ResponseSettings(duration=duration, dt_load=_dt_load(dt, settings.dt_load_max), output_dt=dt,
                           discard=settings.discard,
-                          segment_seconds=min(settings.segment_seconds, duration - settings.discard), keep="series")
+                          segment_seconds=min(settings.segment_seconds, duration - settings.discard), keep="series-only")
     disp = Dispersion(stiffness=delta) if delta > 0 else Dispersion()
     kw = {"seed": settings.seed} if rngs is None else {"rngs": list(rngs)}
     ds = simulate_responses(model, load, realisations, dispersion=disp, load_dispersion=float(load_dispersion),

@@ -105,15 +105,18 @@ def block_observations(blocks: np.ndarray, dt: float, segment_seconds: float, fi
     ``fine_seconds`` is None (nothing reads them), also ``fine`` (..., F', m) at ``fine_seconds``
     with ``frequency_fine`` (F',) [Hz] and, with ``residual``, ``residual`` (..., F, m) [m²/Hz]
     from the block-averaged PSD matrix."""
-    f, S = psd_matrix(blocks, dt, segment_seconds=segment_seconds)
-    S = S.mean(axis=-4)
     y = blocks.reshape(blocks.shape[:-3] + (-1, blocks.shape[-1]))
-    out = {"frequency": f, "psd": np.real(np.diagonal(S, axis1=-2, axis2=-1)), "stats": time_statistics(y)}
+    if fine_seconds is not None and residual:  # the cross spectra are read
+        f, S = psd_matrix(blocks, dt, segment_seconds=segment_seconds)
+        S = S.mean(axis=-4)
+        out = {"frequency": f, "psd": np.real(np.diagonal(S, axis1=-2, axis2=-1)), "residual": conditional_psd(S)}
+    else:  # the auto-PSDs only: psd_matrix's diagonal, bit for bit
+        f, P = auto_psd(blocks, dt, segment_seconds)
+        out = {"frequency": f, "psd": P.mean(axis=-3)}
+    out["stats"] = time_statistics(y)
     if fine_seconds is not None:
         ff, Pf = auto_psd(blocks, dt, fine_seconds)
         out |= {"frequency_fine": ff, "fine": Pf.mean(axis=-3)}
-        if residual:
-            out["residual"] = conditional_psd(S)
     return out
 
 
@@ -125,11 +128,12 @@ def auto_psd(blocks: np.ndarray, dt: float, segment_seconds: float) -> tuple[np.
 def time_statistics(y: np.ndarray) -> np.ndarray:
     """RMS [m], skewness and excess kurtosis per channel of records y (..., n_t, m) → (..., m, 3)."""
     c = y - y.mean(axis=-2, keepdims=True)
-    var = np.mean(c**2, axis=-2)
+    c2 = c * c  # products, not c**3 and c**4: numpy's power calls pow() per element (8x slower)
+    var = np.mean(c2, axis=-2)
     sd = np.sqrt(var)
     safe = np.where(var > 0, var, 1.0)
-    skew = np.mean(c**3, axis=-2) / safe**1.5
-    kurt = np.mean(c**4, axis=-2) / safe**2 - 3.0
+    skew = np.mean(c2 * c, axis=-2) / safe**1.5
+    kurt = np.mean(c2 * c2, axis=-2) / safe**2 - 3.0
     return np.stack([sd, skew, kurt], axis=-1)
 
 

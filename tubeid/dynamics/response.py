@@ -41,6 +41,10 @@ from tubeid.uncertainty.random_models import germs_from_rngs, random_subsystem
 __all__ = ["ResponseSettings", "realisation_streams", "simulate_responses"]
 
 
+#: What a response realisation keeps (``ResponseSettings.keep``).
+KEEP = ("psd", "series", "series-only")
+
+
 @dataclass(frozen=True)
 class ResponseSettings:
     """Time and spectral settings of a response realisation. Validated when made, immutable.
@@ -64,7 +68,8 @@ class ResponseSettings:
     method : str
         The solver's method (``tubeid.dynamics.simulate``).
     keep : str
-        ``"psd"`` (the PSD and statistics only) or ``"series"`` (also the displacement series).
+        ``"psd"`` (the PSD and statistics only), ``"series"`` (also the displacement series) or
+        ``"series-only"`` (the series and statistics, no PSD: for a caller that estimates its own).
     """
 
     duration: float = 220.0
@@ -84,8 +89,8 @@ class ResponseSettings:
             raise SpecificationError("settings.discard", self.discard, f"must be in [0, duration = {self.duration}) s")
         if self.segment_seconds > self.duration - self.discard:
             raise SpecificationError("settings.segment_seconds", self.segment_seconds, "must not exceed duration − discard")
-        if self.keep not in ("psd", "series"):
-            raise SpecificationError("settings.keep", self.keep, "must be 'psd' or 'series'")
+        if self.keep not in KEEP:
+            raise SpecificationError("settings.keep", self.keep, f"must be one of {KEEP}")
 
 
 def realisation_streams(seed: int | None, realisation: int,
@@ -156,9 +161,9 @@ def simulate_responses(
     -------
     xarray.Dataset
         Over ``realisation``: ``psd`` (realisation, frequency, sensor, sensor_) two-sided PSD
-        matrix [m²/Hz] (complex), ``rms`` (realisation, sensor) [m], ``contact_fraction`` and
-        ``contact_events`` (realisation, stop); with ``keep="series"`` also ``displacement``
-        (realisation, time, sensor) [m].
+        matrix [m²/Hz] (complex; not with ``keep="series-only"``), ``rms`` (realisation, sensor)
+        [m], ``contact_fraction`` and ``contact_events`` (realisation, stop); with ``keep="series"``
+        or ``"series-only"`` also ``displacement`` (realisation, time, sensor) [m].
     """
     realisations = np.atleast_1d(np.asarray(realisations, dtype=int))
     if rngs is None and seed is None:
@@ -210,15 +215,13 @@ def simulate_responses(
         y = y.copy(data=y.values + sigma * np.stack([s[3].standard_normal(y.shape[1:]) for s in streams]))
         rms = np.sqrt(np.mean(y.values**2, axis=1))  # the noisy signal, like the PSD
         res = dataclasses.replace(res, rms=res.rms.copy(data=rms.reshape(res.rms.shape)))
-    f, S = psd_matrix(y.values, settings.output_dt, segment_seconds=settings.segment_seconds)
     ds = xr.Dataset(
         {
-            "psd": (("realisation", "frequency", "sensor", "sensor_"), S, {"units": "m^2/Hz", "long_name": "two-sided response PSD matrix"}),
             "rms": res.rms.assign_coords(realisation=realisations),
             "contact_fraction": res.contact_fraction.assign_coords(realisation=realisations),
             "contact_events": res.contact_events.assign_coords(realisation=realisations),
         },
-        coords={"realisation": realisations, "frequency": ("frequency", f, {"units": "Hz"}), "sensor": names, "sensor_": names},
+        coords={"realisation": realisations, "sensor": names},
         attrs={
             "model": model.spec.name, "loads": list(load.names), "load_dispersion": load_dispersion,
             "dispersion": [dispersion.mass, dispersion.damping, dispersion.stiffness],
@@ -227,6 +230,11 @@ def simulate_responses(
             "method": settings.method,
         },
     )
-    if settings.keep == "series":
+    if settings.keep != "series-only":
+        f, S = psd_matrix(y.values, settings.output_dt, segment_seconds=settings.segment_seconds)
+        ds = ds.assign_coords(frequency=("frequency", f, {"units": "Hz"}), sensor_=names)
+        ds["psd"] = (("realisation", "frequency", "sensor", "sensor_"), S,
+                     {"units": "m^2/Hz", "long_name": "two-sided response PSD matrix"})
+    if settings.keep != "psd":
         ds["displacement"] = y.assign_coords(realisation=realisations)
     return ds
