@@ -66,6 +66,20 @@ def test_realisations_do_not_depend_on_their_batch():
     assert not np.array_equal(a.psd.sel(realisation=0).values, a.psd.sel(realisation=1).values)
 
 
+def test_series_only_keeps_the_same_series_and_statistics_without_the_psd():
+    """``keep="series-only"`` (for a caller that estimates its own spectra, as the diagnosis does):
+    the same displacement, RMS and contact as ``keep="series"``, and no PSD matrix."""
+    model = reduce(builtin_spec("paper-simplified"))
+    kw = dict(seed=4, dispersion=Dispersion(stiffness=0.3))
+    a = simulate_responses(model, coherent_forces(), [0, 1], settings=ResponseSettings(duration=12.0, discard=1.0,
+                           segment_seconds=2.0, keep="series"), **kw)
+    b = simulate_responses(model, coherent_forces(), [0, 1], settings=ResponseSettings(duration=12.0, discard=1.0,
+                           segment_seconds=2.0, keep="series-only"), **kw)
+    assert "psd" in a and "psd" not in b and "frequency" not in b.coords
+    for k in ("displacement", "rms", "contact_fraction", "contact_events"):
+        np.testing.assert_array_equal(a[k].values, b[k].values)
+
+
 def test_records_of_one_structure_share_its_random_b():
     """``system_rngs``: realisations given generators in one state share one draw of B. Independent
     check: at δ = 0.3 the log level (tubeid.dynamics.log_level) of 40 s records of different
