@@ -623,6 +623,72 @@ def test_the_refit_extends_its_edge_lines_and_the_check_decides(monkeypatch):
     assert rf["best_trial"]["fit_error"] == 0.84
 
 
+def test_a_second_refit_sweep_runs_where_the_first_did_not_bracket_and_ends_the_step(monkeypatch):
+    """Fitting errors by hand (no simulation): r's line with its best at an end calls for a second
+    sweep (a stop's gap and r trade off: lines evaluated one at a time mis-place both); lines that
+    all bracket their minimum, with the moved point kept, do not; a kept point other than the moved
+    one does. The second sweep is centred at the point the first kept, draws the first sweep's
+    streams, and its own kept point is where the step's band is computed."""
+    from types import SimpleNamespace
+
+    import xarray as xr
+
+    from tubeid.diagnose import stages
+    from tubeid.mechanics.effects import effect_from_dict, effect_to_dict
+
+    stop = ExtraStop("centre", 10.0, 2.32e-6, 1e8)
+    trials = [{"effects": [effect_to_dict(stop)], "r": [1.408]},
+              {"effects": [effect_to_dict(stop)], "r": [1.408 * 10**-0.1]},
+              {"effects": [effect_to_dict(stop)], "r": [1.408 * 10**0.1]},
+              {"effects": [effect_to_dict(ExtraStop("centre", 10.0, 1.16e-6, 1e8))], "r": [1.408]},
+              {"effects": [effect_to_dict(ExtraStop("centre", 10.0, 4.64e-6, 1e8))], "r": [1.408]}]
+    lines = [{"what": "r", "index": 0, "parameter": "r1", "log": True, "values": [1.408 * 10**-0.1, 1.408, 1.408 * 10**0.1],
+              "trials": [1, 0, 2]},
+             {"what": "effect", "index": 0, "parameter": "gap", "log": True, "values": [1.16e-6, 2.32e-6, 4.64e-6],
+              "trials": [3, 0, 4]}]
+    refit = xr.Dataset(attrs={"parameters": json.dumps({"trials": json.dumps(trials), "lines": json.dumps(lines)}),
+                              "name": "refit"})
+    errors = {"refit": [2.42, 1.49, 4.60, 14.1, 3.20], "check": [0.55, 2.36]}  # the seed-6 stop record's numbers
+    monkeypatch.setattr(stages, "fit_errors", lambda ctx, results, ds: errors[ds.attrs["name"]])
+    monkeypatch.setattr(stages, "_surrogate", lambda *a: None)
+    ctx = SimpleNamespace(spec=None)
+    results = {"step1_refit": refit, "step1_check": xr.Dataset(attrs={"name": "check"})}
+    assert "r1" in stages.sweep_reason(ctx, results, 1, 1) and "gap" not in stages.sweep_reason(ctx, results, 1, 1)
+    errors["refit"] = [2.42, 2.60, 4.60, 14.1, 3.20]  # both lines bracket, the moved point is kept: no second sweep
+    assert stages.sweep_reason(ctx, results, 1, 1) == ""
+    errors["check"] = [2.50]  # the moved point worse than the centre: the best evaluated point is kept
+    assert "best point was kept" in stages.sweep_reason(ctx, results, 1, 1)
+    errors["refit"], errors["check"] = [2.42, 1.49, 4.60, 14.1, 3.20], [0.55, 2.36]
+    kept = stages.refit_point(ctx, results, 1)
+    assert kept["point"] == "moved"
+    # the second sweep's stage: centred at that point, the first sweep's streams
+    base = {"data": "", "data_sha256": "", "model": "", "settings": ""}
+    monkeypatch.setattr(stages, "_ctx", lambda p: SimpleNamespace(spec=builtin_spec("paper-reference"),
+                                                                  settings=DiagnoseSettings(), meas=None))
+
+    @dataclasses.dataclass(frozen=True)
+    class Stage:  # what _refit reads of the trial study it makes
+        name: str
+        trials: list
+        parameters: dict
+        stream_key: tuple
+
+    monkeypatch.setattr(stages, "_trial_study", lambda name, base, ctx, trials, what: Stage(name, trials, {}, (name,)))
+    results["step1_trials"] = xr.Dataset()
+    st = stages._builder("refit2")(1, results, base)
+    centre = st.trials[0]
+    assert centre["r"] == json.loads(json.dumps(kept["r"])) and centre["effects"] == json.loads(kept["effects"])
+    assert st.stream_key == ("step1_refit",) and st.name == "step1_refit2"
+    gap = effect_from_dict(centre["effects"][0]).gap
+    assert gap == pytest.approx(stages.line_minimum([1.16e-6, 2.32e-6, 4.64e-6], [14.1, 2.42, 3.20], True), rel=1e-12, abs=0)
+    # the step's band is computed at the last sweep's kept point
+    results["step1_refit2"] = xr.Dataset(attrs={"name": "refit"})
+    monkeypatch.setattr(stages, "refit_point", lambda ctx, results, k, rf=None, sweep=1: {"sweep": sweep})
+    assert stages.final_point(ctx, results, 1) == {"sweep": 2}
+    results["step1_refit2"] = xr.Dataset(coords={"skipped": ["sweep 1 bracketed every parameter"]})
+    assert stages.final_point(ctx, results, 1) == {"sweep": 1}
+
+
 def test_a_tones_amplitude_is_refitted_along_its_profile_not_by_simulated_trials(monkeypatch):
     """The joint re-fit's amplitude line of a tone is derived from the centre trial and one baseline
     trial (the same model without the tone): the record's line has 4 × the centre's power, so the

@@ -36,8 +36,10 @@ resumable); this module holds the context every stage reads and assembles the re
    tone, as in the trial grid; each moved to its line's parabola vertex; the moved point is then evaluated, and if its
    fitting-block error is worse than the best point the lines evaluated — the moves overshoot when
    parameters trade off — that point is kept instead; a scale line whose best is at its end is
-   extended one step, evaluated beside the moved point, and kept if better than both), and the
-   augmented model's band is tested again, at ``continuation_alarm`` (default α / (``max_effects`` −
+   extended one step, evaluated beside the moved point, and kept if better than both; where a line
+   did not bracket its minimum or the moved point was not kept, a second sweep of the same lines
+   runs around the kept point — alternating, since r and e.g. a stop's gap trade off and lines
+   evaluated one at a time mis-place both), and the augmented model's band is tested again, at ``continuation_alarm`` (default α / (``max_effects`` −
    1): the tests that could continue the loop share α, so on a record the chosen effects explain they
    raise an alarm, and so a spurious further effect, with probability at most α; the near-tie rule
    below adds a runner-up without an alarm). The loop stops when the test no longer detects
@@ -51,8 +53,9 @@ resumable); this module holds the context every stage reads and assembles the re
 ``report.json``: ``effect`` (the first effect's name, or ``none``), ``effects`` ([{name,
 parameters}]), ``detection`` (p-values before), ``steps`` (per step: the candidates' errors, the
 ``continuation`` that offered them after an explained step (or null), the choice, the re-fitted
-effects and r, ``refit_check`` (the moved point's, the best evaluated point's and the extended point's fitting
-errors, which ``point`` was kept, ``fallback``), the held-out error and the test after), ``error_before``,
+effects and r, ``refit`` and ``refit_check`` (the first sweep's lines; the moved point's, the best evaluated
+point's and the extended point's fitting errors, which ``point`` was kept, ``fallback``), ``refit_sweeps``
+(every sweep's ``lines``, ``check`` and the ``reason`` it ran), the held-out error and the test after), ``error_before``,
 ``error_after``, ``explained_before``/``explained_after``, ``load``, ``delta``, ``assumptions``.
 """
 

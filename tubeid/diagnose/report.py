@@ -81,12 +81,17 @@ def assemble(store, ctx):
                            f"did not pay their penalty at step {k}")
             steps.append(step)
             break
-        rf, pt = st.refit_result(ctx, results, k), st.point_result(ctx, results, k)
-        chk = st.refit_point(ctx, results, k, rf)
+        pt = st.point_result(ctx, results, k)
+        sweeps = []
+        for sweep in range(1, st.sweeps_done(results, k) + 1):
+            rf = st.refit_result(ctx, results, k, sweep=sweep)
+            chk = st.refit_point(ctx, results, k, rf, sweep=sweep)
+            sweeps.append({"lines": rf["lines"],
+                           "check": {key: chk[key] for key in ("moved_fit_error", "best_fit_error", "extended_fit_error",
+                                                               "point", "fallback")},
+                           "reason": "" if sweep == 1 else st.sweep_reason(ctx, results, k, sweep - 1)})
         det_k = json.loads(results[f"step{k}_band"].attrs["detection"])
-        step.update({"refit": rf["lines"],
-                     "refit_check": {key: chk[key] for key in ("moved_fit_error", "best_fit_error", "extended_fit_error",
-                                                                 "point", "fallback")},
+        step.update({"refit": sweeps[0]["lines"], "refit_check": sweeps[0]["check"], "refit_sweeps": sweeps,
                      "effects_after": [_describe(e) for e in pt["effects"]], "r_after": pt["r"],
                      "error_after": pt["held_out_error"], "fit_error_after": pt["fit_error"],
                      "detection_after": det_k})

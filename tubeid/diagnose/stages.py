@@ -26,6 +26,10 @@ realisation; the trials of one stage share one stream (common random numbers).
 ``step{k}_check``   the point the re-fit's lines moved to, evaluated (kept only if no worse than the
                     best trial the lines evaluated), and the same point with the log lines whose
                     best was at an end moved one step further (kept if better than both)
+``step{k}_refit2``  a second sweep of the same lines around the point the first kept, when a line
+``step{k}_check2``  of the first did not bracket its minimum or the moved point was not kept
+                    (:func:`sweep_reason`; alternating the lines until they bracket: r and a stop's
+                    gap trade off, and lines evaluated one at a time mis-place both); skipped else
 ``step{k}_band``    R realisations with the re-fitted effects → the test after step k (and the
                     signatures for step k + 1)
 
@@ -42,6 +46,7 @@ the test).
 """
 
 import dataclasses
+import functools
 import importlib
 import json
 
@@ -63,7 +68,8 @@ from tubeid.mechanics.effects import apply_effects, effect_from_dict, effect_to_
 from tubeid.runner.pipeline import Pipeline
 from tubeid.runner.study import Output, Parameter, Study, Warmup
 
-__all__ = ["study", "SEED", "STEP_STAGES", "state_before", "selection", "refit_result", "refit_point", "point_result"]
+__all__ = ["study", "SEED", "STEP_STAGES", "REFIT_SWEEPS", "state_before", "selection", "refit_result", "refit_point",
+           "sweep_reason", "sweeps_done", "final_point", "point_result"]
 
 method = importlib.import_module("tubeid.diagnose.method")
 
@@ -72,7 +78,11 @@ R_DIMS = ("r1", "r2")
 R_UNITS = {"r1": "N^2/Hz", "r2": "(N m)^2/Hz"}
 STATISTICS = ["rms", "skewness", "excess_kurtosis"]
 #: The stages of one selection step, in order.
-STEP_STAGES = ("trials", "refit", "check", "band")
+#: Re-fit sweeps of a step at most (the second runs only where the first did not bracket every
+#: parameter or did not keep its moved point: :func:`sweep_reason`).
+REFIT_SWEEPS = 2
+STEP_STAGES = ("trials", *(f"{kind}{'' if sweep == 1 else sweep}" for sweep in range(1, REFIT_SWEEPS + 1)
+                           for kind in ("refit", "check")), "band")
 
 
 def _ctx(p: dict):
@@ -797,16 +807,44 @@ def _surrogate(ctx, results, effects, r, band_stage):
     return sur
 
 
-def _refit(k, results, base):
+def _stage_name(k: int, kind: str, sweep: int = 1) -> str:
+    """The stage of step k's ``kind`` ("refit" or "check") in re-fit sweep ``sweep`` (1: no suffix)."""
+    return f"step{k}_{kind}" + ("" if sweep == 1 else str(sweep))
+
+
+def sweep_reason(ctx, results, k: int, sweep: int) -> str:
+    """Why step k needs re-fit sweep ``sweep`` + 1 around the point sweep ``sweep`` kept ("" if it
+    does not): a line whose discrete minimum is at an end (it did not bracket its parameter: the
+    moves of lines evaluated one at a time are then biased where parameters trade off, e.g. r
+    against a stop's gap), or a kept point other than the moved one."""
+    rf = refit_result(ctx, results, k, sweep=sweep)
+    ends = [ln["parameter"] for ln in rf["lines"] if np.isfinite(ln["errors"]).any()
+            and int(np.nanargmin(ln["errors"])) in (0, len(ln["errors"]) - 1)]
+    pt = refit_point(ctx, results, k, rf, sweep=sweep)
+    why = [f"the lines of {', '.join(ends)} did not bracket their minimum"] if ends else []
+    if pt["point"] != "moved":
+        why.append(f"the {pt['point']} point was kept, not the moved one")
+    return "; ".join(why)
+
+
+def _refit(k, results, base, sweep=1):
     ctx = _ctx(base)
-    name = f"step{k}_refit"
+    name = _stage_name(k, "refit", sweep)
     if skipped(results[f"step{k}_trials"]):
         return _skipped(name, "no selection at this step")
-    sel = selection(ctx, results, k)
-    if not sel["chosen"]:
-        return _skipped(name, "no candidate pays its penalty")
-    effects = [effect_from_dict(e) for e in json.loads(sel["effects"])]
-    r = [float(v) for v in sel["r"]]
+    if sweep == 1:
+        sel = selection(ctx, results, k)
+        if not sel["chosen"]:
+            return _skipped(name, "no candidate pays its penalty")
+        effects, r = [effect_from_dict(e) for e in json.loads(sel["effects"])], [float(v) for v in sel["r"]]
+    else:
+        if skipped(results[_stage_name(k, "refit", sweep - 1)]):
+            return _skipped(name, "no effect chosen at this step")
+        why = sweep_reason(ctx, results, k, sweep - 1)
+        if not why:
+            return _skipped(name, f"sweep {sweep - 1} bracketed every parameter and kept its moved point")
+        pt = refit_point(ctx, results, k, sweep=sweep - 1)
+        effects, r = method.effects_from_json(pt["effects"]), [float(v) for v in pt["r"]]
     centre = {"effects": [effect_to_dict(e) for e in effects], "r": r}
     trials, lines = [dict(centre)], []
     for j in range(0 if _simplified(ctx) else len(r)):  # simplified: r held (the features are level-free)
@@ -839,8 +877,11 @@ def _refit(k, results, base):
                 idx.append(len(trials) - 1)
             lines.append({"what": "effect", "index": i, "parameter": par, "log": log, "values": [float(v) for v in values],
                           "trials": idx})
-    st = _trial_study(name, base, ctx, trials, f"step {k}: joint re-fit of r and {[e.name for e in effects]} (lines of 3)")
-    return dataclasses.replace(st, parameters={**st.parameters, "lines": json.dumps(lines, sort_keys=True)})
+    st = _trial_study(name, base, ctx, trials, f"step {k}: joint re-fit of r and {[e.name for e in effects]} (lines of 3"
+                                               + (")" if sweep == 1 else f", sweep {sweep}: {why})"))
+    # every sweep draws the first one's streams (common random numbers): its centre's error is the point's it starts from
+    return dataclasses.replace(st, parameters={**st.parameters, "lines": json.dumps(lines, sort_keys=True)},
+                               stream_key=(_stage_name(k, "refit"),))
 
 
 def fit_errors(ctx, results, ds) -> list[float]:
@@ -880,14 +921,15 @@ def _profiled_line(ctx, results, ds, trials, ln, centre_fit_error) -> tuple[list
     return tuple(list(col) for col in zip(*rows))
 
 
-def refit_result(ctx, results, k: int) -> dict:
+def refit_result(ctx, results, k: int, sweep: int = 1) -> dict:
     """The joint re-fit of step k: each line's minimiser (fitting blocks, no level profiling: r is
     one of the lines, exact form) → {"effects" (JSON), "r" (the moved point), "lines" ([{what,
     parameter, values, errors, best, extension}]), "extended" ({"effects", "r"}: the moved point with
     every simulated log line whose best is at an end one step further, or None when none is),
     "centre_fit_error", "best_trial" ({"effects", "r", "fit_error"}: the best trial the lines
-    evaluated, a profiled line's derived points included, the baselines of those lines not)}."""
-    ds = results[f"step{k}_refit"]
+    evaluated, a profiled line's derived points included, the baselines of those lines not)}; of re-fit
+    sweep ``sweep``."""
+    ds = results[_stage_name(k, "refit", sweep)]
     p = _params(ds)
     trials, lines = json.loads(p["trials"]), json.loads(p["lines"])
     fit_err = fit_errors(ctx, results, ds)
@@ -931,29 +973,31 @@ def refit_result(ctx, results, k: int) -> dict:
                            "fit_error": evaluated[b][0]}}
 
 
-def _check(k, results, base):
+def _check(k, results, base, sweep=1):
     """The point every line of the re-fit moved to, evaluated (the lines were evaluated one at a time;
     together the moves can overshoot when parameters trade off, e.g. a stop's gap against r). Drawn
     with the re-fit's streams (common random numbers), so its error compares with the re-fit's."""
     ctx = _ctx(base)
-    name = f"step{k}_check"
-    if skipped(results[f"step{k}_refit"]):
-        return _skipped(name, "no effect chosen at this step")
-    rf = refit_result(ctx, results, k)
+    name = _stage_name(k, "check", sweep)
+    if skipped(results[_stage_name(k, "refit", sweep)]):
+        return _skipped(name, "no effect chosen at this step" if sweep == 1 else f"no re-fit sweep {sweep}")
+    rf = refit_result(ctx, results, k, sweep=sweep)
     trials = [{"effects": json.loads(p["effects"]), "r": p["r"]} for p in (rf, rf["extended"]) if p is not None]
     st = _trial_study(name, base, ctx, trials, f"step {k}: the re-fit's moved point (and with its edge lines one step "
-                                               "further), evaluated")
-    return dataclasses.replace(st, stream_key=(f"step{k}_refit",))
+                                               "further), evaluated" + ("" if sweep == 1 else f" (sweep {sweep})"))
+    return dataclasses.replace(st, stream_key=(_stage_name(k, "refit"),))
 
 
-def refit_point(ctx, results, k: int, rf: dict | None = None) -> dict:
-    """Where step k's band is computed (:func:`~tubeid.diagnose._selection.refit_choice`): the re-fit's
-    extended point if its fitting-block error is lower than both others, else its moved point if no
-    worse than the best point the re-fit evaluated, else that point → {"effects" (JSON), "r",
-    "moved_fit_error", "best_fit_error", "extended_fit_error" (None: no line at an end), "point"
-    ("moved", "best" or "extended"), "fallback" (bool: "best")}. ``rf``: :func:`refit_result` if at hand."""
-    rf = refit_result(ctx, results, k) if rf is None else rf
-    errs = fit_errors(ctx, results, results[f"step{k}_check"])
+def refit_point(ctx, results, k: int, rf: dict | None = None, sweep: int = 1) -> dict:
+    """Where re-fit sweep ``sweep`` of step k ends (:func:`~tubeid.diagnose._selection.refit_choice`):
+    the re-fit's extended point if its fitting-block error is lower than both others, else its moved
+    point if no worse than the best point the re-fit evaluated, else that point → {"effects" (JSON),
+    "r", "moved_fit_error", "best_fit_error", "extended_fit_error" (None: no line at an end), "point"
+    ("moved", "best" or "extended"), "fallback" (bool: "best")}. ``rf``: :func:`refit_result` if at
+    hand. A sweep after the first evaluates its centre, the point the previous sweep kept, with the
+    same streams: the best point it evaluated is never worse than that one."""
+    rf = refit_result(ctx, results, k, sweep=sweep) if rf is None else rf
+    errs = fit_errors(ctx, results, results[_stage_name(k, "check", sweep)])
     moved, extended = errs[0], (errs[1] if rf["extended"] is not None else None)
     best = rf["best_trial"]
     which = refit_choice(moved, best["fit_error"], extended)
@@ -962,12 +1006,22 @@ def refit_point(ctx, results, k: int, rf: dict | None = None) -> dict:
             "extended_fit_error": extended, "point": which, "fallback": which == "best"}
 
 
+def sweeps_done(results, k: int) -> int:
+    """How many re-fit sweeps step k ran (0: no effect chosen)."""
+    return sum(1 for sweep in range(1, REFIT_SWEEPS + 1) if not skipped(results[_stage_name(k, "refit", sweep)]))
+
+
+def final_point(ctx, results, k: int) -> dict:
+    """The point step k's band is computed at: :func:`refit_point` of its last re-fit sweep."""
+    return refit_point(ctx, results, k, sweep=sweeps_done(results, k))
+
+
 def _band_k(k, results, base):
     ctx = _ctx(base)
     name = f"step{k}_band"
     if skipped(results[f"step{k}_refit"]):
         return _skipped(name, "no effect chosen at this step", summarize_band)
-    pt = refit_point(ctx, results, k)
+    pt = final_point(ctx, results, k)
     return _band_study(name, base, ctx, pt["r"], pt["effects"], _delta(results),
                        results["load_delta_f"].attrs["delta_F_used"], k, f"after step {k}")
 
@@ -981,12 +1035,19 @@ def point_result(ctx, results, k: int) -> dict:
     return {"effects": json.loads(p["effects"]), "r": p["r"], "offset": o, "fit_error": fe, "held_out_error": he}
 
 
-_BUILDERS = {"trials": _trials, "refit": _refit, "check": _check, "band": _band_k}
+def _builder(kind: str):
+    """The stage builder of ``kind`` (a key of :data:`STEP_STAGES`)."""
+    base = kind.rstrip("0123456789")
+    sweep = int(kind[len(base):] or 1)
+    fn = {"trials": _trials, "refit": _refit, "check": _check, "band": _band_k}[base]
+    return fn if sweep == 1 else functools.partial(fn, sweep=sweep)
 
 
 def _step_stage(k: int, kind: str):
+    build = _builder(kind)
+
     def stage(results, *, data, data_sha256, model, settings):
-        return _BUILDERS[kind](k, results, _base(data, data_sha256, model, settings))
+        return build(k, results, _base(data, data_sha256, model, settings))
 
     stage.__name__ = stage.__qualname__ = f"step{k}_{kind}"
     return stage
