@@ -764,7 +764,8 @@ def _run_stage(ctx: _Run, name: str, client) -> RunReport:
     else:
         init_stage(study, path, name, pipeline_name=pipeline.name, pipeline_hash=ctx.key, stage_hash=shash,
                    references=pipeline.references, root=False)
-    _stage_state(path, name, "running")  # consolidates the root, with the group's change above
+    if not study.in_process:  # an in-process stage (a placeholder) is complete within milliseconds: its state once
+        _stage_state(path, name, "running")  # consolidates the root, with the group's change above
     flags = block_flags(path, name)
     todo = [b.index for b in study.blocks() if not flags[b.index]]
     report.skipped = study.n_blocks - len(todo)

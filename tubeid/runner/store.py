@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime
+import functools
 import json
 import os
 import pathlib
@@ -73,7 +74,9 @@ def history_line(what: str) -> str:
     return f"{now()} tubeid {tubeid_version()}: {what}"
 
 
+@functools.lru_cache(maxsize=1)
 def tubeid_version() -> str:
+    """The installed tubeid's version (read once per process: the metadata lookup scans sys.path)."""
     try:
         from importlib.metadata import version
 
