@@ -42,7 +42,7 @@ PINNED = {
                         "STATISTICS", "MODEL_FORMS", "CATALOG", "Candidate", "LOAD_MODELS", "MAX_EFFECTS"],
     "tubeid.runner": [
         "Study", "Output", "Parameter", "pointwise", "load_study", "run", "open_results", "RunReport", "RngFactory",
-        "store_status", "Pipeline", "PipelineReport", "open_pipeline", "pipeline_status", "Warmup", "verify",
+        "store_status", "Pipeline", "End", "PipelineReport", "open_pipeline", "pipeline_status", "Warmup", "verify",
         "Verification",
     ],
 

@@ -22,7 +22,7 @@ import zarr
 from tubeid.errors import SpecificationError
 from tubeid.runner.cli import main as cli
 from tubeid.runner.execute import run
-from tubeid.runner.pipeline import Pipeline
+from tubeid.runner.pipeline import End, Pipeline
 from tubeid.runner.store import open_pipeline, open_results, store_status
 from tubeid.runner.study import Output, Parameter, Study, load_definition, load_study
 from tubeid.runner.testing import flags, store_digest, write_pipeline
@@ -423,3 +423,57 @@ def test_an_opened_stage_is_reopened_once_it_finished_again(tmp_path):
     update_attrs(tmp_path / "p.zarr", "curve", finished=now(), marker=1)
     again = _open_stage(tmp_path / "p.zarr", "curve", store_status(tmp_path / "p.zarr", "curve")["attrs"])
     assert again is not first and again.attrs["marker"] == 1 and "marker" not in first.attrs
+
+
+ENDS = '''
+import numpy as np
+from tubeid.runner import End, Output, Pipeline, Study
+
+
+def _ones(block, rng):
+    return {"y": np.ones(len(block["i"]))}
+
+
+def first(results, *, more):
+    return Study(name="first", seed=4, axes={"i": range(3)}, task=_ones, outputs={"y": Output()},
+                 summarize=lambda ds: {"more": more})
+
+
+def second(results):
+    if not results["first"].attrs["more"]:
+        return End("nothing left after first")
+    return Study(name="second", seed=4, axes={"i": range(2)}, task=_ones, outputs={"y": Output()})
+
+
+def third(results):
+    return Study(name="third", seed=4, axes={"i": range(2)}, task=_ones, outputs={"y": Output()})
+
+
+study = Pipeline(name="ends", seed=4, stages=[first, second, third], parameters={"more": True})
+'''
+
+
+def test_a_stage_function_may_end_the_pipeline(tmp_path, capsys):
+    """``End(reason)`` from a stage function: that stage and the later ones are not built (no group,
+    status "not needed"), the store is complete, a rerun has nothing to do, ``status`` says why; with
+    the other parameter value the same pipeline runs every stage."""
+    (tmp_path / "ends.py").write_text(ENDS)
+    store = tmp_path / "e.zarr"
+    rep = run(tmp_path / "ends.py", store, workers=0, overrides={"more": False}, quiet=True)
+    assert list(rep.stages) == ["first"] and rep.computed == 1
+    assert not (store / "second").exists() and not (store / "third").exists()
+    st = store_status(store)
+    assert st["complete"] and st["stages"]["second"] == st["stages"]["third"] == {
+        "started": False, "done": 0, "total": 0, "complete": True, "needed": False}
+    assert st["attrs"]["ended"] == {"stage": "second", "reason": "nothing left after first"}
+    assert list(open_pipeline(store)) == ["first"]
+    again = run(tmp_path / "ends.py", store, workers=0, overrides={"more": False}, quiet=True)
+    assert again.computed == 0
+    assert cli(["status", str(store)]) == 0
+    out = capsys.readouterr().out
+    assert "3/3 stages complete, complete" in out and "third: not needed" in out
+    assert "ended before stage second: nothing left after first" in out
+    full = run(tmp_path / "ends.py", tmp_path / "f.zarr", workers=0, quiet=True)
+    assert list(full.stages) == ["first", "second", "third"] and "ended" not in store_status(tmp_path / "f.zarr")["attrs"]
+    with pytest.raises(SpecificationError, match="End.reason"):
+        End("")

@@ -52,18 +52,20 @@ def _describe(effect_dict) -> dict:
 def assemble(store, ctx):
     """The :class:`~tubeid.diagnose.method.Diagnosis` of a complete pipeline store."""
     from tubeid.diagnose.method import ERROR_METRIC, Diagnosis
+    from tubeid.runner.store import pipeline_status
 
     s, meas = ctx.settings, ctx.meas
-    results = {n: _open(store, n) for n in st.study.stage_names}
+    status = pipeline_status(store)
+    results = {n: _open(store, n) for n, stage in status["stages"].items() if stage["started"]}
+    ended = status["attrs"].get("ended") or {}
     fine = results["load_r_fine"]
     error_before = st.point_result(ctx, results, 0)["held_out_error"]
     det0 = json.loads(results["band"].attrs["detection"])
     steps, stop_reason, final = [], "", None
     det_last, band_last = det0, results["band"]
     for k in range(1, st.MAX_EFFECTS + 1):
-        tr = results[f"step{k}_trials"]
-        if st.skipped(tr):
-            stop_reason = str(tr["skipped"].values[0])
+        if st.absent(results, f"step{k}_trials"):  # the loop ended before step k (tubeid.runner.End)
+            stop_reason = ended.get("reason", "")
             break
         sel = st.selection(ctx, results, k)
         prev = st.state_before(ctx, results, k)
@@ -105,7 +107,7 @@ def assemble(store, ctx):
         final = pt
         if not det_last["detected"]:
             stop_reason = f"explained after step {k}: the test no longer detects anything"
-            if k == st.MAX_EFFECTS or st.skipped(results[f"step{k + 1}_trials"]):
+            if k == st.MAX_EFFECTS or st.absent(results, f"step{k + 1}_trials"):
                 break  # else a near-tied runner-up is tried once more (the next step's continuation)
     else:
         stop_reason = f"max_effects = {s.max_effects} reached"

@@ -65,10 +65,10 @@ from tubeid.dynamics import warmup
 from tubeid.dynamics.spectra import j_s, psd_matrix
 from tubeid.identification.loads import JS_UNITS
 from tubeid.mechanics.effects import apply_effects, effect_from_dict, effect_to_dict
-from tubeid.runner.pipeline import Pipeline
+from tubeid.runner.pipeline import End, Pipeline
 from tubeid.runner.study import Output, Parameter, Study, Warmup
 
-__all__ = ["study", "SEED", "STEP_STAGES", "REFIT_SWEEPS", "state_before", "selection", "refit_result", "refit_point",
+__all__ = ["study", "SEED", "STEP_STAGES", "REFIT_SWEEPS", "skipped", "absent", "state_before", "selection", "refit_result", "refit_point",
            "sweep_reason", "sweeps_done", "final_point", "point_result"]
 
 method = importlib.import_module("tubeid.diagnose.method")
@@ -100,6 +100,12 @@ def _params(ds) -> dict:
 def skipped(ds) -> bool:
     """Whether a stage had nothing to compute (its only axis is ``skipped``)."""
     return "skipped" in ds.dims
+
+
+def absent(results, name: str) -> bool:
+    """Whether stage ``name`` computed nothing: a placeholder (:func:`skipped`), or not built because
+    the pipeline ended before it (:class:`~tubeid.runner.End`: the loop had no step left)."""
+    return name not in results or skipped(results[name])
 
 
 def _spectral_coords(ctx) -> dict:
@@ -561,7 +567,7 @@ def state_before(ctx, results, k: int) -> dict:
 def continuation_rejected(results, k: int) -> bool:
     """Whether step k was a continuation (its starting band explained the record) that added an
     effect after which the test detects again: that effect is not kept."""
-    if k < 2 or skipped(results[f"step{k}_trials"]) or skipped(results[f"step{k}_band"]):
+    if k < 2 or absent(results, f"step{k}_trials") or absent(results, f"step{k}_band"):
         return False
     return (not results[f"step{k - 1}_band"].attrs.get("detected", False)
             and bool(results[f"step{k}_band"].attrs.get("detected", False)))
@@ -697,7 +703,7 @@ def _trials(k, results, base):
     st = state_before(ctx, results, k)
     name = f"step{k}_trials"
     if not st["active"]:
-        return _skipped(name, st["reason"])
+        return End(st["reason"])  # the loop ends: no stage of this step or a later one is built
     held = json.loads(st["effects"])
     trials = [{"candidate": "", "effects": held, "r": st["r"]}]
     for n, sig in sorted(st["screen"].items(), key=lambda kv: list(CATALOG).index(kv[0])):
@@ -830,15 +836,15 @@ def sweep_reason(ctx, results, k: int, sweep: int) -> str:
 def _refit(k, results, base, sweep=1):
     ctx = _ctx(base)
     name = _stage_name(k, "refit", sweep)
-    if skipped(results[f"step{k}_trials"]):
+    if absent(results, f"step{k}_trials"):
         return _skipped(name, "no selection at this step")
     if sweep == 1:
         sel = selection(ctx, results, k)
         if not sel["chosen"]:
-            return _skipped(name, "no candidate pays its penalty")
+            return End(f"no candidate pays its penalty at step {k}")
         effects, r = [effect_from_dict(e) for e in json.loads(sel["effects"])], [float(v) for v in sel["r"]]
     else:
-        if skipped(results[_stage_name(k, "refit", sweep - 1)]):
+        if absent(results, _stage_name(k, "refit", sweep - 1)):
             return _skipped(name, "no effect chosen at this step")
         why = sweep_reason(ctx, results, k, sweep - 1)
         if not why:
@@ -979,7 +985,7 @@ def _check(k, results, base, sweep=1):
     with the re-fit's streams (common random numbers), so its error compares with the re-fit's."""
     ctx = _ctx(base)
     name = _stage_name(k, "check", sweep)
-    if skipped(results[_stage_name(k, "refit", sweep)]):
+    if absent(results, _stage_name(k, "refit", sweep)):
         return _skipped(name, "no effect chosen at this step" if sweep == 1 else f"no re-fit sweep {sweep}")
     rf = refit_result(ctx, results, k, sweep=sweep)
     trials = [{"effects": json.loads(p["effects"]), "r": p["r"]} for p in (rf, rf["extended"]) if p is not None]
@@ -1008,7 +1014,7 @@ def refit_point(ctx, results, k: int, rf: dict | None = None, sweep: int = 1) ->
 
 def sweeps_done(results, k: int) -> int:
     """How many re-fit sweeps step k ran (0: no effect chosen)."""
-    return sum(1 for sweep in range(1, REFIT_SWEEPS + 1) if not skipped(results[_stage_name(k, "refit", sweep)]))
+    return sum(1 for sweep in range(1, REFIT_SWEEPS + 1) if not absent(results, _stage_name(k, "refit", sweep)))
 
 
 def final_point(ctx, results, k: int) -> dict:
@@ -1019,7 +1025,7 @@ def final_point(ctx, results, k: int) -> dict:
 def _band_k(k, results, base):
     ctx = _ctx(base)
     name = f"step{k}_band"
-    if skipped(results[f"step{k}_refit"]):
+    if absent(results, f"step{k}_refit"):
         return _skipped(name, "no effect chosen at this step", summarize_band)
     pt = final_point(ctx, results, k)
     return _band_study(name, base, ctx, pt["r"], pt["effects"], _delta(results),

@@ -82,6 +82,8 @@ def _run(args) -> int:
 
 
 def _stage_line(name, st) -> str:
+    if st.get("needed") is False:
+        return f"  {name}: not needed"
     if not st["started"]:
         return f"  {name}: not started"
     pct = 100.0 * st["done"] / max(st["total"], 1)
@@ -134,6 +136,8 @@ def _status(args) -> int:
         print(f"pipeline {a.get('study_name')}: {n_done}/{len(st['stages'])} stages complete, {state}")
         for name, s in st["stages"].items():
             print(_stage_line(name, s))
+        if a.get("ended"):
+            print(f"  ended before stage {a['ended']['stage']}: {a['ended']['reason']}")
     else:
         pct = 100.0 * st["done"] / max(st["total"], 1)
         state = "complete" if st["complete"] else "incomplete"
@@ -281,6 +285,8 @@ def _show_pipeline(args, st) -> int:
     print(f"  started {a.get('started')}; finished {a.get('finished') or '-'}; stages:")
     for name, s in st["stages"].items():
         print(_stage_line(name, s))
+    if a.get("ended"):
+        print(f"  ended before stage {a['ended']['stage']}: {a['ended']['reason']}")
     for name, s in st["stages"].items():
         if (args.stage and name not in args.stage) or not s["started"]:
             continue

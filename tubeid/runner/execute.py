@@ -28,10 +28,11 @@ from tubeid import config
 from tubeid.errors import BlockFailed, SpecificationError
 from tubeid.runner.integrity import repair_structure, verify
 from tubeid.runner.lock import StoreLock
-from tubeid.runner.pipeline import Pipeline, stage_hash
+from tubeid.runner.pipeline import End, Pipeline, stage_hash
+from tubeid.runner.status import NOT_NEEDED
 from tubeid.runner.store import (append_history, block_flags, check_blocks, check_stage, check_store, history_line,
                                  init_pipeline_store, init_stage, init_store, now, prepare_path, read_attrs, remove_store,
-                                 remove_temporaries,
+                                 remove_temporaries, _read_manifest, _remove_nodes,
                                  set_flags, tubeid_version, update_attrs, write_block)
 from tubeid.runner.study import _plain, load_definition, load_study
 
@@ -167,7 +168,8 @@ def _open_stage(store, name: str, attrs: dict):
 
 
 def stage_study(pipeline: Pipeline, key: str, store, name: str):
-    """Build stage ``name`` from the earlier stages' stored results: ``(study, stage hash)``.
+    """Build stage ``name`` from the earlier stages' stored results: ``(study, stage hash)``, or
+    ``(End, None)`` when the pipeline ends before it.
 
     The earlier stages are opened from ``store`` without dask (lazy numpy-backed arrays), with the
     attributes their ``summarize`` wrote; the stage hash covers their hashes and summaries too.
@@ -184,6 +186,8 @@ def stage_study(pipeline: Pipeline, key: str, store, name: str):
         a = st["attrs"]
         upstream.append((earlier, a["stage_hash"], {k: a[k] for k in a.get("summary_keys", [])}))
     study = pipeline.stage(name, results)
+    if isinstance(study, End):
+        return study, None
     return study, stage_hash(key, study, upstream)
 
 
@@ -685,6 +689,8 @@ def _verify_complete_pipeline(ctx: _Run, report: PipelineReport) -> bool:
     """A complete pipeline store: verify every stage here (no cluster needed); True if all are intact."""
     for name in ctx.study.stage_names:
         study, shash = stage_study(ctx.study, ctx.key, ctx.path, name)
+        if isinstance(study, End):  # the pipeline ended here: nothing after it was computed
+            return True
         check_stage(ctx.path, name, shash)
         check_blocks(ctx.path, study, name)
         ctx.verified[name] = _verify_and_repair(study, ctx.path, name, ctx.quiet, f"stage {name}")
@@ -723,7 +729,10 @@ def _run_pipeline(ctx: _Run) -> PipelineReport:
         report.prepare = time.perf_counter() - t0
         report.warmup = _warm_up(client, pipeline.warmup, quiet)
         for name in pipeline.stage_names:
-            report.stages[name] = _run_stage(ctx, name, client)
+            stage_report = _run_stage(ctx, name, client)
+            if stage_report is None:  # the pipeline ended before this stage
+                break
+            report.stages[name] = stage_report
             report.workers = max(report.workers, report.stages[name].workers)
     t0 = time.perf_counter()
     update_attrs(path, finished=now(),
@@ -742,10 +751,28 @@ def _stage_state(path, name, state):
     update_attrs(path, stage_status=status)
 
 
-def _run_stage(ctx: _Run, name: str, client) -> RunReport:
+def _end_pipeline(ctx: _Run, name: str, reason: str) -> None:
+    """The pipeline ends before stage ``name``: it and the later stages are not needed (groups a run
+    of other code may have left for them, tubeid's own, are removed); one root update."""
+    pipeline, path = ctx.study, ctx.path
+    later = pipeline.stage_names[pipeline.stage_names.index(name):]
+    left = {n: k for n, k in _read_manifest(path).items() if any(n == s or n.startswith(s + "/") for s in later)}
+    if left:
+        _remove_nodes(path, left)
+    status = dict(read_attrs(path).get("stage_status", {}))
+    status.update({n: NOT_NEEDED for n in later})
+    update_attrs(path, stage_status=status, ended={"stage": name, "reason": reason})
+    _log(f"tubeid: the pipeline ends before stage {name}: {reason}", ctx.quiet)
+
+
+def _run_stage(ctx: _Run, name: str, client) -> RunReport | None:
+    """Run (or resume) one stage; None when the pipeline ends before it (:class:`End`)."""
     pipeline, path, quiet = ctx.study, ctx.path, ctx.quiet
     t0 = time.perf_counter()
     study, shash = stage_study(pipeline, ctx.key, path, name)  # refused here (before its tasks) if invalid
+    if isinstance(study, End):
+        _end_pipeline(ctx, name, study.reason)
+        return None
     _STAGES[(str(path), shash)] = study  # the in-process runner reuses it
     state = check_stage(path, name, shash)
     report = RunReport(store=path, total=study.n_blocks, computed=0, skipped=0, workers=0)

@@ -9,6 +9,10 @@ with that name and the pipeline's seed. Values a stage takes from earlier result
 task through ``parameters``, ``axes`` or ``coords``: they are then stored and part of the stage
 hash, so a changed upstream result is never silently mixed with blocks computed before.
 
+A function stage may instead return :class:`End` (``End("nothing detected")``): the pipeline ends
+there, with nothing left to compute. That stage and the later ones are not built; their status is
+``"not needed"`` and the store is complete (a loop of optional steps needs no placeholder stages).
+
 Every stage's random streams are keyed by (pipeline seed, stage name, seed-axis coordinates): the
 stages draw independent streams, and each keeps common random numbers across its other axes.
 """
@@ -28,7 +32,25 @@ from tubeid import _validation
 from tubeid.errors import SpecificationError
 from tubeid.runner.study import RESERVED, Parameter, Parameterised, Study, Warmup, _plain, check_name
 
-__all__ = ["Pipeline", "stage_hash"]
+__all__ = ["Pipeline", "End", "stage_hash"]
+
+
+@dataclasses.dataclass(frozen=True)
+class End:
+    """What a function stage returns when the pipeline has nothing left to compute: it ends before
+    that stage (see the module docstring).
+
+    Parameters
+    ----------
+    reason : str
+        Why (stored in the store's root attributes, ``ended``).
+    """
+
+    reason: str
+
+    def __post_init__(self):
+        if not isinstance(self.reason, str) or not self.reason:
+            raise SpecificationError("End.reason", self.reason, "must be a non-empty string")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -133,8 +155,9 @@ class Pipeline(Parameterised):
     def stage_names(self) -> list[str]:
         return [st.name if isinstance(st, Study) else st.__name__ for st in self.stages]
 
-    def stage(self, name: str, results: Mapping[str, Any]) -> Study:
-        """The ``Study`` of one stage given the earlier stages' results.
+    def stage(self, name: str, results: Mapping[str, Any]) -> Study | End:
+        """The ``Study`` of one stage given the earlier stages' results (or :class:`End`: the
+        pipeline ends before it).
 
         Parameters
         ----------
@@ -145,8 +168,9 @@ class Pipeline(Parameterised):
 
         Returns
         -------
-        Study
-            The stage's study, its random streams keyed by ``name``.
+        Study or End
+            The stage's study, its random streams keyed by ``name``; or the function stage's
+            :class:`End`.
         """
         names = self.stage_names
         if name not in names:
@@ -162,8 +186,11 @@ class Pipeline(Parameterised):
             takes_all = any(p.kind is p.VAR_KEYWORD for p in sig.parameters.values())
             kw = {k: v for k, v in self.values.items() if takes_all or k in sig.parameters}
             st = st(earlier, **kw)
+            if isinstance(st, End):
+                return st
             if not isinstance(st, Study):
-                raise SpecificationError(f"stages.{name}", type(st).__name__, "the stage function must return a Study")
+                raise SpecificationError(f"stages.{name}", type(st).__name__,
+                                         "the stage function must return a Study (or End)")
             if st.name != name:
                 raise SpecificationError(f"stages.{name}.name", st.name, f"must be the stage (function) name {name!r}")
             if st.seed != self.seed:

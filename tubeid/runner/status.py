@@ -29,6 +29,8 @@ BOOKKEEPING = RESERVED
 FORMAT = "tubeid-study-store/2"
 PIPELINE_FORMAT = "tubeid-pipeline-store/2"
 LEGACY_FORMATS = ("tubeid-study-store/1", "tubeid-pipeline-store/1")
+#: The status of a pipeline stage after the pipeline ended before it (``tubeid.runner.End``).
+NOT_NEEDED = "not needed"
 FLAG_CODECS = [{"name": "bytes", "configuration": {"endian": "little"}}]
 """The codecs of a flag array this module reads directly: raw little-endian bytes, no compression."""
 
@@ -171,17 +173,22 @@ def pipeline_status(path: str | os.PathLike) -> dict:
     Returns
     -------
     dict
-        ``{"attrs", "lock", "stages": {name: {"started", "done", "total", "complete"[, "damaged"]}},
-        "done", "total", "complete"}``: the root provenance, the lock's holder (or None), and blocks
-        per stage and summed over the stages started so far.
+        ``{"attrs", "lock", "stages": {name: {"started", "done", "total", "complete"[, "damaged"]
+        [, "needed"]}}, "done", "total", "complete"}``: the root provenance, the lock's holder (or
+        None), and blocks per stage and summed over the stages started so far. A stage the pipeline
+        ended before (``tubeid.runner.End``; root attribute ``ended``) is not started, complete and
+        ``"needed": False``.
     """
     from tubeid.runner.lock import LOCK_NAME, read_lock
 
     p = pathlib.Path(path)
     attrs = _attrs(p)
+    status = attrs.get("stage_status", {})
     stages = {}
     for name in attrs.get("stages", []):
-        if (p / name / "zarr.json").exists():
+        if status.get(name) == NOT_NEEDED:
+            stages[name] = {"started": False, "done": 0, "total": 0, "complete": True, "needed": False}
+        elif (p / name / "zarr.json").exists():
             st = store_status(p, name)
             stages[name] = {"started": True, "done": st["done"], "total": st["total"], "complete": st["complete"]}
             if st["damaged"]:
