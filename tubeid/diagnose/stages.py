@@ -68,8 +68,8 @@ from tubeid.mechanics.effects import apply_effects, effect_from_dict, effect_to_
 from tubeid.runner.pipeline import End, Pipeline
 from tubeid.runner.study import Output, Parameter, Study, Warmup
 
-__all__ = ["study", "SEED", "STEP_STAGES", "REFIT_SWEEPS", "skipped", "absent", "state_before", "selection", "refit_result", "refit_point",
-           "sweep_reason", "sweeps_done", "final_point", "point_result"]
+__all__ = ["study", "SEED", "STEP_STAGES", "REFIT_SWEEPS", "skipped", "absent", "state_before", "selection",
+           "refit_result", "refit_point", "sweep_reason", "sweeps_done", "final_point", "point_result"]
 
 method = importlib.import_module("tubeid.diagnose.method")
 
@@ -836,8 +836,6 @@ def sweep_reason(ctx, results, k: int, sweep: int) -> str:
 def _refit(k, results, base, sweep=1):
     ctx = _ctx(base)
     name = _stage_name(k, "refit", sweep)
-    if absent(results, f"step{k}_trials"):
-        return _skipped(name, "no selection at this step")
     if sweep == 1:
         sel = selection(ctx, results, k)
         if not sel["chosen"]:
@@ -845,7 +843,7 @@ def _refit(k, results, base, sweep=1):
         effects, r = [effect_from_dict(e) for e in json.loads(sel["effects"])], [float(v) for v in sel["r"]]
     else:
         if absent(results, _stage_name(k, "refit", sweep - 1)):
-            return _skipped(name, "no effect chosen at this step")
+            return _skipped(name, f"no re-fit sweep {sweep - 1}")
         why = sweep_reason(ctx, results, k, sweep - 1)
         if not why:
             return _skipped(name, f"sweep {sweep - 1} bracketed every parameter and kept its moved point")
@@ -870,7 +868,8 @@ def _refit(k, results, base, sweep=1):
         cand = CATALOG[e.name]
         if cand.profiled is not None:  # its line is derived from the centre and this baseline (refit_result)
             trials.append({"effects": [x for j, x in enumerate(centre["effects"]) if j != i], "r": r, "baseline": i})
-            lines.append({"what": "effect", "index": i, "parameter": cand.profiled, "log": True, "baseline": len(trials) - 1})
+            lines.append({"what": "effect", "index": i, "parameter": cand.profiled, "log": True,
+                          "baseline": len(trials) - 1})
         for par, (values, log, variants) in cand.refine(e, ctx.spec, sur).items():
             idx = []
             for v, ev in zip(values, variants):
@@ -985,8 +984,8 @@ def _check(k, results, base, sweep=1):
     with the re-fit's streams (common random numbers), so its error compares with the re-fit's."""
     ctx = _ctx(base)
     name = _stage_name(k, "check", sweep)
-    if absent(results, _stage_name(k, "refit", sweep)):
-        return _skipped(name, "no effect chosen at this step" if sweep == 1 else f"no re-fit sweep {sweep}")
+    if absent(results, _stage_name(k, "refit", sweep)):  # a sweep after the first that was not needed
+        return _skipped(name, f"no re-fit sweep {sweep}")
     rf = refit_result(ctx, results, k, sweep=sweep)
     trials = [{"effects": json.loads(p["effects"]), "r": p["r"]} for p in (rf, rf["extended"]) if p is not None]
     st = _trial_study(name, base, ctx, trials, f"step {k}: the re-fit's moved point (and with its edge lines one step "
@@ -1025,8 +1024,6 @@ def final_point(ctx, results, k: int) -> dict:
 def _band_k(k, results, base):
     ctx = _ctx(base)
     name = f"step{k}_band"
-    if absent(results, f"step{k}_refit"):
-        return _skipped(name, "no effect chosen at this step", summarize_band)
     pt = final_point(ctx, results, k)
     return _band_study(name, base, ctx, pt["r"], pt["effects"], _delta(results),
                        results["load_delta_f"].attrs["delta_F_used"], k, f"after step {k}")

@@ -16,7 +16,8 @@ if TYPE_CHECKING:  # the lazy exports: imported on first use (tubeid._lazy reads
 
 __all__ = [
     "Study", "Output", "Parameter", "pointwise", "load_study", "run", "open_results", "RunReport", "RngFactory",
-    "store_status", "Pipeline", "End", "PipelineReport", "open_pipeline", "pipeline_status", "Warmup", "verify", "Verification",
+    "store_status", "Pipeline", "End", "PipelineReport", "open_pipeline", "pipeline_status", "Warmup", "verify",
+    "Verification",
 ]
 
 __getattr__, __dir__ = attach(__name__, __file__)
