@@ -366,7 +366,8 @@ def _residual_figure(diag, d: OutputDir) -> None:
             ax.fill_between(f[1:], lo[1:, j], hi[1:, j], color="0.8", label=f"model {level:.0%} band")
             ax.semilogy(f[1:], diag.measured[1:, j], "r", lw=0.6, label="measured (held out)")
             ax.yaxis.set_minor_locator(NullLocator())  # decades only: minor log ticks double the drawing time
-            ax.set_title(f"{s}: {label}" + (f" ({names})" if label == "after" else ""), fontsize=8)
+            # y given: matplotlib then skips placing each title above the axis' tick labels (a third of the drawing)
+            ax.set_title(f"{s}: {label}" + (f" ({names})" if label == "after" else ""), fontsize=8, y=1.0)
             ax.set_xlabel("f [Hz]", fontsize=8)
             ax.tick_params(labelsize=7)
             if j == 0:

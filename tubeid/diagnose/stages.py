@@ -894,7 +894,8 @@ def fit_errors(ctx, results, ds) -> list[float]:
     else the sum over the trial's effects of their features' errors (:class:`FeatureErrors`)."""
     trials = json.loads(_params(ds)["trials"])
     if not _simplified(ctx):
-        return [prediction_error(ctx.meas.fit, q, _sigma(results), ctx.meas.frequency) for q in _trial_psds(ds, trials)]
+        sigma = _sigma(results)  # once: its moments run over every realisation of the band
+        return [prediction_error(ctx.meas.fit, q, sigma, ctx.meas.frequency) for q in _trial_psds(ds, trials)]
     fe = FeatureErrors(ctx, results)
     names = list(dict.fromkeys(feature_name(ctx, e["kind"]) for e in trials[0]["effects"]))
     return [sum(fe(n, o)[0] for n in names) for o in trial_observations(ctx, ds, trials)]
@@ -919,7 +920,8 @@ def _profiled_line(ctx, results, ds, trials, ln, centre_fit_error) -> tuple[list
         errs = [sum(fe(n, dataclasses.replace(obs[0], fine=np.stack([q[v][1] for q in per])))[0] for n in names)
                 for v in range(len(derived))]
     else:
-        errs = [prediction_error(ctx.meas.fit, q, _sigma(results), f) for _, q in derived]
+        sigma = _sigma(results)
+        errs = [prediction_error(ctx.meas.fit, q, sigma, f) for _, q in derived]
     effects = [[effect_to_dict(e) if j == i else x for j, x in enumerate(trials[0]["effects"])] for e, _ in derived]
     rows = sorted(zip([getattr(effect, ln["parameter"])] + [getattr(e, ln["parameter"]) for e, _ in derived],
                       [centre_fit_error] + errs, [trials[0]["effects"]] + effects), key=lambda row: row[0])

@@ -149,20 +149,30 @@ _STAGES: dict[tuple, object] = {}
 
 _OPENED: collections.OrderedDict = collections.OrderedDict()
 _OPENED_MAX = 64
+#: A stage of at most this many bytes is read into memory when opened (stage functions and summaries
+#: read the earlier stages' arrays many times: lazily opened, each access read the store again); a
+#: larger one stays lazy. Loaded stages kept per process hold at most ``_LOADED_BUDGET`` bytes.
+_LOAD_MAX_BYTES = 16 * 2**20
+_LOADED_BUDGET = 256 * 2**20
 
 
 def _open_stage(store, name: str, attrs: dict):
-    """Stage ``name`` of ``store`` opened without dask, kept per process (at most ``_OPENED_MAX``)
-    under its stage hash and ``finished`` time: a stage recomputed or repaired since has another
-    ``finished`` time, so an entry is always the stage as it stands complete in the store."""
+    """Stage ``name`` of ``store`` opened without dask (read into memory when small:
+    ``_LOAD_MAX_BYTES``), kept per process (at most ``_OPENED_MAX``, ``_LOADED_BUDGET`` bytes
+    loaded) under its stage hash and ``finished`` time: a stage recomputed or repaired since has
+    another ``finished`` time, so an entry is always the stage as it stands complete in the store."""
     import xarray as xr
 
     key = (str(store), name, attrs.get("stage_hash"), attrs.get("finished"))
     if key in _OPENED:
         _OPENED.move_to_end(key)
-        return _OPENED[key]
-    ds = _OPENED[key] = xr.open_zarr(str(store), group=name, chunks=None)
-    while len(_OPENED) > _OPENED_MAX:
+        return _OPENED[key][0]
+    ds = xr.open_zarr(str(store), group=name, chunks=None)
+    loaded = ds.nbytes <= _LOAD_MAX_BYTES
+    if loaded:
+        ds = ds.load()
+    _OPENED[key] = (ds, ds.nbytes if loaded else 0)
+    while len(_OPENED) > _OPENED_MAX or (len(_OPENED) > 1 and sum(b for _, b in _OPENED.values()) > _LOADED_BUDGET):
         _OPENED.popitem(last=False)
     return ds
 
