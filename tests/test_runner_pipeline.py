@@ -477,3 +477,28 @@ def test_a_stage_function_may_end_the_pipeline(tmp_path, capsys):
     assert list(full.stages) == ["first", "second", "third"] and "ended" not in store_status(tmp_path / "f.zarr")["attrs"]
     with pytest.raises(SpecificationError, match="End.reason"):
         End("")
+
+
+def test_a_small_stage_is_read_into_memory_once_and_a_large_one_stays_lazy(tmp_path, monkeypatch):
+    """Stage functions and summaries read earlier stages many times: a stage of at most
+    ``_LOAD_MAX_BYTES`` is read into memory when opened (its values survive its chunk files being
+    moved away), a larger one stays lazy (read then, it gives the missing chunks' fill value)."""
+    import shutil
+
+    from tubeid.runner import execute
+
+    path = write_pipeline(tmp_path)
+    store = tmp_path / "p.zarr"
+    run(path, store, workers=0, quiet=True)
+    attrs = store_status(store, "curve")["attrs"]
+    execute._OPENED.clear()
+    loaded = execute._open_stage(store, "curve", attrs)
+    monkeypatch.setattr(execute, "_LOAD_MAX_BYTES", 0)
+    execute._OPENED.clear()
+    lazy = execute._open_stage(store, "curve", attrs)
+    name = next(k for k in loaded.data_vars if (store / "curve" / k / "c").is_dir())
+    expected = xr.open_zarr(str(store), group="curve", chunks=None)[name].values
+    shutil.move(str(store / "curve" / name / "c"), str(tmp_path / "moved"))
+    np.testing.assert_array_equal(loaded[name].values, expected)
+    assert not np.array_equal(lazy[name].values, expected)  # read now: the missing chunks' fill value
+    execute._OPENED.clear()
