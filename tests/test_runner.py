@@ -261,6 +261,11 @@ def test_a_resume_removes_the_temporaries_a_killed_write_left_and_nothing_else(t
         f.unlink()
     (store / "mine").rmdir()
     assert store_digest(store) == store_digest(tmp_path / "ref.zarr")
+    # a manifest that cannot be read proves nothing tubeid's: the temporary stays, the run goes on
+    left[0].write_bytes(b"")
+    (store / ".tubeid-manifest.json").write_text("{damaged")
+    run(study, store, workers=0)
+    assert left[0].exists() and "are left in place" in capsys.readouterr().err
 
 
 def test_store_of_another_study_is_refused_unless_asked(tmp_path, capsys):

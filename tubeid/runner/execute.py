@@ -615,8 +615,13 @@ def run(study_path: str | os.PathLike, store: str | os.PathLike | None = None, *
 
 
 def _remove_temporaries(path, quiet) -> None:
-    """Remove the temporary files of writes killed before their rename (the caller holds the lock)."""
-    left = remove_temporaries(path)
+    """Remove the temporary files of writes killed before their rename (the caller holds the lock).
+    A store whose manifest cannot be read keeps them (nothing is provably tubeid's): the run goes on."""
+    try:
+        left = remove_temporaries(path)
+    except SpecificationError as exc:
+        _log(f"tubeid: note: temporary files of interrupted writes, if any, are left in place: {exc}", quiet)
+        return
     if left:
         _log(f"tubeid: removed {len(left)} temporary file(s) an interrupted write left in {path}: "
              + ", ".join(left[:3]) + (" ..." if len(left) > 3 else ""), quiet)
