@@ -681,6 +681,11 @@ def test_a_second_refit_sweep_runs_where_the_first_did_not_bracket_and_ends_the_
     assert st.stream_key == ("step1_refit",) and st.name == "step1_refit2"
     gap = effect_from_dict(centre["effects"][0]).gap
     assert gap == pytest.approx(stages.line_minimum([1.16e-6, 2.32e-6, 4.64e-6], [14.1, 2.42, 3.20], True), rel=1e-12, abs=0)
+    # where the first sweep kept its best evaluated point (the moved one worse), the second starts there
+    errors["check"] = [2.50, 2.36]
+    assert stages.refit_point(ctx, results, 1)["point"] == "best"
+    centre = stages._builder("refit2")(1, results, base).trials[0]
+    assert centre["r"] == [1.408 * 10**-0.1] and effect_from_dict(centre["effects"][0]).gap == 2.32e-6
     # the step's band is computed at the last sweep's kept point
     results["step1_refit2"] = xr.Dataset(attrs={"name": "refit"})
     monkeypatch.setattr(stages, "refit_point", lambda ctx, results, k, rf=None, sweep=1: {"sweep": sweep})
@@ -733,6 +738,12 @@ def test_a_tones_amplitude_is_refitted_along_its_profile_not_by_simulated_trials
     best = json.loads(rf["best_trial"]["effects"])
     assert best and effect_from_dict(best[0]).amplitude == pytest.approx(100.0, rel=0.01, abs=0)
     assert rf["best_trial"]["fit_error"] == min(amp["errors"])  # a derived point; never the baseline (no tone)
+    # a record without the line: the baseline (the model without the tone) fits it exactly, yet it is no
+    # point of the re-fit (the step's effect would be dropped): the best point keeps the tone
+    ctx.meas.fit = floor
+    monkeypatch.setattr(stages, "fit_errors", lambda ctx, results, ds: [prediction_error(floor, q, sigma, f) for q in psds])
+    rf = stages.refit_result(ctx, {"step1_refit": refit}, 1)
+    assert json.loads(rf["best_trial"]["effects"]) and rf["best_trial"]["fit_error"] > 0
 
 
 def test_line_minimum_is_the_parabola_vertex_in_log_and_keeps_an_end():
@@ -942,6 +953,20 @@ def _raw(y, dt, names, xs):
     return xr.Dataset({"displacement": (("time", "sensor"), y, {"units": "m"})},
                       coords={"time": np.arange(y.shape[0]) * dt, "sensor": names, "x": ("sensor", xs),
                               "tube": ("sensor", ["centre"] * len(names))})
+
+
+def test_block_psds_are_the_same_bits_with_and_without_the_cross_spectra():
+    """The records' auto-PSDs come from the PSD matrix where the conditional PSD needs it and from the
+    auto-PSDs alone elsewhere (simulated trials): the same bits for any number of blocks (a complex
+    mean over 3, 5 or 6 blocks was 1 ulp off the real one)."""
+    from tubeid.diagnose._spectra import block_observations
+
+    rng = np.random.default_rng(3)
+    for nb in (2, 3, 5, 6):
+        x = rng.standard_normal((2, nb, 4000, 5)) * 1e-6
+        full = block_observations(x, 3e-3, 2.0, 4.0, residual=True)
+        np.testing.assert_array_equal(full["psd"], block_observations(x, 3e-3, 2.0, 4.0, residual=False)["psd"])
+        np.testing.assert_array_equal(full["psd"], block_observations(x, 3e-3, 2.0, None)["psd"])
 
 
 def test_time_statistics_match_scipy():

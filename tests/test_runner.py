@@ -239,7 +239,8 @@ def test_interrupted_run_is_partial_readable_and_resumes_identically(tmp_path, m
 
 def test_a_resume_removes_the_temporaries_a_killed_write_left_and_nothing_else(tmp_path, monkeypatch, capsys):
     """A SIGKILL between zarr's write of ``<chunk>.<32 hex>.partial`` and its rename leaves that file
-    (seen in CI); the resume removes it (and tubeid's ``.tubeid-tmp-*``), never a user's look-alike."""
+    (seen in CI); the resume removes it (and ``zarr.<32 hex>.partial``, tubeid's ``.tubeid-tmp-`` +
+    8 characters), never a user's look-alike, nor a file behind a link among the chunks."""
     study = write_study(tmp_path, realisations=8, chunk=2, work=2)
     run(study, tmp_path / "ref.zarr", workers=0, quiet=True)
     monkeypatch.setenv("TUBEID_TEST_FAIL_AT", "5")
@@ -247,25 +248,33 @@ def test_a_resume_removes_the_temporaries_a_killed_write_left_and_nothing_else(t
         run(study, tmp_path / "s.zarr", workers=0, quiet=True)
     monkeypatch.delenv("TUBEID_TEST_FAIL_AT")
     store = tmp_path / "s.zarr"
-    left = [store / "x/c/0/2/0.f810c525c188462d986b9aa970a711e3.partial", store / ".tubeid-tmp-abc123"]
-    users = [store / "x/c/0/2/0.notes.partial", store / "x/notes.partial", store / "mine" / "a.0123456789abcdef0123456789abcdef.partial"]
+    hexes = "f810c525c188462d986b9aa970a711e3"
+    left = [store / f"x/c/0/2/0.{hexes}.partial", store / f"x/zarr.{hexes}.partial", store / ".tubeid-tmp-abc12_de"]
+    users = [store / "x/c/0/2/0.notes.partial", store / "x/notes.partial", store / "mine" / f"a.{hexes}.partial",
+             store / ".tubeid-tmp-my-notes.txt", store / f"my-download.{hexes}.partial"]
+    outside = tmp_path / "elsewhere" / "c"
+    (outside / "0").mkdir(parents=True)
+    (outside / "0" / f"9.{hexes}.partial").write_bytes(b"")
     for f in left + users:
         f.parent.mkdir(parents=True, exist_ok=True)
         f.write_bytes(b"")
+    (store / "x" / "c" / "9").symlink_to(outside / "0")  # a link among an array's chunks is not entered
     run(study, store, workers=0)
     err = capsys.readouterr().err
-    assert "removed 2 temporary file(s)" in err
+    assert "removed 3 temporary file(s)" in err
     assert not any(f.exists() for f in left)
-    assert all(f.exists() for f in users)
+    assert all(f.exists() for f in users) and (outside / "0" / f"9.{hexes}.partial").exists()
     for f in users:
         f.unlink()
     (store / "mine").rmdir()
+    (store / "x" / "c" / "9").unlink()
     assert store_digest(store) == store_digest(tmp_path / "ref.zarr")
-    # a manifest that cannot be read proves nothing tubeid's: the temporary stays, the run goes on
+    # a manifest that cannot be read proves nothing tubeid's: the temporary stays, the run goes on (noted once)
     left[0].write_bytes(b"")
     (store / ".tubeid-manifest.json").write_text("{damaged")
     run(study, store, workers=0)
-    assert left[0].exists() and "are left in place" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert left[0].exists() and err.count("are left in place") == 1
 
 
 def test_store_of_another_study_is_refused_unless_asked(tmp_path, capsys):

@@ -23,9 +23,9 @@ from tubeid.errors import SpecificationError
 from tubeid.runner.cli import main as cli
 from tubeid.runner.execute import run
 from tubeid.runner.pipeline import End, Pipeline
-from tubeid.runner.store import open_pipeline, open_results, store_status
+from tubeid.runner.store import open_pipeline, open_results, store_status, update_attrs
 from tubeid.runner.study import Output, Parameter, Study, load_definition, load_study
-from tubeid.runner.testing import flags, store_digest, write_pipeline
+from tubeid.runner.testing import clear_flag, flags, store_digest, write_pipeline
 from tubeid.seeds import rng_for
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
@@ -426,6 +426,7 @@ def test_an_opened_stage_is_reopened_once_it_finished_again(tmp_path):
 
 
 ENDS = '''
+import os
 import numpy as np
 from tubeid.runner import End, Output, Pipeline, Study
 
@@ -440,7 +441,7 @@ def first(results, *, more):
 
 
 def second(results):
-    if not results["first"].attrs["more"]:
+    if not results["first"].attrs["more"] and not os.environ.get("TUBEID_TEST_GO_ON"):
         return End("nothing left after first")
     return Study(name="second", seed=4, axes={"i": range(2)}, task=_ones, outputs={"y": Output()})
 
@@ -453,10 +454,11 @@ study = Pipeline(name="ends", seed=4, stages=[first, second, third], parameters=
 '''
 
 
-def test_a_stage_function_may_end_the_pipeline(tmp_path, capsys):
+def test_a_stage_function_may_end_the_pipeline(tmp_path, capsys, monkeypatch):
     """``End(reason)`` from a stage function: that stage and the later ones are not built (no group,
-    status "not needed"), the store is complete, a rerun has nothing to do, ``status`` says why; with
-    the other parameter value the same pipeline runs every stage."""
+    status "not needed"), the store is complete, a rerun has nothing to do, ``status`` (and its JSON)
+    says why; a resume finalises a store stopped just after; a run that goes past the stage where an
+    earlier one ended clears ``ended``; with the other parameter value every stage runs."""
     (tmp_path / "ends.py").write_text(ENDS)
     store = tmp_path / "e.zarr"
     rep = run(tmp_path / "ends.py", store, workers=0, overrides={"more": False}, quiet=True)
@@ -473,6 +475,22 @@ def test_a_stage_function_may_end_the_pipeline(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "3/3 stages complete, complete" in out and "third: not needed" in out
     assert "ended before stage second: nothing left after first" in out
+    assert cli(["status", str(store), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["ended"]["stage"] == "second"
+    # stopped after ending but before the store's finalisation: the resume finalises it
+    update_attrs(store, finished="")
+    run(tmp_path / "ends.py", store, workers=0, overrides={"more": False}, quiet=True)
+    assert store_status(store)["attrs"]["finished"]
+    # a later run that goes past the stage where an earlier one ended (here: a stage function reading
+    # the environment, as a non-deterministic one would) clears `ended` and runs the rest
+    clear_flag(store, (0,), "first")
+    update_attrs(store, "first", finished="", root=False)
+    monkeypatch.setenv("TUBEID_TEST_GO_ON", "1")
+    went_on = run(tmp_path / "ends.py", store, workers=0, overrides={"more": False}, quiet=True)
+    monkeypatch.delenv("TUBEID_TEST_GO_ON")
+    st = store_status(store)
+    assert list(went_on.stages) == ["first", "second", "third"] and st["complete"] and not st["attrs"].get("ended")
+    assert all(s["started"] for s in st["stages"].values())
     full = run(tmp_path / "ends.py", tmp_path / "f.zarr", workers=0, quiet=True)
     assert list(full.stages) == ["first", "second", "third"] and "ended" not in store_status(tmp_path / "f.zarr")["attrs"]
     with pytest.raises(SpecificationError, match="End.reason"):

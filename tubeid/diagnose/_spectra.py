@@ -108,8 +108,10 @@ def block_observations(blocks: np.ndarray, dt: float, segment_seconds: float, fi
     y = blocks.reshape(blocks.shape[:-3] + (-1, blocks.shape[-1]))
     if fine_seconds is not None and residual:  # the cross spectra are read
         f, S = psd_matrix(blocks, dt, segment_seconds=segment_seconds)
-        S = S.mean(axis=-4)
-        out = {"frequency": f, "psd": np.real(np.diagonal(S, axis1=-2, axis2=-1)), "residual": conditional_psd(S)}
+        # the diagonal averaged as the auto-PSDs are (a complex mean divides by a complex count: 1 ulp
+        # off the real mean for block counts that are not powers of 2)
+        out = {"frequency": f, "psd": np.real(np.diagonal(S, axis1=-2, axis2=-1)).mean(axis=-3),
+               "residual": conditional_psd(S.mean(axis=-4))}
     else:  # the auto-PSDs only: psd_matrix's diagonal, bit for bit
         f, P = auto_psd(blocks, dt, segment_seconds)
         out = {"frequency": f, "psd": P.mean(axis=-3)}

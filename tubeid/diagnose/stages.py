@@ -905,7 +905,9 @@ def _profiled_line(ctx, results, ds, trials, ln, centre_fit_error) -> tuple[list
     """A profiled parameter's re-fit line (``Candidate.profiled``): the centre trial and its
     :meth:`~tubeid.diagnose.catalog.Candidate.variants` against the baseline trial ``ln["baseline"]``
     (the same model without the effect, the same streams) → (values, fitting errors, effect lists
-    as dicts), by increasing value. Errors as :func:`fit_errors` computes them."""
+    as dicts), by increasing value. Errors as :func:`fit_errors` computes them; the derived points'
+    are estimates (their PSDs derived, not simulated), compared as they are with the simulated
+    points' when the re-fit keeps its best evaluated point (a second sweep then simulates it)."""
     i, jb, f = ln["index"], ln["baseline"], ctx.meas.frequency
     effect = effect_from_dict(trials[0]["effects"][i])
     cand = CATALOG[effect.name]

@@ -128,6 +128,8 @@ def _status(args) -> int:
             extra["verified"] = {str(k): {"checked": v.checked, "ok": v.ok, "findings": v.lines(limit=1000)}
                                  for k, v in checks.items()}
         extra["lock"] = st.get("lock")
+        if a.get("ended"):
+            extra["ended"] = a["ended"]
         print(json.dumps({k: st[k] for k in ("done", "total", "complete")} | {k: a.get(k) for k in keys} | extra))
         return 1 if damaged else 0
     if "stages" in st:

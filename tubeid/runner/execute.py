@@ -32,7 +32,7 @@ from tubeid.runner.pipeline import End, Pipeline, stage_hash
 from tubeid.runner.status import NOT_NEEDED
 from tubeid.runner.store import (append_history, block_flags, check_blocks, check_stage, check_store, history_line,
                                  init_pipeline_store, init_stage, init_store, now, prepare_path, read_attrs, remove_store,
-                                 remove_temporaries, _read_manifest, _remove_nodes,
+                                 remove_temporaries, _forget_nodes, _read_manifest, _remove_nodes,
                                  set_flags, tubeid_version, update_attrs, write_block)
 from tubeid.runner.study import _plain, load_definition, load_study
 
@@ -208,8 +208,9 @@ def run_stage_block(store: str, source: str, overrides: dict, name: str, expecte
     if ck not in _STAGES:
         pipeline, _, key = load_definition(source=source, overrides=overrides)
         study, h = stage_study(pipeline, key, store, name)
-        if h != expected_hash:
-            raise RuntimeError(f"stage {name!r} was rebuilt with hash {h[:12]} on this worker, {expected_hash[:12]} by "
+        if h is None or h != expected_hash:
+            got = "as End" if h is None else f"with hash {h[:12]}"
+            raise RuntimeError(f"stage {name!r} was rebuilt {got} on this worker, with hash {expected_hash[:12]} by "
                                "the runner: the stage function must be deterministic (and read the same store)")
         _STAGES[ck] = study
     study = _STAGES[ck]
@@ -593,8 +594,7 @@ def run(study_path: str | os.PathLike, store: str | os.PathLike | None = None, *
     lock.acquire()
     try:
         state = "new" if overwrite else check_store(path, key)  # again, holding the lock
-        if state == "resume":
-            _remove_temporaries(path, quiet)
+        readable = _remove_temporaries(path, quiet) if state == "resume" else True
         if overwrite:
             kept = remove_store(path)
             if kept:
@@ -604,7 +604,8 @@ def run(study_path: str | os.PathLike, store: str | os.PathLike | None = None, *
                    workers=workers, scheduler=scheduler, client=client, overrides=overrides, verify=verify_blocks,
                    progress=progress and not quiet, quiet=quiet, lock=lock)
         report = _run_pipeline(ctx) if isinstance(study, Pipeline) else _run_study(ctx)
-        _remove_temporaries(path, quiet)  # a worker killed mid-write, its block since rerun elsewhere
+        if readable:
+            _remove_temporaries(path, quiet)  # a worker killed mid-write, its block since rerun elsewhere
         return report
     finally:
         lock.release()
@@ -614,17 +615,19 @@ def run(study_path: str | os.PathLike, store: str | os.PathLike | None = None, *
             path.rmdir()
 
 
-def _remove_temporaries(path, quiet) -> None:
+def _remove_temporaries(path, quiet) -> bool:
     """Remove the temporary files of writes killed before their rename (the caller holds the lock).
-    A store whose manifest cannot be read keeps them (nothing is provably tubeid's): the run goes on."""
+    A store whose manifest cannot be read keeps them (nothing is provably tubeid's) and the run goes
+    on: returns False then (said once), else True."""
     try:
         left = remove_temporaries(path)
     except SpecificationError as exc:
         _log(f"tubeid: note: temporary files of interrupted writes, if any, are left in place: {exc}", quiet)
-        return
+        return False
     if left:
         _log(f"tubeid: removed {len(left)} temporary file(s) an interrupted write left in {path}: "
              + ", ".join(left[:3]) + (" ..." if len(left) > 3 else ""), quiet)
+    return True
 
 
 @dataclasses.dataclass
@@ -725,6 +728,8 @@ def _run_pipeline(ctx: _Run) -> PipelineReport:
         if not ctx.verify or _verify_complete_pipeline(ctx, report):
             report.prepare = time.perf_counter() - t0
             checked = "verified" if ctx.verify else "not verified"
+            if not read_attrs(path).get("finished"):  # every stage done, but stopped before the finalisation
+                update_attrs(path, finished=now(), add_history="complete (found so on a resume)")
             _log(f"tubeid: {path} is complete ({len(pipeline.stages)} stages, {checked}): nothing to do", quiet)
             return report
         report.stages.clear()
@@ -753,8 +758,9 @@ def _run_pipeline(ctx: _Run) -> PipelineReport:
     update_attrs(path, finished=now(),
                  add_history=f"complete: {report.computed} block(s) computed, {report.skipped} already done")
     report.finalise = time.perf_counter() - t0
-    _log(f"tubeid: done: {report.computed} blocks computed, {report.skipped} already done "
-         f"({len(pipeline.stages)} stages); store {path}", quiet)
+    ran = (f"{len(report.stages)} of {len(pipeline.stages)} stages, the rest not needed"
+           if len(report.stages) < len(pipeline.stages) else f"{len(pipeline.stages)} stages")
+    _log(f"tubeid: done: {report.computed} blocks computed, {report.skipped} already done ({ran}); store {path}", quiet)
     return report
 
 
@@ -774,6 +780,7 @@ def _end_pipeline(ctx: _Run, name: str, reason: str) -> None:
     left = {n: k for n, k in _read_manifest(path).items() if any(n == s or n.startswith(s + "/") for s in later)}
     if left:
         _remove_nodes(path, left)
+        _forget_nodes(path, left)
     status = dict(read_attrs(path).get("stage_status", {}))
     status.update({n: NOT_NEEDED for n in later})
     update_attrs(path, stage_status=status, ended={"stage": name, "reason": reason})
@@ -788,6 +795,8 @@ def _run_stage(ctx: _Run, name: str, client) -> RunReport | None:
     if isinstance(study, End):
         _end_pipeline(ctx, name, study.reason)
         return None
+    if read_attrs(path).get("ended"):  # an earlier run ended the pipeline here or before; this one goes on
+        update_attrs(path, ended=None)
     _STAGES[(str(path), shash)] = study  # the in-process runner reuses it
     state = check_stage(path, name, shash)
     report = RunReport(store=path, total=study.n_blocks, computed=0, skipped=0, workers=0)

@@ -207,6 +207,10 @@ def _record_nodes(p: pathlib.Path, nodes: dict) -> None:
     """Add ``{node path: "group" | "array"}`` to the manifest (atomic replace; the caller holds the lock)."""
     entries = _read_manifest(p)
     entries.update(nodes)
+    _write_manifest(p, entries)
+
+
+def _write_manifest(p: pathlib.Path, entries: dict) -> None:
     doc = {"tubeid_manifest": 1, "nodes": dict(sorted(entries.items()))}
     fd, tmp = tempfile.mkstemp(prefix=".tubeid-tmp-", dir=p)
     with os.fdopen(fd, "w") as fh:
@@ -214,6 +218,13 @@ def _record_nodes(p: pathlib.Path, nodes: dict) -> None:
         fh.flush()
         os.fsync(fh.fileno())
     os.replace(tmp, p / MANIFEST_NAME)
+
+
+def _forget_nodes(p: pathlib.Path, nodes) -> None:
+    """Drop ``nodes`` (removed: :func:`_remove_nodes`) from the manifest (atomic replace; the caller
+    holds the lock): a directory a user makes there later is not taken for tubeid's."""
+    entries = {n: k for n, k in _read_manifest(p).items() if n not in nodes}
+    _write_manifest(p, entries)
 
 
 def _legacy_nodes(p: pathlib.Path) -> dict:
@@ -226,28 +237,45 @@ def _legacy_nodes(p: pathlib.Path) -> dict:
 
 
 _CHUNK = re.compile(r"^c(/\d+)*$")
-_PARTIAL = re.compile(r"\.[0-9a-f]{32}\.partial$")  # zarr's own temporary files (atomic writes)
+#: zarr's atomic writes: ``Path.with_suffix(".<32 hex>.partial")`` of the file they replace, so
+#: ``zarr.json`` → ``zarr.<hex>.partial`` and chunk ``3`` → ``3.<hex>.partial``
+_ZARR_META_TMP = re.compile(r"zarr\.[0-9a-f]{32}\.partial")
+_ZARR_CHUNK_TMP = re.compile(r"\d+\.[0-9a-f]{32}\.partial")
+#: tubeid's own: ``tempfile.mkstemp(prefix=".tubeid-tmp-")`` (8 characters of ``[a-z0-9_]``)
+_TUBEID_TMP = re.compile(r"\.tubeid-tmp-[a-z0-9_]{8}")
+
+
+def _own_regular_file(f: pathlib.Path, root: pathlib.Path) -> bool:
+    """A regular file (not a link) that resolves inside the store ``root``."""
+    return f.is_file() and not f.is_symlink() and root in f.resolve().parents
 
 
 def _node_files(p: pathlib.Path, node: str, kind: str) -> list[pathlib.Path]:
-    """The files of one recorded node: its ``zarr.json``, its chunks (arrays) and zarr's temporary files."""
+    """The files of one recorded node: its ``zarr.json``, its chunks (arrays) and the temporary files
+    of atomic writes (:func:`_is_temporary`); never a file behind a link or outside the store (a
+    chunk directory that is a link is not entered)."""
     d = p / node if node else p
-    out = []
-    for name in ("zarr.json",):
-        if (d / name).is_file():
-            out.append(d / name)
-    out += [f for f in d.glob("*") if f.is_file() and _is_temporary(f)]
-    if kind == "array" and (d / "c").is_dir():
-        for f in (d / "c").rglob("*"):
-            rel = f.relative_to(d).as_posix()
-            if f.is_file() and (_CHUNK.match(rel) or (_PARTIAL.search(f.name) and _CHUNK.match(rel[:_PARTIAL.search(rel).start()]))):
-                out.append(f)
+    root = p.resolve()
+    out = [f for f in (d / "zarr.json",) if _own_regular_file(f, root)]
+    out += [f for f in d.glob("*") if _is_temporary(f, chunk=False) and _own_regular_file(f, root)]
+    c = d / "c"
+    if kind == "array" and c.is_dir() and not c.is_symlink():
+        for top, dirs, files in os.walk(c):  # does not descend into linked directories
+            rel = pathlib.Path(top).relative_to(d).as_posix()
+            if not _CHUNK.match(rel):
+                continue
+            for name in files:
+                f = pathlib.Path(top) / name
+                if (_CHUNK.match(f"{rel}/{name}") or _is_temporary(f, chunk=True)) and _own_regular_file(f, root):
+                    out.append(f)
     return out
 
 
-def _is_temporary(f: pathlib.Path) -> bool:
-    """A temporary file of an atomic write: zarr's ``<key>.<32 hex>.partial`` or tubeid's ``.tubeid-tmp-*``."""
-    return bool(_PARTIAL.search(f.name)) or f.name.startswith(".tubeid-tmp-")
+def _is_temporary(f: pathlib.Path, chunk: bool) -> bool:
+    """A temporary file of an atomic write, by its name: zarr's (``zarr.<32 hex>.partial`` beside a
+    node's metadata, ``<digits>.<32 hex>.partial`` among its chunks, ``chunk``) or tubeid's
+    (``.tubeid-tmp-`` and mkstemp's 8 characters)."""
+    return bool((_ZARR_CHUNK_TMP if chunk else _ZARR_META_TMP).fullmatch(f.name) or _TUBEID_TMP.fullmatch(f.name))
 
 
 def remove_temporaries(path) -> list[str]:
@@ -266,7 +294,7 @@ def remove_temporaries(path) -> list[str]:
     removed = []
     for node, kind in nodes.items():
         for f in _node_files(p, node, kind):
-            if _is_temporary(f):
+            if _is_temporary(f, chunk=f.parent != (p / node if node else p)):
                 f.unlink()
                 removed.append(f.relative_to(p).as_posix())
     return sorted(removed)
