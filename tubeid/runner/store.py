@@ -282,11 +282,12 @@ def remove_temporaries(path) -> list[str]:
     """Remove the temporary files that atomic writes left in the store ``path``'s recorded nodes.
 
     A write killed between creating its temporary file and renaming it (``SIGKILL``, a lost node)
-    leaves ``<chunk>.<32 hex>.partial`` (zarr) or ``.tubeid-tmp-*`` (tubeid) behind; nothing reads
-    them, but a resumed store would then differ from one run without interruption. Only files of
-    the nodes the manifest records and named by those two rules are removed: tubeid wrote them. The
-    caller holds the store's lock (no write of ours is in flight). Returns their paths, relative to
-    the store.
+    leaves it behind (:func:`_is_temporary`: zarr's ``zarr.<32 hex>.partial`` and
+    ``<digits>.<32 hex>.partial``, tubeid's ``.tubeid-tmp-`` + 8 characters); nothing reads them, but
+    a resumed store would then differ from one run without interruption. Only regular files of the
+    nodes the manifest records, inside the store, with those exact names are removed: tubeid wrote
+    them. The caller holds the store's lock (no write of ours is in flight). Returns their paths,
+    relative to the store.
     """
     p = pathlib.Path(path)
     nodes = _read_manifest(p)
