@@ -312,6 +312,30 @@ def test_status_and_show_cli(tmp_path, capsys):
     assert cli(["status", str(tmp_path / "nothing.zarr")]) == 2
 
 
+def test_worker_environ_goes_over_dasks_and_refuses_bad_entries():
+    """The embedded workers' environment: dask's pre-spawn-environ with tubeid.runner.worker-environ
+    over it (the packaged allocator values replace dask's 64 KiB trim threshold; dask's other
+    variables stay); a bad entry is refused naming the field, the value and the rule."""
+    import dask
+
+    from tubeid import config
+    from tubeid.runner.execute import _worker_environ
+
+    packaged = config.get("runner.worker-environ")
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": {"MALLOC_TRIM_THRESHOLD_": 65536, "OMP_NUM_THREADS": 1}}):
+        env = _worker_environ()
+    assert env == {"MALLOC_TRIM_THRESHOLD_": packaged["MALLOC_TRIM_THRESHOLD_"], "OMP_NUM_THREADS": 1,
+                   "MALLOC_MMAP_THRESHOLD_": packaged["MALLOC_MMAP_THRESHOLD_"]}
+    assert packaged["MALLOC_TRIM_THRESHOLD_"] > 65536 and packaged["MALLOC_MMAP_THRESHOLD_"] <= 32 * 2**20
+    for bad, field, rule in (([1], "runner.worker-environ", "must be a mapping"),
+                             ({"A=B": 1}, "runner.worker-environ", "without '='"),
+                             ({"X": True}, "runner.worker-environ.X", "string, an integer or null"),
+                             ({"X": 1.5}, "runner.worker-environ.X", "string, an integer or null")):
+        with dask.config.set({"tubeid.runner.worker-environ": bad}), pytest.raises(SpecificationError) as err:
+            _worker_environ()
+        assert err.value.field == field and rule in str(err.value), (bad, str(err.value))
+
+
 def test_configuration_env_overrides_and_default_chunk(tmp_path):
     from tubeid import config
 

@@ -425,6 +425,29 @@ def test_the_embedded_workers_leave_ctrl_c_to_the_runner():
     assert len(handlers) == 2 and all(handlers.values()), handlers
 
 
+def test_the_embedded_workers_start_with_the_configured_environment(monkeypatch):
+    """tubeid.runner.worker-environ is set before the worker processes start (glibc reads its
+    allocator variables only then): the packaged MALLOC_MMAP_THRESHOLD_ arrives, and a variable set
+    in the caller's environment wins over the packaged value (dask's rule for pre-spawn-environ)."""
+    from tubeid import config
+    from tubeid.runner.execute import _client
+
+    saved = dict(os.environ)  # the nannies also write the variables into this process's environment
+    try:
+        monkeypatch.delenv("MALLOC_MMAP_THRESHOLD_", raising=False)
+        monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "123456")
+        with _client(1, None, None, True) as (client, _):
+            env = client.run(lambda: {k: os.environ.get(k) for k in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_",
+                                                                    "OMP_NUM_THREADS")})
+    finally:
+        os.environ.clear()
+        os.environ.update(saved)
+    (worker,) = env.values()
+    packaged = config.get("runner.worker-environ")
+    assert worker == {"MALLOC_MMAP_THRESHOLD_": str(packaged["MALLOC_MMAP_THRESHOLD_"]),
+                      "MALLOC_TRIM_THRESHOLD_": "123456", "OMP_NUM_THREADS": "1"}, worker
+
+
 def test_a_users_client_is_used_and_never_closed(study, reference, tmp_path, capsys):
     """run(client=...) and, without client/workers/scheduler, distributed.default_client(): the user's
     LocalCluster runs the blocks (identical store) and stays open."""

@@ -410,7 +410,8 @@ def _client(workers: int | None, scheduler: str | None, client, quiet: bool):
 
     n = workers or config.get("runner.workers") or os.cpu_count() or 1
     security = _embedded_security()
-    with dask.config.set({"distributed.scheduler.allowed-failures": config.get("runner.allowed-failures", 3)}):
+    with dask.config.set({"distributed.scheduler.allowed-failures": config.get("runner.allowed-failures", 3),
+                          "distributed.nanny.pre-spawn-environ": _worker_environ()}):
         try:
             cluster = LocalCluster(n_workers=int(n), threads_per_worker=int(config.get("runner.threads-per-worker", 1)),
                                    processes=True, host=config.get("runner.host", "127.0.0.1"),
@@ -429,6 +430,25 @@ def _client(workers: int | None, scheduler: str | None, client, quiet: bool):
         own.run(_warm)  # imports once per worker, before the clock of the first task starts
         tls = ", TLS with ephemeral credentials" if security is not None else ""
         yield own, f"embedded LocalCluster ({len(cluster.workers)} single-threaded worker processes{tls})"
+
+
+def _worker_environ() -> dict:
+    """dask's ``distributed.nanny.pre-spawn-environ`` with ``tubeid.runner.worker-environ`` over it:
+    the environment the embedded cluster's nannies set before starting a worker process (a variable
+    already in this process's environment wins there; a None value leaves the variable unset)."""
+    import dask
+
+    extra = config.get("runner.worker-environ") or {}
+    if not isinstance(extra, dict):
+        raise SpecificationError("runner.worker-environ", extra, "must be a mapping of environment variable names "
+                                 "to values (or null)")
+    for name, value in extra.items():
+        if not isinstance(name, str) or not name or "=" in name:
+            raise SpecificationError("runner.worker-environ", name, "must hold environment variable names "
+                                     "(non-empty strings without '=')")
+        if isinstance(value, bool) or not (value is None or isinstance(value, (str, int))):
+            raise SpecificationError(f"runner.worker-environ.{name}", value, "must be a string, an integer or null")
+    return {**(dask.config.get("distributed.nanny.pre-spawn-environ", default=None) or {}), **extra}
 
 
 def _warm() -> None:
