@@ -14,6 +14,7 @@ import sys
 import numpy as np
 import pytest
 import xarray as xr
+import yaml
 
 from tubeid.errors import SpecificationError
 from tubeid.runner.cli import main as cli
@@ -314,26 +315,40 @@ def test_status_and_show_cli(tmp_path, capsys):
 
 def test_worker_environ_goes_over_dasks_and_refuses_bad_entries():
     """The embedded workers' environment: dask's pre-spawn-environ with tubeid.runner.worker-environ
-    over it (the packaged allocator values replace dask's 64 KiB trim threshold; dask's other
-    variables stay); a bad entry is refused naming the field, the value and the rule."""
+    over it (tubeid's values replace dask's, dask's other variables stay); a bad entry is refused
+    naming the field, the value and the rule (a mangled TUBEID_... override, a MALLOC_ value glibc
+    would ignore, which brings dask's fixed 128 KiB mmap threshold back)."""
     import dask
 
     from tubeid import config
     from tubeid.runner.execute import _worker_environ
 
-    packaged = config.get("runner.worker-environ")
-    with dask.config.set({"distributed.nanny.pre-spawn-environ": {"MALLOC_TRIM_THRESHOLD_": 65536, "OMP_NUM_THREADS": 1}}):
-        env = _worker_environ()
-    assert env == {"MALLOC_TRIM_THRESHOLD_": packaged["MALLOC_TRIM_THRESHOLD_"], "OMP_NUM_THREADS": 1,
-                   "MALLOC_MMAP_THRESHOLD_": packaged["MALLOC_MMAP_THRESHOLD_"]}
-    assert packaged["MALLOC_TRIM_THRESHOLD_"] > 65536 and packaged["MALLOC_MMAP_THRESHOLD_"] <= 32 * 2**20
+    packaged = yaml.safe_load((REPO / "tubeid/tubeid.yaml").read_text())["tubeid"]["runner"]["worker-environ"]
+    assert packaged["MALLOC_TRIM_THRESHOLD_"] > 65536 and 131072 < packaged["MALLOC_MMAP_THRESHOLD_"] <= 32 * 2**20
+    ours = {"MALLOC_TRIM_THRESHOLD_": 268435456, "MALLOC_MMAP_THRESHOLD_": "33554432", "OTHER": None}
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": {"MALLOC_TRIM_THRESHOLD_": 65536, "OMP_NUM_THREADS": 1},
+                          "tubeid.runner.worker-environ": ours}):
+        assert _worker_environ() == {"MALLOC_TRIM_THRESHOLD_": 268435456, "OMP_NUM_THREADS": 1,
+                                     "MALLOC_MMAP_THRESHOLD_": "33554432", "OTHER": None}
+    # what TUBEID_RUNNER__WORKER_ENVIRON__MALLOC_TRIM_THRESHOLD_=1 makes of the name
+    mangled = config.collect_env({"TUBEID_RUNNER__WORKER_ENVIRON__MALLOC_TRIM_THRESHOLD_": "1"})
+    (name,) = mangled["tubeid"]["runner"]["worker-environ"]
     for bad, field, rule in (([1], "runner.worker-environ", "must be a mapping"),
-                             ({"A=B": 1}, "runner.worker-environ", "without '='"),
+                             ({name: 1}, "runner.worker-environ", "TUBEID_RUNNER__WORKER_ENVIRON='{"),
+                             ({"malloc_trim_threshold_": 1}, "runner.worker-environ", "upper-case"),
+                             ({"A=B": 1}, "runner.worker-environ", "upper-case"),
                              ({"X": True}, "runner.worker-environ.X", "string, an integer or null"),
-                             ({"X": 1.5}, "runner.worker-environ.X", "string, an integer or null")):
+                             ({"X": 1.5}, "runner.worker-environ.X", "string, an integer or null"),
+                             ({"MALLOC_MMAP_THRESHOLD_": "32MiB"}, "runner.worker-environ.MALLOC_MMAP_THRESHOLD_",
+                              "number of bytes"),
+                             ({"MALLOC_TRIM_THRESHOLD_": -1}, "runner.worker-environ.MALLOC_TRIM_THRESHOLD_",
+                              "number of bytes")):
         with dask.config.set({"tubeid.runner.worker-environ": bad}), pytest.raises(SpecificationError) as err:
             _worker_environ()
         assert err.value.field == field and rule in str(err.value), (bad, str(err.value))
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": ["x"]}), pytest.raises(SpecificationError) as err:
+        _worker_environ()
+    assert err.value.field == "distributed.nanny.pre-spawn-environ"
 
 
 def test_configuration_env_overrides_and_default_chunk(tmp_path):
@@ -426,6 +441,14 @@ def test_cluster_configurations_are_consistent():
     assert {m["name"]: m["mountPath"] for m in worker["volumeMounts"]}["results"] == mount  # same store path
     slurm = yaml.safe_load((c / "slurm/jobqueue.yaml").read_text())["jobqueue"]["slurm"]
     assert slurm["cores"] == slurm["processes"]  # single-threaded workers
+    # the workers of every deployment get the embedded workers' allocator variables
+    malloc = {k: str(v) for k, v in packaged["worker-environ"].items() if k.startswith("MALLOC_")}
+    assert len(malloc) == 2
+    assert {k: compose["worker"]["environment"].get(k) for k in malloc} == malloc
+    assert compose["worker"]["environment"]["TUBEID_RUNNER__STORE_ROOT"] == "/results"
+    assert {k: {e["name"]: e["value"] for e in worker["env"]}.get(k) for k in malloc} == malloc
+    exports = " ".join(line for line in slurm["job-script-prologue"] if line.startswith("export "))
+    assert all(f"{k}={v}" in exports.split() for k, v in malloc.items()), exports
     tls = (c / "tls/dask-tls.yaml.in").read_text()
     assert "require-encryption: true" in tls
     for role in ("scheduler", "worker", "client"):

@@ -425,27 +425,64 @@ def test_the_embedded_workers_leave_ctrl_c_to_the_runner():
     assert len(handlers) == 2 and all(handlers.values()), handlers
 
 
+def _exec_environ_and_mmapped_blocks():
+    """In a worker: the variables of its environment at exec time (/proc/self/environ: what glibc
+    read) and how many of malloc's blocks a fresh 1 MiB malloc adds to mmapped memory (glibc's
+    mallinfo2.hblks; None without glibc)."""
+    import ctypes
+
+    with open("/proc/self/environ", "rb") as fh:
+        env = dict(e.decode().split("=", 1) for e in fh.read().split(b"\0") if b"=" in e)
+    try:
+        libc = ctypes.CDLL(None)
+        mallinfo2 = libc.mallinfo2
+    except (OSError, AttributeError):
+        return env, None
+
+    class Info(ctypes.Structure):
+        _fields_ = [(f, ctypes.c_size_t) for f in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
+                                                   "fsmblks", "uordblks", "fordblks", "keepcost")]
+
+    mallinfo2.restype = Info
+    libc.malloc.restype, libc.malloc.argtypes, libc.free.argtypes = ctypes.c_void_p, [ctypes.c_size_t], [ctypes.c_void_p]
+    before = mallinfo2().hblks
+    p = libc.malloc(1 << 20)
+    mapped = mallinfo2().hblks - before
+    libc.free(p)
+    return env, mapped
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/self/environ")
 def test_the_embedded_workers_start_with_the_configured_environment(monkeypatch):
-    """tubeid.runner.worker-environ is set before the worker processes start (glibc reads its
-    allocator variables only then): the packaged MALLOC_MMAP_THRESHOLD_ arrives, and a variable set
-    in the caller's environment wins over the packaged value (dask's rule for pre-spawn-environ)."""
+    """tubeid.runner.worker-environ is in the worker processes' environment from their start (glibc
+    reads its allocator variables only then: a 1 MiB array comes from the heap, not from a mapping
+    as with dask's 64 KiB trim threshold), a variable in the caller's environment wins, dask's own
+    pre-spawn variables stay, and the caller's environment is as before once the cluster is closed."""
+    import dask
+    import distributed  # noqa: F401  (its configuration defaults)
+
     from tubeid import config
     from tubeid.runner.execute import _client
 
-    saved = dict(os.environ)  # the nannies also write the variables into this process's environment
-    try:
-        monkeypatch.delenv("MALLOC_MMAP_THRESHOLD_", raising=False)
-        monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "123456")
-        with _client(1, None, None, True) as (client, _):
-            env = client.run(lambda: {k: os.environ.get(k) for k in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_",
-                                                                    "OMP_NUM_THREADS")})
-    finally:
-        os.environ.clear()
-        os.environ.update(saved)
-    (worker,) = env.values()
+    monkeypatch.delenv("MALLOC_MMAP_THRESHOLD_", raising=False)
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
+    monkeypatch.delenv("TUBEID_TEST_DASK_VAR", raising=False)
+    monkeypatch.setenv("TUBEID_TEST_USER_VAR", "mine")
+    before = {k: v for k, v in os.environ.items() if k != "__DASK_PARENT_PID"}
     packaged = config.get("runner.worker-environ")
-    assert worker == {"MALLOC_MMAP_THRESHOLD_": str(packaged["MALLOC_MMAP_THRESHOLD_"]),
-                      "MALLOC_TRIM_THRESHOLD_": "123456", "OMP_NUM_THREADS": "1"}, worker
+    dasks = {**dask.config.get("distributed.nanny.pre-spawn-environ"), "TUBEID_TEST_DASK_VAR": "dask"}
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": dasks,
+                          "tubeid.runner.worker-environ": {**packaged, "TUBEID_TEST_USER_VAR": "tubeid"}}):
+        with _client(1, None, None, True) as (client, _):
+            ((env, mapped),) = client.run(_exec_environ_and_mmapped_blocks).values()
+    assert {k: env.get(k) for k in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "TUBEID_TEST_DASK_VAR",
+                                    "TUBEID_TEST_USER_VAR")} == {
+        "MALLOC_MMAP_THRESHOLD_": str(packaged["MALLOC_MMAP_THRESHOLD_"]),
+        "MALLOC_TRIM_THRESHOLD_": str(packaged["MALLOC_TRIM_THRESHOLD_"]),
+        "TUBEID_TEST_DASK_VAR": "dask", "TUBEID_TEST_USER_VAR": "mine"}, env
+    assert mapped in (0, None), mapped  # None: no glibc here
+    after = {k: v for k, v in os.environ.items() if k != "__DASK_PARENT_PID"}  # distributed's proctitle marker
+    assert after == before  # the nannies' writes into this process (pre-spawn-environ) are undone
 
 
 def test_a_users_client_is_used_and_never_closed(study, reference, tmp_path, capsys):

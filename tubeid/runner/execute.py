@@ -19,6 +19,7 @@ import importlib.util
 import logging
 import os
 import pathlib
+import re
 import sys
 import time
 
@@ -410,32 +411,48 @@ def _client(workers: int | None, scheduler: str | None, client, quiet: bool):
 
     n = workers or config.get("runner.workers") or os.cpu_count() or 1
     security = _embedded_security()
-    with dask.config.set({"distributed.scheduler.allowed-failures": config.get("runner.allowed-failures", 3),
-                          "distributed.nanny.pre-spawn-environ": _worker_environ()}):
-        try:
-            cluster = LocalCluster(n_workers=int(n), threads_per_worker=int(config.get("runner.threads-per-worker", 1)),
-                                   processes=True, host=config.get("runner.host", "127.0.0.1"),
-                                   dashboard_address=config.get("runner.dashboard-address", "127.0.0.1:0"),
-                                   silence_logs=logging.CRITICAL, security=security,
-                                   protocol="tls://" if security is not None else None,
-                                   preload=["tubeid.runner._embedded_worker"])  # Ctrl-C is the runner's to answer
-        except Exception as exc:
-            script = _main_script()
-            if script is None:
-                raise
-            raise SpecificationError("workers", int(n), f"the embedded cluster's worker processes did not start "
-                                     f"({type(exc).__name__}: {exc}); if {script} calls run() outside "
-                                     f"`if __name__ == \"__main__\":`, that is why: {_UNGUARDED}") from None
-    with cluster, Client(cluster, security=security, set_as_default=False) as own:
-        own.run(_warm)  # imports once per worker, before the clock of the first task starts
-        tls = ", TLS with ephemeral credentials" if security is not None else ""
-        yield own, f"embedded LocalCluster ({len(cluster.workers)} single-threaded worker processes{tls})"
+    environ = _worker_environ()
+    # each nanny also writes the variables into this process's environment (dask's pre-spawn rule):
+    # put them back when the cluster is gone, so that a later cluster (and subprocess) sees the caller's
+    saved = {k: os.environ.get(k) for k in {*environ, "PYTHONHASHSEED"}}
+    try:
+        with dask.config.set({"distributed.scheduler.allowed-failures": config.get("runner.allowed-failures", 3),
+                              "distributed.nanny.pre-spawn-environ": environ}):
+            try:
+                cluster = LocalCluster(n_workers=int(n), threads_per_worker=int(config.get("runner.threads-per-worker", 1)),
+                                       processes=True, host=config.get("runner.host", "127.0.0.1"),
+                                       dashboard_address=config.get("runner.dashboard-address", "127.0.0.1:0"),
+                                       silence_logs=logging.CRITICAL, security=security,
+                                       protocol="tls://" if security is not None else None,
+                                       preload=["tubeid.runner._embedded_worker"])  # Ctrl-C is the runner's to answer
+            except Exception as exc:
+                script = _main_script()
+                if script is None:
+                    raise
+                raise SpecificationError("workers", int(n), f"the embedded cluster's worker processes did not start "
+                                         f"({type(exc).__name__}: {exc}); if {script} calls run() outside "
+                                         f"`if __name__ == \"__main__\":`, that is why: {_UNGUARDED}") from None
+        with cluster, Client(cluster, security=security, set_as_default=False) as own:
+            own.run(_warm)  # imports once per worker, before the clock of the first task starts
+            tls = ", TLS with ephemeral credentials" if security is not None else ""
+            yield own, f"embedded LocalCluster ({len(cluster.workers)} single-threaded worker processes{tls})"
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+
+
+_ENV_NAME = re.compile(r"[A-Z_][A-Z0-9_]*")
 
 
 def _worker_environ() -> dict:
     """dask's ``distributed.nanny.pre-spawn-environ`` with ``tubeid.runner.worker-environ`` over it:
     the environment the embedded cluster's nannies set before starting a worker process (a variable
-    already in this process's environment wins there; a None value leaves the variable unset)."""
+    already in this process's environment wins there; a None value leaves the variable unset).
+    Names are upper-case environment variable names; glibc's ``MALLOC_*`` values are byte counts
+    (glibc ignores anything else, and a trim threshold alone then fixes the mmap threshold at 128 KiB)."""
     import dask
 
     extra = config.get("runner.worker-environ") or {}
@@ -443,12 +460,21 @@ def _worker_environ() -> dict:
         raise SpecificationError("runner.worker-environ", extra, "must be a mapping of environment variable names "
                                  "to values (or null)")
     for name, value in extra.items():
-        if not isinstance(name, str) or not name or "=" in name:
-            raise SpecificationError("runner.worker-environ", name, "must hold environment variable names "
-                                     "(non-empty strings without '=')")
+        if not isinstance(name, str) or not _ENV_NAME.fullmatch(name):
+            raise SpecificationError("runner.worker-environ", name, "must hold upper-case environment variable names "
+                                     "([A-Z_][A-Z0-9_]*); from the environment, set the whole mapping: "
+                                     "TUBEID_RUNNER__WORKER_ENVIRON='{\"MALLOC_TRIM_THRESHOLD_\": 268435456}'")
         if isinstance(value, bool) or not (value is None or isinstance(value, (str, int))):
             raise SpecificationError(f"runner.worker-environ.{name}", value, "must be a string, an integer or null")
-    return {**(dask.config.get("distributed.nanny.pre-spawn-environ", default=None) or {}), **extra}
+        if name.startswith("MALLOC_") and value is not None and not (
+                (isinstance(value, int) and value >= 0) or (isinstance(value, str) and value.isdigit())):
+            raise SpecificationError(f"runner.worker-environ.{name}", value, "must be a number of bytes (a non-negative "
+                                     "integer; glibc ignores anything else)")
+    base = dask.config.get("distributed.nanny.pre-spawn-environ", default=None) or {}
+    if not isinstance(base, dict):
+        raise SpecificationError("distributed.nanny.pre-spawn-environ", base, "must be a mapping of environment "
+                                 "variable names to values")
+    return {**base, **extra}
 
 
 def _warm() -> None:
