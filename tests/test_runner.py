@@ -342,6 +342,8 @@ def test_worker_environ_goes_over_dasks_and_refuses_bad_entries():
                              ({"MALLOC_MMAP_THRESHOLD_": "32MiB"}, "runner.worker-environ.MALLOC_MMAP_THRESHOLD_",
                               "number of bytes"),
                              ({"MALLOC_TRIM_THRESHOLD_": -1}, "runner.worker-environ.MALLOC_TRIM_THRESHOLD_",
+                              "number of bytes"),
+                             ({"MALLOC_TRIM_THRESHOLD_": "\u00b2"}, "runner.worker-environ.MALLOC_TRIM_THRESHOLD_",
                               "number of bytes")):
         with dask.config.set({"tubeid.runner.worker-environ": bad}), pytest.raises(SpecificationError) as err:
             _worker_environ()

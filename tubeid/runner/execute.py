@@ -467,7 +467,7 @@ def _worker_environ() -> dict:
         if isinstance(value, bool) or not (value is None or isinstance(value, (str, int))):
             raise SpecificationError(f"runner.worker-environ.{name}", value, "must be a string, an integer or null")
         if name.startswith("MALLOC_") and value is not None and not (
-                (isinstance(value, int) and value >= 0) or (isinstance(value, str) and value.isdigit())):
+                (isinstance(value, int) and value >= 0) or (isinstance(value, str) and value.isascii() and value.isdigit())):
             raise SpecificationError(f"runner.worker-environ.{name}", value, "must be a number of bytes (a non-negative "
                                      "integer; glibc ignores anything else)")
     base = dask.config.get("distributed.nanny.pre-spawn-environ", default=None) or {}
