@@ -175,6 +175,52 @@ def test_batch_equals_one_by_one_bitwise():
         assert np.array_equal(batch.contact_fraction.values[r], one.contact_fraction.values[0])
 
 
+def test_tables_are_built_once_per_system_and_reused_bit_identically(monkeypatch):
+    """The exact method's tables are kept per process under a digest of their inputs: the same
+    system simulated again (another call, as a trial grid simulates each realisation at every grid
+    point) builds nothing and gives the bits of a cold build; changing any input the tables depend
+    on (1 ulp of D, the gap, the step, B) builds anew; at most TABLE_CACHE_BYTES are kept."""
+    from tubeid.dynamics.solver import _regimes
+
+    M, D, K, stop, B, C, F = contact_setup(n_t=81)
+    builds = []
+    real = _regimes.build_tables
+
+    def counting(*args):
+        builds.append(args)
+        return real(*args)
+
+    monkeypatch.setattr(_regimes, "build_tables", counting)
+    monkeypatch.setattr(_regimes, "_CACHE", type(_regimes._CACHE)())
+
+    def run(D_=D, stop_=stop, B_=B, dt=None, dt_load=DT_LOAD):
+        return simulate(M, D_, K, [stop_], B_, C, F, dt_load, output_dt=2e-3, dt=dt).observations.values
+
+    cold = run()
+    assert len(builds) == 1
+    again = run()
+    assert len(builds) == 1 and np.array_equal(again, cold)  # the same bits, nothing rebuilt
+    D2 = D.copy()
+    D2[1, 1] = np.nextafter(D2[1, 1], np.inf)
+    h = choose_step(highest_frequency(M, K, [stop]), DT_LOAD, 2e-3)
+    B2 = B.copy()
+    B2[2, 0] = 2.0
+    for kwargs in ({"D_": D2}, {"stop_": Stop(stop.b, stop.gap * 1.5, stop.stiffness)}, {"dt": h / 2}, {"B_": B2},
+                   {"dt": h / 2, "dt_load": DT_LOAD / 2}):  # the last: the same sub-steps per load interval
+        n = len(builds)
+        run(**kwargs)
+        assert len(builds) == n + 1, kwargs  # a new system: new tables
+    n = len(builds)
+    assert np.array_equal(run(), cold) and len(builds) == n  # the first system is still kept
+    monkeypatch.setattr(_regimes, "TABLE_CACHE_BYTES", 1)  # smaller than any entry: only the newest is kept
+    D3 = D.copy()
+    D3[0, 0] *= 1.01
+    run(D_=D3)
+    assert len(_regimes._CACHE) == 1
+    n = len(builds)
+    assert np.array_equal(run(), cold) and len(builds) == n + 1  # evicted, rebuilt, the same bits
+
+
 def test_event_precheck_misses_nothing():
     """Default detection (Hermite pre-check with margin) vs exact re-examination of every step."""
     M, D, K, stop, B, C, F = contact_setup(n_t=1001)

@@ -14,30 +14,23 @@ import math
 import numpy as np
 
 from tubeid.dynamics.solver._fastpath import run_exact
-from tubeid.dynamics.solver._regimes import build_tables, initial_state
+from tubeid.dynamics.solver._regimes import cached_tables, initial_state
 from tubeid.dynamics.solver._work import EVALUATIONS, FLAGGED_STEPS, N_STATS, RESCANS, SWITCHES, XL, make_work
 
 __all__ = ["integrate_exact"]
 
 
 def integrate_exact(problem, r: int, h: float, f_max: float, y_out, sumsq, contact_time, n_events,
-                    refine_all: bool = False, cache: dict | None = None, diagnose: bool = False) -> dict:
+                    refine_all: bool = False, diagnose: bool = False) -> dict:
     """Realisation r of a :class:`~tubeid.dynamics.solver._checks.Problem` at sub-step h (s), f_max
     (Hz) the highest frequency with the stops closed; writes the outputs into y_out (n_keep or 0,
     n_obs), sumsq (n_obs,), contact_time (S,) (s) and n_events (S,) of the gapped stops.
-    ``cache``: a dict kept across the realisations of one call (tables reused while the matrices
-    and the step repeat). Returns diagnostics: the counters of ``_work``, and with ``diagnose`` the
+    The tables come from :func:`~tubeid.dynamics.solver._regimes.cached_tables` (built once per system
+    and process). Returns diagnostics: the counters of ``_work``, and with ``diagnose`` the
     table properties (condition number of the eigenvectors, halved conjugate pairs, modes)."""
     M, D, K = problem.matrices(r)
     ns = int(round(problem.dt_load / h))
-    key = (r % len(problem.M), r % len(problem.D), r % len(problem.K), h)
-    if cache is not None and key in cache:
-        T, info = cache[key]
-    else:
-        T, info = build_tables(M, D, K, problem.gapped, problem.B, problem.C, h, ns, 2 * math.pi * f_max)
-        if cache is not None:
-            cache.clear()
-            cache[key] = (T, info)
+    T, info = cached_tables(M, D, K, problem.gapped, problem.B, problem.C, h, ns, 2 * math.pi * f_max)
     loads = problem.loads[r]
     W = make_work(T, problem.C.shape[0])
     nx = 2 * T.lam_re.shape[1]

@@ -22,7 +22,7 @@ __all__ = ["Method", "METHODS", "choose_step", "simulate", "simulate_with_diagno
 
 class Method(NamedTuple):
     """An integration method: its step rule and its integrator
-    ``integrate(problem, r, h, f_max, y_out, sumsq, contact_time, n_events, refine_all=, cache=, diagnose=) -> dict``
+    ``integrate(problem, r, h, f_max, y_out, sumsq, contact_time, n_events, refine_all=, diagnose=) -> dict``
     (writes realisation r's outputs, returns diagnostics)."""
 
     step_rule: StepRule
@@ -130,7 +130,7 @@ def _run(M, D, K, stops, B, C, loads, dt_load, output_dt, dt, method, keep, disc
     ne = np.zeros((R, S), dtype=np.int64)
     dts = np.zeros(R)
     t_count = P.duration - P.j0 * P.output_dt  # counted time window
-    f_cache, cache, diagnostics = {}, {}, []
+    f_cache, diagnostics = {}, []
     for r in range(R):
         Mr, _, Kr = P.matrices(r)
         key = (r % len(P.M), r % len(P.K))
@@ -144,7 +144,7 @@ def _run(M, D, K, stops, B, C, loads, dt_load, output_dt, dt, method, keep, disc
         ct = np.zeros(len(P.gapped))
         nev = np.zeros(len(P.gapped), dtype=np.int64)
         diagnostics.append(integrator.integrate(P, r, h, f_max, y_buf, sumsq, ct, nev, refine_all=refine_all,
-                                                cache=cache, diagnose=diagnose))
+                                                diagnose=diagnose))
         dts[r] = h
         rms[r] = np.sqrt(sumsq / P.n_keep)
         cf[r, list(P.gapped_index)] = ct / t_count if t_count > 0 else 0.0

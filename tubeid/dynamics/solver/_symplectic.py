@@ -89,10 +89,10 @@ def _kernel(loads, ns, out_every, j0, h, MiK, MiD, MiB, Mib, bmat, gaps, kst, Cm
 
 
 def integrate_symplectic(problem, r: int, h: float, f_max: float, y_out, sumsq, contact_time, n_events,
-                         refine_all: bool = False, cache: dict | None = None, diagnose: bool = False) -> dict:
+                         refine_all: bool = False, diagnose: bool = False) -> dict:
     """Realisation r of a :class:`~tubeid.dynamics.solver._checks.Problem` at step h (s); writes
     the outputs into y_out (n_keep or 0, n_obs), sumsq (n_obs,), contact_time (S,) (s) and n_events
-    (S,) of the gapped stops. ``refine_all``, ``cache`` and ``diagnose`` are the exact method's (unused). Returns
+    (S,) of the gapped stops. ``refine_all`` and ``diagnose`` are the exact method's (unused). Returns
     diagnostics (steps)."""
     M, D, K = problem.matrices(r)
     stops = problem.gapped
