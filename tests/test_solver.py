@@ -212,13 +212,17 @@ def test_tables_are_built_once_per_system_and_reused_bit_identically(monkeypatch
         assert len(builds) == n + 1, kwargs  # a new system: new tables
     n = len(builds)
     assert np.array_equal(run(), cold) and len(builds) == n  # the first system is still kept
-    monkeypatch.setattr(_regimes, "TABLE_CACHE_BYTES", 1)  # smaller than any entry: only the newest is kept
+    size = next(iter(_regimes._CACHE.values()))[2]
+    monkeypatch.setattr(_regimes, "TABLE_CACHE_BYTES", int(1.5 * size))  # room for one system's tables
     D3 = D.copy()
     D3[0, 0] *= 1.01
     run(D_=D3)
     assert len(_regimes._CACHE) == 1
     n = len(builds)
     assert np.array_equal(run(), cold) and len(builds) == n + 1  # evicted, rebuilt, the same bits
+    monkeypatch.setattr(_regimes, "TABLE_CACHE_BYTES", size // 2)  # one system's tables exceed it: none kept
+    run(D_=D3)
+    assert len(_regimes._CACHE) == 0
 
 
 def test_event_precheck_misses_nothing():

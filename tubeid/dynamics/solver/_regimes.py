@@ -189,7 +189,8 @@ def cached_tables(M, D, K, stops, B, C, h: float, ns: int, omega_max: float) -> 
     again (another call with the same matrices, as the trial grids of a study simulate each
     realisation's structure at every grid point) gets the same tables without the eigen-
     decompositions (~2 ms at N = 16, ~13 ms at N = 50). The tables are read-only for the kernels;
-    at most :data:`TABLE_CACHE_BYTES` are kept."""
+    at most :data:`TABLE_CACHE_BYTES` are kept (least recently used dropped first; a system whose
+    tables alone exceed it is not kept)."""
     key = _table_key(M, D, K, stops, B, C, h, ns, omega_max)
     with _CACHE_LOCK:
         hit = _CACHE.get(key)
@@ -201,7 +202,7 @@ def cached_tables(M, D, K, stops, B, C, h: float, ns: int, omega_max: float) -> 
     with _CACHE_LOCK:
         _CACHE[key] = (T, info, size)
         total = sum(entry[2] for entry in _CACHE.values())
-        while total > TABLE_CACHE_BYTES and len(_CACHE) > 1:
+        while total > TABLE_CACHE_BYTES and _CACHE:  # tables larger than the budget are not kept at all
             total -= _CACHE.popitem(last=False)[1][2]
     return T, info
 
