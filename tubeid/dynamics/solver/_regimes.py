@@ -34,7 +34,7 @@ import numpy as np
 from tubeid.dynamics.solver._determinism import one_blas_thread
 
 __all__ = ["FINE", "BLOCK_MAX", "MARGIN_SAFETY", "ALIGN", "TABLE_CACHE_BYTES", "ExactTables", "regime_codes", "aligned",
-           "build_tables", "cached_tables", "initial_state"]
+           "build_tables", "cached_tables", "forget_tables", "initial_state"]
 
 #: e^{λτ} on a step [0, h] is tabulated at τ = k h / FINE and completed by a short series.
 FINE = 64
@@ -205,6 +205,12 @@ def cached_tables(M, D, K, stops, B, C, h: float, ns: int, omega_max: float) -> 
         while total > TABLE_CACHE_BYTES and _CACHE:  # tables larger than the budget are not kept at all
             total -= _CACHE.popitem(last=False)[1][2]
     return T, info
+
+
+def forget_tables() -> None:
+    """Empty the process's table cache (benchmarks time a realisation with its tables built)."""
+    with _CACHE_LOCK:
+        _CACHE.clear()
 
 
 def _table_key(M, D, K, stops, B, C, h, ns, omega_max) -> bytes:
