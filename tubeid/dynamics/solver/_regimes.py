@@ -214,8 +214,9 @@ def forget_tables() -> None:
 
 
 def _table_key(M, D, K, stops, B, C, h, ns, omega_max) -> bytes:
-    """Digest of the tables' inputs: dtype, shape and bytes of every array, each stop's vector, gap
-    and stiffness, and the step, sub-steps per interval and omega_max as exact doubles."""
+    """Digest of the tables' inputs: shape and float64 bytes of every array (M, D, K, B, C and each
+    stop's vector), each stop's gap and stiffness, the step, the sub-steps per load interval and
+    omega_max as exact doubles."""
     d = hashlib.blake2b(digest_size=32)
     for a in (M, D, K, B, C, *(s.vector for s in stops)):
         a = np.ascontiguousarray(a, dtype=float)
