@@ -46,6 +46,7 @@ N = next_fast_len(n_t), in single precision: the load changes by ~2e-7 of itself
 
 from __future__ import annotations
 
+import functools
 from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
@@ -148,20 +149,16 @@ def gaussian_loads(spectrum: LoadSpectrum, duration: float, dt: float, rngs: Seq
     df = 1.0 / (N * dt)
     K = int(np.floor(band / df * (1 + 1e-12)))  # bins 0..K lie in |f| <= band
     K = min(K, (N - 1) // 2)  # never the Nyquist bin (1/(2dt) > band makes this a no-op)
-    fk = np.arange(K + 1) * df
-    # Per-bin amplitude scale: coef_k = N sqrt(df) c_k B_k w_k, c_k = 1/sinc^2(f_k dt) ("linear")
-    # or 1; N undoes irfft's 1/N. B_k B_k^* = S(f_k), so E[X X^*] = c_k^2 S(f_k) df.
-    scale = np.full(K + 1, N * np.sqrt(df))
-    if interpolation == "linear":
-        scale /= np.sinc(fk * dt) ** 2
-    B = _factors(spectrum, fk, m)  # (m, m): one factor for every in-band bin, or (K + 1, m, m)
+    scale = _bin_scale(K, N, dt, interpolation)
+    B = _factors(spectrum, K, df, m)  # (m, m): one factor for every in-band bin, or (K + 1, m, m)
 
     # FFT axis last (contiguous transforms), single precision (see the module docstring).
     coef = np.empty((R, m, N // 2 + 1), dtype=np.complex64)
     coef[:, :, K + 1:] = 0.0  # bins 0..K are written below
     for r, g in enumerate(rngs):  # draws only for bins 0..K: one generator per realisation
         z = g.standard_normal((K + 1, m, 2))
-        zc = z.view(np.complex128)[..., 0] * np.sqrt(0.5)  # (a + i b) / sqrt(2), no temporaries
+        zc = z.view(np.complex128)[..., 0]
+        np.multiply(zc, np.sqrt(0.5), out=zc)  # (a + i b) / sqrt(2), in place
         if B.ndim == 2:
             np.multiply(B @ zc.T, scale, out=coef[r, :, : K + 1])
         else:
@@ -175,15 +172,31 @@ def gaussian_loads(spectrum: LoadSpectrum, duration: float, dt: float, rngs: Seq
     return out
 
 
-def _factors(spectrum, fk, m) -> np.ndarray:
-    """B with B B^* = S(f): one (m, m) factor when S is the same matrix at every bin of fk
-    (constant spectrum), else one per bin (K + 1, m, m). Each distinct matrix is checked once."""
+@functools.lru_cache(maxsize=8)
+def _bin_scale(K: int, N: int, dt: float, interpolation: str) -> np.ndarray:
+    """Per-bin amplitude scale of bins 0..K (read-only): coef_k = N sqrt(df) c_k B_k w_k, df =
+    1/(N dt), c_k = 1/sinc^2(f_k dt) ("linear") or 1; N undoes irfft's 1/N. B_k B_k^* = S(f_k),
+    so E[X X^*] = c_k^2 S(f_k) df. Cached: it depends on the grid only (every realisation of a
+    study has the same)."""
+    df = 1.0 / (N * dt)
+    fk = np.arange(K + 1) * df
+    scale = np.full(K + 1, N * np.sqrt(df))
+    if interpolation == "linear":
+        scale /= np.sinc(fk * dt) ** 2
+    scale.setflags(write=False)
+    return scale
+
+
+def _factors(spectrum, K, df, m) -> np.ndarray:
+    """B with B B^* = S(f): one (m, m) factor when S is the same matrix at every bin f_k = k df,
+    k = 0..K (constant spectrum), else one per bin (K + 1, m, m). Each distinct matrix is checked once."""
     from tubeid.uncertainty.loads import LoadSpectrum
 
     if isinstance(spectrum, LoadSpectrum) and spectrum.frequencies is None:
-        S = np.asarray(spectrum.matrix(fk[:1]))  # constant on |f| <= band (germ included)
+        S = np.asarray(spectrum.matrix(np.zeros(1)))  # f_0 = 0: constant on |f| <= band (germ included)
         per_bin = False
     else:
+        fk = np.arange(K + 1) * df
         S = np.asarray(spectrum.matrix(fk))
         if S.shape != (fk.size, m, m):
             raise SpecificationError("spectrum.matrix(f)", S.shape, f"must have shape (len(f), {m}, {m})")
