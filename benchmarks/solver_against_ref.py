@@ -12,6 +12,13 @@ ratios new/reference. The fast path is the same integration with the gap opened 
 events are the difference. Timings are only meaningful as ratios (the machine is shared); the
 default clock is this thread's CPU time (``--clock wall`` for elapsed time), less disturbed by
 other processes.
+
+``--processes N``: instead, N pairs of fresh processes, the reference's and this checkout's
+alternated, each timing only its own solver (best of ``--repeat``) on the same inputs; prints each
+pair's integration times and ratio. Two solvers loaded in one process run at different speeds (the
+second one loaded is slower on the event-free path, in either order), so this is the unbiased
+comparison. ``--dt-load`` (s): the load sampling (default 2 ms, ``ResponseSettings``'; the
+solver's step is set by f_max either way).
 """
 
 from __future__ import annotations
@@ -46,7 +53,7 @@ def load_reference(ref: str):
 
 
 def realisation(k: int, duration: float, delta: float = 0.45, delta_f: float = 0.04, seed: int = 1,
-                clock=time.perf_counter):
+                clock=time.perf_counter, dt_load: float = 2e-3):
     """(M, D, K, loads, stops args, seconds of load generation) of realisation k."""
     from tubeid.dynamics.response import _load_points, realisation_streams
     from tubeid.mechanics.library import builtin_spec
@@ -67,7 +74,7 @@ def realisation(k: int, duration: float, delta: float = 0.45, delta_f: float = 0
                                   germs=germs_from_rngs(model.subsystem.n, [streams[0]]))
     M, D, K = (a[0] for a in model.matrices(MB, DB, KB))
     spectrum = randomised(load, sg_plus(len(load.names), delta_f, rng=streams[1]))
-    F = gaussian_loads(spectrum, duration, 1e-3, [streams[2]])[0]
+    F = gaussian_loads(spectrum, duration, dt_load, [streams[2]])[0]
     return (M, D, K, B, C, F, stops), clock() - t0
 
 
@@ -104,6 +111,30 @@ def compile_times(ref: str, n: int) -> None:
           f"load average {os.getloadavg()[0]:.2f}")
 
 
+def process_pairs(a) -> None:
+    """--processes: a.processes pairs of child processes (reference first, then this checkout), each
+    running one solver only; prints each pair's integration and event-free times and ratios."""
+    load_reference(a.ref)  # write the reference module once, outside the timed processes
+    args = [sys.executable, os.path.abspath(__file__), "--ref", a.ref, "--repeat", str(a.repeat), "--duration",
+            str(a.duration), "--realisations", str(a.realisations), "--clock", a.clock, "--dt-load", str(a.dt_load)]
+    for which in ("ref", "new"):  # compile or load each solver's numba cache outside the timed pairs
+        subprocess.run(args[:1] + [args[1], "--ref", a.ref, "--repeat", "1", "--duration", "3", "--only", which],
+                       check=True, capture_output=True)
+    ratios = []
+    for i in range(a.processes):
+        t = {}
+        for which in ("ref", "new"):
+            out = subprocess.run(args + ["--only", which], check=True, capture_output=True, text=True).stdout
+            t[which] = [float(v) for v in out.split()[-2:]]
+        ratios.append(t["ref"][0] / t["new"][0])
+        print(f"pair {i + 1}: integration {t['ref'][0]:.4f} s ({a.ref}) against {t['new'][0]:.4f} s (this checkout), "
+              f"{ratios[-1]:.2f}x; event-free path {t['ref'][1]:.4f} s against {t['new'][1]:.4f} s, "
+              f"{t['ref'][1] / t['new'][1]:.2f}x", flush=True)
+    print(f"integration ratio {a.ref}/this checkout: median {np.median(ratios):.2f}x over {a.processes} pairs "
+          f"({a.realisations} realisation(s) of {a.duration:g} s, load sampled at {a.dt_load:g} s, best of "
+          f"{a.repeat}, {a.clock} time); load average {os.getloadavg()[0]:.2f}")
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--ref", default="cd43bc9")
@@ -113,24 +144,37 @@ def main() -> None:
     p.add_argument("--clock", choices=("cpu", "wall"), default="cpu")
     p.add_argument("--compile", type=int, default=0, metavar="N",
                    help="instead: time the first call (cold numba cache) of each solver in N fresh processes each")
+    p.add_argument("--dt-load", type=float, default=2e-3)
+    p.add_argument("--processes", type=int, default=0, metavar="N",
+                   help="instead: N pairs of fresh processes, one solver each, alternated")
+    p.add_argument("--only", choices=("ref", "new"), help=argparse.SUPPRESS)  # a child of --processes
     a = p.parse_args()
     if a.compile:
         return compile_times(a.ref, a.compile)
+    if a.processes:
+        return process_pairs(a)
     clock = time.thread_time if a.clock == "cpu" else time.perf_counter
     from tubeid.dynamics import solver as new
     from tubeid.dynamics.spectra import psd_matrix
 
-    old = load_reference(a.ref)
-    cases = [realisation(k, a.duration, clock=clock) for k in range(a.realisations)]
+    old = load_reference(a.ref) if a.only != "new" else None
+    cases = [realisation(k, a.duration, clock=clock, dt_load=a.dt_load) for k in range(a.realisations)]
     t_load = min(c[1] for c in cases)
 
     def run(mod, case, opened=False):
         M, D, K, B, C, F, stops = case[0]
         st = [mod.Stop(b=b, gap=1e9 if opened else g, stiffness=k) for b, g, k in stops]
         t0 = clock()
-        y = mod.simulate(M, D, K, st, B, C, F, 1e-3, output_dt=3e-3, discard=2.0).observations.values[0]
+        y = mod.simulate(M, D, K, st, B, C, F, a.dt_load, output_dt=3e-3, discard=2.0).observations.values[0]
         return clock() - t0, y
 
+    if a.only:  # one solver in this process: print its best integration and fast-path times
+        mod = old if a.only == "ref" else new
+        run(mod, (cases[0][0][:5] + (cases[0][0][5][:3001],) + cases[0][0][6:], 0))
+        best = [min(sum(run(mod, c, opened)[0] for c in cases) / len(cases) for _ in range(a.repeat))
+                for opened in (False, True)]
+        print(*best)
+        return
     for mod in (old, new):  # compile / load the caches
         run(mod, (cases[0][0][:5] + (cases[0][0][5][:3001],) + cases[0][0][6:], 0))
     best = {}
@@ -144,7 +188,7 @@ def main() -> None:
     t0 = clock()
     psd_matrix(y, 3e-3, segment_seconds=8.0)
     t_psd = clock() - t0
-    t_load = min(t_load, min(realisation(0, a.duration, clock=clock)[1] for _ in range(3)))
+    t_load = min(t_load, min(realisation(0, a.duration, clock=clock, dt_load=a.dt_load)[1] for _ in range(3)))
     print(f"load average {os.getloadavg()[0]:.2f}; {a.realisations} realisation(s) of {a.duration:g} s, best of "
           f"{a.repeat}, {a.clock} time")
     print(f"load generation {t_load:.4f} s, PSD {t_psd:.4f} s (common to both)")
