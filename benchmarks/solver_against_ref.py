@@ -154,10 +154,10 @@ def main() -> None:
     if a.processes:
         return process_pairs(a)
     clock = time.thread_time if a.clock == "cpu" else time.perf_counter
-    from tubeid.dynamics import solver as new
     from tubeid.dynamics.spectra import psd_matrix
 
-    old = load_reference(a.ref) if a.only != "new" else None
+    old = load_reference(a.ref) if a.only != "new" else None  # a child of --processes loads its solver only
+    new = None if a.only == "ref" else importlib.import_module("tubeid.dynamics.solver")
     cases = [realisation(k, a.duration, clock=clock, dt_load=a.dt_load) for k in range(a.realisations)]
     t_load = min(c[1] for c in cases)
 
