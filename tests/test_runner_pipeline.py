@@ -520,3 +520,65 @@ def test_a_small_stage_is_read_into_memory_once_and_a_large_one_stays_lazy(tmp_p
     np.testing.assert_array_equal(loaded[name].values, expected)
     assert not np.array_equal(lazy[name].values, expected)  # read now: the missing chunks' fill value
     execute._OPENED.clear()
+
+
+# -- workers build a stage while the runner does --------------------------------------------------------
+AHEAD = '''
+import os
+import time
+import numpy as np
+from tubeid.runner import Output, Pipeline, Study
+
+LOG = {log!r}
+
+
+def _note(what, t0):
+    with open(LOG, "a") as f:
+        f.write(f"{{what}} {{os.getpid()}} {{t0!r}} {{time.time()!r}}\\n")
+
+
+def _pid(block, rng):
+    return {{"pid": np.full(len(block["i"]), float(os.getpid()))}}
+
+
+def _built(name, n):
+    t0 = time.time()
+    time.sleep({sleep})  # a stage function that takes a while (e.g. an identification from earlier results)
+    _note(name, t0)
+    return Study(name=name, seed=5, axes={{"i": range(n)}}, chunks={{"i": 1}}, task=_pid, outputs={{"pid": Output()}})
+
+
+def first(results):
+    return _built("first", 4)
+
+
+def second(results):
+    return _built("second", 4)
+
+
+study = Pipeline(name="ahead", seed=5, stages=[first, second])
+'''
+
+
+@pytest.mark.distributed
+@pytest.mark.timeout(120)
+def test_the_workers_build_each_stage_while_the_runner_does_and_their_blocks_reuse_it(tmp_path):
+    """Each worker builds a stage (``build_stage``) while the runner builds it, not after the runner
+    has submitted its blocks, and the worker's blocks use that build (one build per worker and stage)."""
+    sleep = 1.5
+    log = tmp_path / "builds.log"
+    (tmp_path / "ahead.py").write_text(AHEAD.format(log=str(log), sleep=sleep))
+    rep = run(tmp_path / "ahead.py", tmp_path / "a.zarr", workers=2, quiet=True)
+    assert rep.computed == 8
+    builds = [line.split() for line in log.read_text().splitlines()]
+    me = str(os.getpid())
+    res = open_pipeline(tmp_path / "a.zarr")
+    for name in ("first", "second"):
+        ran_on = {str(int(p)) for p in res[name].pid.values}
+        assert me not in ran_on
+        mine = [(float(t0), float(t1)) for what, pid, t0, t1 in builds if what == name and pid == me]
+        assert len(mine) == 1, builds
+        theirs = [(pid, float(t0)) for what, pid, t0, _ in builds if what == name and pid != me]
+        # every worker that ran a block built the stage once, starting before the runner had built it
+        assert sorted(p for p, _ in theirs if p in ran_on) == sorted(ran_on), builds
+        assert all(t0 < mine[0][1] for p, t0 in theirs if p in ran_on), builds

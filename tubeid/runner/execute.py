@@ -6,7 +6,9 @@ that stage's tasks). Tasks are idempotent (a block always writes the same bytes 
 chunks, its flag last), so a rescheduled task after a worker death, a concurrent duplicate or a
 resumed run cannot change the result. A pipeline runs its stages in order on the same cluster; a
 worker rebuilds a stage from the pipeline source and the earlier stages' stored results (once per
-process) and checks that it gets the stage hash the client computed.
+process) and checks that it gets the stage hash the client computed. The workers do so while the
+runner builds the stage itself (``build_stage``, one task per worker, started first), and load the
+definition while the runner creates the store: neither waits for the other.
 """
 
 from __future__ import annotations
@@ -200,6 +202,27 @@ def stage_study(pipeline: Pipeline, key: str, store, name: str):
     if isinstance(study, End):
         return study, None
     return study, stage_hash(key, study, upstream)
+
+
+def build_stage(store: str, source: str, overrides: dict, name: str | None = None) -> str | None:
+    """Worker side, ahead of the blocks: load the definition and build stage ``name`` (None: only
+    load the definition) as :func:`run_stage_block` would at its first block, and keep the stage
+    under the hash this worker computes; returns that hash (None for ``End``, no stage, or a failure).
+
+    Only a cache fill, so that a worker does this while the runner builds the stage itself, not
+    after: a failure here is left to the block, which rebuilds the stage and raises it; a stage built
+    with another hash than the runner's is never used (the block's check compares the hashes).
+    """
+    try:
+        pipeline, _, key = load_definition(source=source, overrides=overrides)
+        if name is None or not isinstance(pipeline, Pipeline):
+            return None
+        study, h = stage_study(pipeline, key, store, name)
+    except Exception:  # the block that needs it raises it, with its label
+        return None
+    if h is not None:
+        _STAGES.setdefault((store, h), study)
+    return h
 
 
 def run_stage_block(store: str, source: str, overrides: dict, name: str, expected_hash: str,
@@ -526,6 +549,20 @@ def _warm_up(client, warmup, quiet) -> float:
     return dt
 
 
+def _build_ahead(client, ctx, name: str | None = None) -> list:
+    """Start :func:`build_stage` on every worker of ``client`` (one task pinned to each), so that the
+    workers load the definition (and build stage ``name``) while this process does its own part;
+    returns the futures, which must be held until they finish (a released future's task is
+    forgotten) and are never waited for. Nothing for ``client`` None (the blocks run here)."""
+    if client is None:
+        return []
+    workers = sorted(client.scheduler_info(n_workers=-1)["workers"])
+    what = name or "definition"
+    return [client.submit(build_stage, str(ctx.path), ctx.source, ctx.overrides, name, workers=[a],
+                          allow_other_workers=False, pure=False, key=f"tubeid-build-{what}-{i}-{time.time_ns()}")
+            for i, a in enumerate(workers)]
+
+
 def _record_resume(path, quiet) -> None:
     """Append this start to the store's runs and history; warn when another tubeid version started it."""
     attrs = read_attrs(path)
@@ -693,6 +730,7 @@ class _Run:
     quiet: bool
     lock: StoreLock
     verified: dict = dataclasses.field(default_factory=dict)  # pipeline stage -> damaged blocks found already
+    ahead: list = dataclasses.field(default_factory=list)  # build_stage futures held until they finish
 
     def cluster(self):
         if self.workers == 0 and self.client is None:
@@ -718,6 +756,7 @@ def _run_study(ctx: _Run) -> RunReport:
     with ctx.cluster() as (client, where):
         report.startup = time.perf_counter() - t0
         t0 = time.perf_counter()
+        ctx.ahead = [] if study.in_process else _build_ahead(client, ctx)  # the workers load the study meanwhile
         if ctx.state == "new":
             init_store(study, path, source=ctx.source, study_hash=ctx.key, study_file=str(ctx.study_path),
                        overrides=ctx.overrides)
@@ -783,6 +822,7 @@ def _run_pipeline(ctx: _Run) -> PipelineReport:
     with ctx.cluster() as (client, where):
         report.startup = time.perf_counter() - t0
         t0 = time.perf_counter()
+        ctx.ahead = _build_ahead(client, ctx)  # the workers load the pipeline meanwhile
         if ctx.state == "new":
             init_pipeline_store(pipeline, path, source=ctx.source, study_hash=ctx.key, study_file=str(ctx.study_path),
                                 overrides=ctx.overrides)
@@ -794,12 +834,17 @@ def _run_pipeline(ctx: _Run) -> PipelineReport:
             _describe_cluster(client, where, report, quiet)
         report.prepare = time.perf_counter() - t0
         report.warmup = _warm_up(client, pipeline.warmup, quiet)
-        for name in pipeline.stage_names:
-            stage_report = _run_stage(ctx, name, client)
-            if stage_report is None:  # the pipeline ended before this stage
-                break
-            report.stages[name] = stage_report
-            report.workers = max(report.workers, report.stages[name].workers)
+        try:
+            for name in pipeline.stage_names:
+                stage_report = _run_stage(ctx, name, client)
+                if stage_report is None:  # the pipeline ended before this stage
+                    break
+                report.stages[name] = stage_report
+                report.workers = max(report.workers, report.stages[name].workers)
+        finally:
+            if client is not None and ctx.ahead:  # a stage refused: nothing is left running for it
+                client.cancel([f for f in ctx.ahead if not f.done()])
+            ctx.ahead = []
     t0 = time.perf_counter()
     update_attrs(path, finished=now(),
                  add_history=f"complete: {report.computed} block(s) computed, {report.skipped} already done")
@@ -837,6 +882,8 @@ def _run_stage(ctx: _Run, name: str, client) -> RunReport | None:
     """Run (or resume) one stage; None when the pipeline ends before it (:class:`End`)."""
     pipeline, path, quiet = ctx.study, ctx.path, ctx.quiet
     t0 = time.perf_counter()
+    if client is not None and read_attrs(path).get("stage_status", {}).get(name) != "complete":
+        ctx.ahead = [f for f in ctx.ahead if not f.done()] + _build_ahead(client, ctx, name)  # workers build it too
     study, shash = stage_study(pipeline, ctx.key, path, name)  # refused here (before its tasks) if invalid
     if isinstance(study, End):
         _end_pipeline(ctx, name, study.reason)
