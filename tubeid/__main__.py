@@ -1,3 +1,3 @@
-from tubeid.cli import main
+from tubeid.cli import entry
 
-raise SystemExit(main())
+entry()
