@@ -297,3 +297,26 @@ def test_a_running_non_daemon_thread_is_waited_for():
             "exit_now(3)\n")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 3 and proc.stdout == "thread done\n", proc
+
+
+def test_show_cuts_a_long_parameter_value_unless_full(tmp_path, capsys):
+    """A study parameter holding a long text (as the paper study's model specification) is shown as
+    its first 40 characters and its length; ``--full`` prints it whole; short values stay whole."""
+    from tubeid.runner import run
+
+    long = "spec:" + "x" * 200 + ":end"
+    study = tmp_path / "long.py"
+    study.write_text(
+        "from tubeid.runner.study import Output, Study, pointwise\n"
+        "@pointwise\n"
+        "def f(point, rng, *, note, k):\n"
+        "    return {'y': float(point['r']) * k}\n"
+        f"study = Study(name='long', seed=3, axes={{'r': range(2)}}, task=f, outputs={{'y': Output()}},\n"
+        f"              parameters={{'note': {long!r}, 'k': 2}})\n")
+    run(study, tmp_path / "long.zarr", workers=0, progress=False, quiet=True)
+    assert main(["show", str(tmp_path / "long.zarr")]) == 0
+    out = capsys.readouterr().out
+    assert f"note = {long[:40]!r}... ({len(long)} characters; --full prints it)" in out
+    assert "k = 2" in out and ":end" not in out
+    assert main(["show", str(tmp_path / "long.zarr"), "--full"]) == 0
+    assert f"note = {long!r}" in capsys.readouterr().out

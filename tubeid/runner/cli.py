@@ -54,6 +54,8 @@ def register(sub) -> None:
     p.add_argument("store", help="the study or pipeline store (a .zarr directory written by tubeid run)")
     p.add_argument("--source", action="store_true", help="also print the study source text")
     p.add_argument("--stage", action="append", help="pipeline store: show only this stage (repeatable)")
+    p.add_argument("--full", action="store_true",
+                   help=f"print every parameter value whole (else a text longer than {LONG_VALUE} characters is cut)")
     p.set_defaults(func=_show)
 
     p = sub.add_parser("bench-runner", help="benchmark the runner: speedup 1 -> 2 workers, overhead vs compute")
@@ -248,6 +250,31 @@ def _looks_damaged(store, node: str, var, finished) -> bool:
     return not bool(np.isfinite(np.asarray(var.values)[mask]).all())
 
 
+#: ``tubeid show`` cuts a parameter's text value longer than this (e.g. a model specification that a
+#: study stores as a parameter, thousands of characters), unless ``--full``.
+LONG_VALUE = 80
+
+
+def _parameters(text, full: bool) -> str:
+    """A store's ``parameters`` attribute (JSON text) as ``name = value, ...``; a text value longer
+    than ``LONG_VALUE`` characters cut to its first 40, with its length (whole if ``full``)."""
+    import json
+
+    try:
+        values = json.loads(text)
+    except (TypeError, ValueError):
+        return str(text)
+    if not isinstance(values, dict):
+        return str(text)
+    parts = []
+    for name, value in values.items():
+        if isinstance(value, str) and len(value) > LONG_VALUE and not full:
+            parts.append(f"{name} = {value[:40]!r}... ({len(value)} characters; --full prints it)")
+        else:
+            parts.append(f"{name} = {value!r}")
+    return "{" + ", ".join(parts) + "}"
+
+
 def _show(args) -> int:
     from tubeid.errors import SpecificationError
     from tubeid.runner.store import open_results, store_status
@@ -261,7 +288,7 @@ def _show(args) -> int:
     a = ds.attrs
     print(f"study {a.get('study_name')} (file {a.get('study_file')}, hash {str(a.get('study_hash'))[:12]})")
     print(f"  tubeid {a.get('tubeid_version')}, seed {a.get('seed')} over {a.get('seed_axes')}, "
-          f"parameters {a.get('parameters')}")
+          f"parameters {_parameters(a.get('parameters'), args.full)}")
     print(f"  blocks {a['blocks_done']}/{a['blocks_total']}; started {a.get('started')}; "
           f"finished {a.get('finished') or '-'}")
     if a.get("model_specification"):
@@ -283,7 +310,7 @@ def _show_pipeline(args, st) -> int:
         if name not in st["stages"]:
             raise SpecificationError("--stage", name, f"is not a stage of {args.store} (stages: {list(st['stages'])})")
     print(f"pipeline {a.get('study_name')} (file {a.get('study_file')}, hash {str(a.get('study_hash'))[:12]})")
-    print(f"  tubeid {a.get('tubeid_version')}, seed {a.get('seed')}, parameters {a.get('parameters')}")
+    print(f"  tubeid {a.get('tubeid_version')}, seed {a.get('seed')}, parameters {_parameters(a.get('parameters'), args.full)}")
     print(f"  started {a.get('started')}; finished {a.get('finished') or '-'}; stages:")
     for name, s in st["stages"].items():
         print(_stage_line(name, s))
@@ -295,7 +322,8 @@ def _show_pipeline(args, st) -> int:
         ds = open_results(args.store, name, chunks=None)
         sa = ds.attrs
         print(f"\nstage {name} (hash {str(sa.get('stage_hash'))[:12]}): {sa.get('title')}")
-        print(f"  streams keyed by {sa.get('stream_key')} + {sa.get('seed_axes')}, parameters {sa.get('parameters')}")
+        print(f"  streams keyed by {sa.get('stream_key')} + {sa.get('seed_axes')}, "
+              f"parameters {_parameters(sa.get('parameters'), args.full)}")
         if sa.get("summary_keys"):
             print("  summary: " + ", ".join(f"{k} = {sa[k]}" for k in sa["summary_keys"]))
         _print_dataset(ds, args.store, name)
