@@ -7,7 +7,6 @@ Speed is checked structurally, never by timing: which libraries a command import
 import argparse
 import importlib
 import json
-import os
 import subprocess
 import sys
 from importlib.metadata import version
@@ -257,46 +256,6 @@ def test_status_reads_damaged_raw_flags_as_zarr_does(store, tmp_path):
     direct, by_zarr = _flags_direct(bad), read_flags(bad)
     assert direct[0].tolist() == by_zarr[0].tolist() == [0, 0, int.from_bytes(b"12345678", "little")]
     assert direct[1] == by_zarr[1] == [(1,)]
-
-
-# -- the end of the process -------------------------------------------------------------------------------
-def test_the_program_keeps_its_output_status_and_atexit_work_without_the_teardown(store, tmp_path, capsys):
-    """``python -m tubeid`` ends by ``exit_now``: a pipe's block-buffered output arrives whole, a
-    refused input keeps status 2, and ``atexit`` functions still run (here one a study file
-    registers, seen by the file it writes); the same output as :func:`main` in this process."""
-    buffered = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}  # the output stays in a buffer
-    out = subprocess.run([sys.executable, "-m", "tubeid", "show", str(store)], capture_output=True, text=True,
-                         env=buffered)
-    assert out.returncode == 0, out.stderr
-    assert main(["show", str(store)]) == 0
-    assert out.stdout == capsys.readouterr().out and out.stdout.rstrip().endswith("(100% written)")
-    bad = subprocess.run([sys.executable, "-m", "tubeid", "status", str(tmp_path / "none.zarr")],
-                         capture_output=True, text=True)
-    assert bad.returncode == 2 and bad.stderr.startswith("tubeid: error:")
-    marker = tmp_path / "atexit.txt"
-    study = tmp_path / "late.py"
-    study.write_text(
-        "import atexit\n"
-        f"atexit.register(lambda: open({str(marker)!r}, 'w').write('ran'))\n"
-        "from tubeid.runner.study import Output, Study, pointwise\n"
-        "@pointwise\n"
-        "def f(point, rng):\n"
-        "    return {'y': float(point['r'])}\n"
-        "study = Study(name='late', seed=3, axes={'r': range(2)}, task=f, outputs={'y': Output()})\n")
-    done = subprocess.run([sys.executable, "-m", "tubeid", "run", str(study), "--store", str(tmp_path / "late.zarr"),
-                           "--workers", "0", "--no-progress"], capture_output=True, text=True)
-    assert done.returncode == 0, done.stderr
-    assert marker.read_text() == "ran" and "tubeid: done:" in done.stderr
-
-
-def test_a_running_non_daemon_thread_is_waited_for():
-    """``exit_now`` with another non-daemon thread alive takes the normal exit, which waits for it."""
-    code = ("import threading, time\n"
-            "from tubeid.cli import exit_now\n"
-            "threading.Thread(target=lambda: (time.sleep(0.3), print('thread done', flush=True))).start()\n"
-            "exit_now(3)\n")
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
-    assert proc.returncode == 3 and proc.stdout == "thread done\n", proc
 
 
 def test_show_cuts_a_long_parameter_value_unless_full(tmp_path, capsys):

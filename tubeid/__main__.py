@@ -1,3 +1,3 @@
-from tubeid.cli import entry
+from tubeid.cli import main
 
-entry()
+raise SystemExit(main())

@@ -16,7 +16,7 @@ from typing import NamedTuple
 
 from tubeid._version import __version__
 
-__all__ = ["main", "entry", "exit_now", "build_parser", "COMMANDS", "Command"]
+__all__ = ["main", "build_parser", "COMMANDS", "Command"]
 
 
 class Command(NamedTuple):
@@ -161,36 +161,3 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BrokenPipeError:  # the reader of stdout went away (`tubeid status STORE | head`): stop quietly
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at interpreter exit
         return 128 + 13  # as a process ended by SIGPIPE
-
-
-def entry() -> None:
-    """The ``tubeid`` program (console script and ``python -m tubeid``): :func:`main`, then
-    :func:`exit_now` with its status."""
-    exit_now(main())
-
-
-def exit_now(status: int) -> None:
-    """End the process with ``status`` without the interpreter's teardown.
-
-    A finished command has nothing left for the teardown to do but free ~2 000 imported modules one
-    by one (numba's LLVM, xarray, dask): 0.3-0.8 s after its last line. Here the ``atexit``
-    functions run as at any exit (logging, multiprocessing children, ``weakref.finalize``), standard
-    output and error are flushed, and ``os._exit(status)`` ends the process. A normal exit
-    (``sys.exit``) is taken instead when another non-daemon thread is still running (it is waited
-    for), when flushing fails, or where ``atexit._run_exitfuncs`` does not exist.
-    """
-    import atexit
-    import threading
-
-    run_exitfuncs = getattr(atexit, "_run_exitfuncs", None)
-    others = [t for t in threading.enumerate() if t is not threading.main_thread() and not t.daemon and t.is_alive()]
-    if run_exitfuncs is None or others:
-        sys.exit(status)
-    run_exitfuncs()
-    try:
-        for stream in (sys.stdout, sys.stderr):
-            if stream is not None:
-                stream.flush()
-    except (OSError, ValueError):  # a closed or broken stream: the interpreter's own exit reports it
-        sys.exit(status)
-    os._exit(status)

@@ -352,6 +352,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    from tubeid.cli import exit_now
-
-    exit_now(main())
+    raise SystemExit(main())
