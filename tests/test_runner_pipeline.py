@@ -522,7 +522,7 @@ def test_a_small_stage_is_read_into_memory_once_and_a_large_one_stays_lazy(tmp_p
     execute._OPENED.clear()
 
 
-# -- workers build a stage while the runner does --------------------------------------------------------
+# -- workers load the definition while the runner works ---------------------------------------------------
 AHEAD = '''
 import os
 import time
@@ -537,48 +537,44 @@ def _note(what, t0):
         f.write(f"{{what}} {{os.getpid()}} {{t0!r}} {{time.time()!r}}\\n")
 
 
-def _pid(block, rng):
+_t0 = time.time()
+time.sleep({sleep})  # a definition with heavy imports
+_note("definition", _t0)
+
+
+def _pid(block, rng, *, k):
     return {{"pid": np.full(len(block["i"]), float(os.getpid()))}}
 
 
-def _built(name, n):
+def first(results, *, k):
     t0 = time.time()
     time.sleep({sleep})  # a stage function that takes a while (e.g. an identification from earlier results)
-    _note(name, t0)
-    return Study(name=name, seed=5, axes={{"i": range(n)}}, chunks={{"i": 1}}, task=_pid, outputs={{"pid": Output()}})
+    _note("first", t0)
+    return Study(name="first", seed=5, axes={{"i": range(4)}}, chunks={{"i": 1}}, task=_pid, outputs={{"pid": Output()}},
+                 parameters={{"k": k}})
 
 
-def first(results):
-    return _built("first", 4)
-
-
-def second(results):
-    return _built("second", 4)
-
-
-study = Pipeline(name="ahead", seed=5, stages=[first, second])
+study = Pipeline(name="ahead", seed=5, stages=[first], parameters={{"k": 1}})
 '''
 
 
 @pytest.mark.distributed
 @pytest.mark.timeout(120)
-def test_the_workers_build_each_stage_while_the_runner_does_and_their_blocks_reuse_it(tmp_path):
-    """Each worker builds a stage (``build_stage``) while the runner builds it, not after the runner
-    has submitted its blocks, and the worker's blocks use that build (one build per worker and stage)."""
+def test_the_workers_load_the_definition_while_the_runner_builds_the_first_stage(tmp_path):
+    """As soon as the cluster runs, each worker executes the definition (with the run's overrides)
+    while the runner builds the first stage, not after the runner has submitted its blocks; the
+    blocks use that load (one per worker process)."""
     sleep = 1.5
-    log = tmp_path / "builds.log"
+    log = tmp_path / "loads.log"
     (tmp_path / "ahead.py").write_text(AHEAD.format(log=str(log), sleep=sleep))
-    rep = run(tmp_path / "ahead.py", tmp_path / "a.zarr", workers=2, quiet=True)
-    assert rep.computed == 8
-    builds = [line.split() for line in log.read_text().splitlines()]
+    rep = run(tmp_path / "ahead.py", tmp_path / "a.zarr", workers=2, overrides={"k": 2}, quiet=True)
+    assert rep.computed == 4
+    notes = [line.split() for line in log.read_text().splitlines()]
     me = str(os.getpid())
-    res = open_pipeline(tmp_path / "a.zarr")
-    for name in ("first", "second"):
-        ran_on = {str(int(p)) for p in res[name].pid.values}
-        assert me not in ran_on
-        mine = [(float(t0), float(t1)) for what, pid, t0, t1 in builds if what == name and pid == me]
-        assert len(mine) == 1, builds
-        theirs = [(pid, float(t0)) for what, pid, t0, _ in builds if what == name and pid != me]
-        # every worker that ran a block built the stage once, starting before the runner had built it
-        assert sorted(p for p, _ in theirs if p in ran_on) == sorted(ran_on), builds
-        assert all(t0 < mine[0][1] for p, t0 in theirs if p in ran_on), builds
+    built = [float(t1) for what, pid, _, t1 in notes if what == "first" and pid == me]
+    assert len(built) == 1, notes
+    ran_on = {str(int(p)) for p in open_pipeline(tmp_path / "a.zarr")["first"].pid.values}
+    assert ran_on and me not in ran_on
+    loads = [(pid, float(t0)) for what, pid, t0, _ in notes if what == "definition" and pid in ran_on]
+    assert sorted(pid for pid, _ in loads) == sorted(ran_on), notes  # once per worker that ran blocks
+    assert all(t0 < built[0] for _, t0 in loads), notes  # started before the runner's build ended

@@ -6,9 +6,9 @@ that stage's tasks). Tasks are idempotent (a block always writes the same bytes 
 chunks, its flag last), so a rescheduled task after a worker death, a concurrent duplicate or a
 resumed run cannot change the result. A pipeline runs its stages in order on the same cluster; a
 worker rebuilds a stage from the pipeline source and the earlier stages' stored results (once per
-process) and checks that it gets the stage hash the client computed. The workers do so while the
-runner builds the stage itself (``build_stage``, one task per worker, started first), and load the
-definition while the runner creates the store: neither waits for the other.
+process) and checks that it gets the stage hash the client computed. As soon as the cluster runs,
+every worker loads the definition (``load_ahead``) while the runner creates the store and builds
+the first stage: the first blocks do not wait for the study's imports.
 """
 
 from __future__ import annotations
@@ -204,25 +204,15 @@ def stage_study(pipeline: Pipeline, key: str, store, name: str):
     return study, stage_hash(key, study, upstream)
 
 
-def build_stage(store: str, source: str, overrides: dict, name: str | None = None) -> str | None:
-    """Worker side, ahead of the blocks: load the definition and build stage ``name`` (None: only
-    load the definition) as :func:`run_stage_block` would at its first block, and keep the stage
-    under the hash this worker computes; returns that hash (None for ``End``, no stage, or a failure).
-
-    Only a cache fill, so that a worker does this while the runner builds the stage itself, not
-    after: a failure here is left to the block, which rebuilds the stage and raises it; a stage built
-    with another hash than the runner's is never used (the block's check compares the hashes).
-    """
+def load_ahead(source: str, overrides: dict) -> None:
+    """Worker side, first thing on the cluster: execute the study or pipeline definition as the first
+    block would (:func:`~tubeid.runner.study.load_definition` keeps it per process), while the runner
+    does its own part. Only a cache fill: a failure is left to the first block, which loads the
+    definition again and raises it, naming the block."""
     try:
-        pipeline, _, key = load_definition(source=source, overrides=overrides)
-        if name is None or not isinstance(pipeline, Pipeline):
-            return None
-        study, h = stage_study(pipeline, key, store, name)
-    except Exception:  # the block that needs it raises it, with its label
-        return None
-    if h is not None:
-        _STAGES.setdefault((store, h), study)
-    return h
+        load_definition(source=source, overrides=overrides)
+    except Exception:  # raised again, with the block's label, by the block that needs the definition
+        pass
 
 
 def run_stage_block(store: str, source: str, overrides: dict, name: str, expected_hash: str,
@@ -549,18 +539,24 @@ def _warm_up(client, warmup, quiet) -> float:
     return dt
 
 
-def _build_ahead(client, ctx, name: str | None = None) -> list:
-    """Start :func:`build_stage` on every worker of ``client`` (one task pinned to each), so that the
-    workers load the definition (and build stage ``name``) while this process does its own part;
-    returns the futures, which must be held until they finish (a released future's task is
-    forgotten) and are never waited for. Nothing for ``client`` None (the blocks run here)."""
-    if client is None:
-        return []
-    workers = sorted(client.scheduler_info(n_workers=-1)["workers"])
-    what = name or "definition"
-    return [client.submit(build_stage, str(ctx.path), ctx.source, ctx.overrides, name, workers=[a],
-                          allow_other_workers=False, pure=False, key=f"tubeid-build-{what}-{i}-{time.time_ns()}")
-            for i, a in enumerate(workers)]
+@contextlib.contextmanager
+def _loading_ahead(client, ctx):
+    """While the body runs, every worker of ``client`` loads the definition (:func:`load_ahead`, one
+    task pinned to each, submitted before any block); the futures are held meanwhile (a released
+    future's task is forgotten), never waited for, and those not finished when the body ends (it
+    raised, or a worker never ran its task) are cancelled. Nothing for ``client`` None."""
+    futures = []
+    if client is not None:
+        workers = sorted(client.scheduler_info(n_workers=-1)["workers"])
+        futures = [client.submit(load_ahead, ctx.source, ctx.overrides, workers=[a], allow_other_workers=False,
+                                 pure=False, key=f"tubeid-load-ahead-{i}-{time.time_ns()}")
+                   for i, a in enumerate(workers)]
+    try:
+        yield
+    finally:
+        pending = [f for f in futures if not f.done()]
+        if pending:
+            client.cancel(pending)
 
 
 def _record_resume(path, quiet) -> None:
@@ -730,7 +726,6 @@ class _Run:
     quiet: bool
     lock: StoreLock
     verified: dict = dataclasses.field(default_factory=dict)  # pipeline stage -> damaged blocks found already
-    ahead: list = dataclasses.field(default_factory=list)  # build_stage futures held until they finish
 
     def cluster(self):
         if self.workers == 0 and self.client is None:
@@ -753,10 +748,9 @@ def _run_study(ctx: _Run) -> RunReport:
             _log(f"tubeid: {path} is complete ({checked}): nothing to do", quiet)
             return report
     t0 = time.perf_counter()
-    with ctx.cluster() as (client, where):
+    with ctx.cluster() as (client, where), _loading_ahead(None if study.in_process else client, ctx):
         report.startup = time.perf_counter() - t0
         t0 = time.perf_counter()
-        ctx.ahead = [] if study.in_process else _build_ahead(client, ctx)  # the workers load the study meanwhile
         if ctx.state == "new":
             init_store(study, path, source=ctx.source, study_hash=ctx.key, study_file=str(ctx.study_path),
                        overrides=ctx.overrides)
@@ -819,10 +813,9 @@ def _run_pipeline(ctx: _Run) -> PipelineReport:
             return report
         report.stages.clear()
     t0 = time.perf_counter()
-    with ctx.cluster() as (client, where):
+    with ctx.cluster() as (client, where), _loading_ahead(client, ctx):
         report.startup = time.perf_counter() - t0
         t0 = time.perf_counter()
-        ctx.ahead = _build_ahead(client, ctx)  # the workers load the pipeline meanwhile
         if ctx.state == "new":
             init_pipeline_store(pipeline, path, source=ctx.source, study_hash=ctx.key, study_file=str(ctx.study_path),
                                 overrides=ctx.overrides)
@@ -834,17 +827,12 @@ def _run_pipeline(ctx: _Run) -> PipelineReport:
             _describe_cluster(client, where, report, quiet)
         report.prepare = time.perf_counter() - t0
         report.warmup = _warm_up(client, pipeline.warmup, quiet)
-        try:
-            for name in pipeline.stage_names:
-                stage_report = _run_stage(ctx, name, client)
-                if stage_report is None:  # the pipeline ended before this stage
-                    break
-                report.stages[name] = stage_report
-                report.workers = max(report.workers, report.stages[name].workers)
-        finally:
-            if client is not None and ctx.ahead:  # a stage refused: nothing is left running for it
-                client.cancel([f for f in ctx.ahead if not f.done()])
-            ctx.ahead = []
+        for name in pipeline.stage_names:
+            stage_report = _run_stage(ctx, name, client)
+            if stage_report is None:  # the pipeline ended before this stage
+                break
+            report.stages[name] = stage_report
+            report.workers = max(report.workers, report.stages[name].workers)
     t0 = time.perf_counter()
     update_attrs(path, finished=now(),
                  add_history=f"complete: {report.computed} block(s) computed, {report.skipped} already done")
@@ -882,8 +870,6 @@ def _run_stage(ctx: _Run, name: str, client) -> RunReport | None:
     """Run (or resume) one stage; None when the pipeline ends before it (:class:`End`)."""
     pipeline, path, quiet = ctx.study, ctx.path, ctx.quiet
     t0 = time.perf_counter()
-    if client is not None and read_attrs(path).get("stage_status", {}).get(name) != "complete":
-        ctx.ahead = [f for f in ctx.ahead if not f.done()] + _build_ahead(client, ctx, name)  # workers build it too
     study, shash = stage_study(pipeline, ctx.key, path, name)  # refused here (before its tasks) if invalid
     if isinstance(study, End):
         _end_pipeline(ctx, name, study.reason)
