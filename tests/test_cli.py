@@ -260,7 +260,8 @@ def test_status_reads_damaged_raw_flags_as_zarr_does(store, tmp_path):
 
 def test_show_cuts_a_long_parameter_value_unless_full(tmp_path, capsys):
     """A study parameter holding a long text (as the paper study's model specification) is shown as
-    its first 40 characters and its length; ``--full`` prints it whole; short values stay whole."""
+    the first 40 characters of its JSON text and that text's length; ``--full`` prints it whole;
+    short values stay whole, as stored (JSON, ASCII: a non-ASCII value prints on any terminal)."""
     from tubeid.runner import run
 
     long = "spec:" + "x" * 200 + ":end"
@@ -268,14 +269,15 @@ def test_show_cuts_a_long_parameter_value_unless_full(tmp_path, capsys):
     study.write_text(
         "from tubeid.runner.study import Output, Study, pointwise\n"
         "@pointwise\n"
-        "def f(point, rng, *, note, k):\n"
+        "def f(point, rng, *, note, k, tag):\n"
         "    return {'y': float(point['r']) * k}\n"
         f"study = Study(name='long', seed=3, axes={{'r': range(2)}}, task=f, outputs={{'y': Output()}},\n"
-        f"              parameters={{'note': {long!r}, 'k': 2}})\n")
+        f"              parameters={{'note': {long!r}, 'k': 2, 'tag': 'δ-run'}})\n")
     run(study, tmp_path / "long.zarr", workers=0, progress=False, quiet=True)
     assert main(["show", str(tmp_path / "long.zarr")]) == 0
     out = capsys.readouterr().out
-    assert f"note = {long[:40]!r}... ({len(long)} characters; --full prints it)" in out
-    assert "k = 2" in out and ":end" not in out
+    text = json.dumps(long)
+    assert f'"note": {text[:40]}... ({len(text)} characters; --full prints it)' in out
+    assert '"k": 2' in out and '"tag": "\\u03b4-run"' in out and ":end" not in out
     assert main(["show", str(tmp_path / "long.zarr"), "--full"]) == 0
-    assert f"note = {long!r}" in capsys.readouterr().out
+    assert f'"note": {text}' in capsys.readouterr().out

@@ -55,7 +55,8 @@ def register(sub) -> None:
     p.add_argument("--source", action="store_true", help="also print the study source text")
     p.add_argument("--stage", action="append", help="pipeline store: show only this stage (repeatable)")
     p.add_argument("--full", action="store_true",
-                   help=f"print every parameter value whole (else a text longer than {LONG_VALUE} characters is cut)")
+                   help=f"print every parameter value whole (else one whose JSON text is longer than {LONG_VALUE} "
+                        "characters is cut)")
     p.set_defaults(func=_show)
 
     p = sub.add_parser("bench-runner", help="benchmark the runner: speedup 1 -> 2 workers, overhead vs compute")
@@ -250,14 +251,15 @@ def _looks_damaged(store, node: str, var, finished) -> bool:
     return not bool(np.isfinite(np.asarray(var.values)[mask]).all())
 
 
-#: ``tubeid show`` cuts a parameter's text value longer than this (e.g. a model specification that a
-#: study stores as a parameter, thousands of characters), unless ``--full``.
+#: ``tubeid show`` cuts a parameter's value whose JSON text is longer than this (e.g. a model
+#: specification that a study stores as a parameter, thousands of characters), unless ``--full``.
 LONG_VALUE = 80
 
 
 def _parameters(text, full: bool) -> str:
-    """A store's ``parameters`` attribute (JSON text) as ``name = value, ...``; a text value longer
-    than ``LONG_VALUE`` characters cut to its first 40, with its length (whole if ``full``)."""
+    """A store's ``parameters`` attribute (JSON text of an object) as it is stored, except that a
+    value whose JSON text is longer than ``LONG_VALUE`` characters is cut to its first 40, with its
+    length (whole if ``full``). Anything else is printed as it is."""
     import json
 
     try:
@@ -268,10 +270,10 @@ def _parameters(text, full: bool) -> str:
         return str(text)
     parts = []
     for name, value in values.items():
-        if isinstance(value, str) and len(value) > LONG_VALUE and not full:
-            parts.append(f"{name} = {value[:40]!r}... ({len(value)} characters; --full prints it)")
-        else:
-            parts.append(f"{name} = {value!r}")
+        shown = json.dumps(value)
+        if len(shown) > LONG_VALUE and not full:
+            shown = f"{shown[:40]}... ({len(shown)} characters; --full prints it)"
+        parts.append(f"{json.dumps(name)}: {shown}")
     return "{" + ", ".join(parts) + "}"
 
 
