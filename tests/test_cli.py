@@ -7,6 +7,7 @@ Speed is checked structurally, never by timing: which libraries a command import
 import argparse
 import importlib
 import json
+import os
 import subprocess
 import sys
 from importlib.metadata import version
@@ -108,12 +109,17 @@ def test_status_and_show_report_the_store(store, capsys):
     assert "study tiny" in out and "y [m]:" in out and "(100% written)" in out
 
 
-def test_a_reader_that_goes_away_ends_the_command_quietly(store):
+@pytest.mark.parametrize("buffered", [False, True])
+def test_a_reader_that_goes_away_ends_the_command_quietly(store, buffered):
     """``tubeid show STORE | head -1``: the pipe's reader exits after one line and the command's next
     writes fail (EPIPE). No traceback, exit status 141 (as a process ended by SIGPIPE). The reader is
-    a process that closes the pipe at once; the command writes many lines."""
+    a process that closes the pipe at once; the command writes many lines. Buffered (no
+    PYTHONUNBUFFERED, as ``| true``): the output is still in the buffer when the command ends."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}
+    if not buffered:
+        env["PYTHONUNBUFFERED"] = "1"
     proc = subprocess.Popen([sys.executable, "-m", "tubeid", "show", str(store)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True, env=env)
     proc.stdout.close()
     err = proc.stderr.read()
     assert proc.wait(timeout=60) == 141, err

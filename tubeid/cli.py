@@ -147,7 +147,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         # the hot paths are many small matrices (N ≈ 20–50): BLAS threads only contend with the
         # worker processes and with each other; dask workers are pinned to 1 thread by their nanny
         with threadpool_limits(limits=1):
-            return int(args.func(args) or 0)
+            status = int(args.func(args) or 0)
+        sys.stdout.flush()  # output still buffered (stdout a pipe) meets a reader gone here, not at exit
+        return status
     except (SpecificationError, MissingDependencyError) as exc:
         print(f"tubeid: error: {exc}", file=sys.stderr)
         return 2
