@@ -556,7 +556,8 @@ def _loading_ahead(client, ctx):
     finally:
         pending = [f for f in futures if not f.done()]
         if pending:
-            client.cancel(pending)
+            with contextlib.suppress(Exception):  # a client already gone (the body's error says why) cancels nothing
+                client.cancel(pending)
 
 
 def _record_resume(path, quiet) -> None:
