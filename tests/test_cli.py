@@ -287,3 +287,14 @@ def test_show_cuts_a_long_parameter_value_unless_full(tmp_path, capsys):
     assert '"k": 2' in out and '"tag": "\\u03b4-run"' in out and ":end" not in out
     assert main(["show", str(tmp_path / "long.zarr"), "--full"]) == 0
     assert f'"note": {text}' in capsys.readouterr().out
+
+
+def test_output_that_cannot_be_written_is_one_error_line(store):
+    """Buffered output to a full device (``/dev/full``: ENOSPC at the final flush): exit status 74
+    and one line on stderr, no traceback and no second report at interpreter exit."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}
+    with open("/dev/full", "w") as full:
+        proc = subprocess.run([sys.executable, "-m", "tubeid", "show", str(store)], stdout=full,
+                              stderr=subprocess.PIPE, text=True, env=env, timeout=60)
+    assert proc.returncode == 74, proc.stderr
+    assert proc.stderr.startswith("tubeid: error: cannot write the output:") and proc.stderr.count("\n") == 1, proc.stderr

@@ -122,7 +122,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         The exit status: 0 on success, 2 for a refused input (a ``SpecificationError``) or a
         missing optional dependency, both reported in one line on stderr; a command may return
         others (130 when ``run`` is interrupted; 141, silently, when the reader of its output went
-        away, as ``tubeid status STORE | head -1``).
+        away, as ``tubeid status STORE | head -1``; 74 when the output's last write failed otherwise,
+        e.g. on a full disk, said in one line on stderr).
     """
     argv = list(sys.argv[1:] if argv is None else argv)
     command = _chosen(argv)
@@ -148,7 +149,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         # worker processes and with each other; dask workers are pinned to 1 thread by their nanny
         with threadpool_limits(limits=1):
             status = int(args.func(args) or 0)
-        sys.stdout.flush()  # output still buffered (stdout a pipe) meets a reader gone here, not at exit
+        try:
+            sys.stdout.flush()  # output still buffered (stdout a pipe or a file) meets its error here, not at exit
+        except BrokenPipeError:
+            raise
+        except OSError as exc:  # e.g. a full disk: said once, not again at interpreter exit
+            print(f"tubeid: error: cannot write the output: {exc}", file=sys.stderr)
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            return 74  # EX_IOERR
         return status
     except (SpecificationError, MissingDependencyError) as exc:
         print(f"tubeid: error: {exc}", file=sys.stderr)
