@@ -289,6 +289,7 @@ def test_show_cuts_a_long_parameter_value_unless_full(tmp_path, capsys):
     assert f'"note": {text}' in capsys.readouterr().out
 
 
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs Linux's /dev/full")
 def test_output_that_cannot_be_written_is_one_error_line(store):
     """Buffered output to a full device (``/dev/full``: ENOSPC at the final flush): exit status 74
     and one line on stderr, no traceback and no second report at interpreter exit."""
