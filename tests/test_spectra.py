@@ -257,3 +257,46 @@ def test_refusals():
         psd_matrix(np.full((100, 1), np.nan), 0.01)
     with pytest.raises(SpecificationError):
         variance_from_psd(np.array([1.0, 2.0]), np.ones((2, 1, 1)))
+
+
+def test_the_default_window_is_scipys_periodic_hann_and_others_are_scipys():
+    """The default "hann" is computed without scipy.signal (see spectra._window); the PSDs must not
+    change by it: the window equals scipy's to round-off (bit-identical on the scipy this was
+    written against), for even and odd lengths; any other window is scipy's own."""
+    from tubeid.dynamics.spectra import _window
+
+    for n in (1, 2, 3, 7, 256, 1001, 4000):
+        np.testing.assert_allclose(_window("hann", n), scipy.signal.get_window("hann", n), rtol=0, atol=1e-15)
+    for spec in ("hamming", ("tukey", 0.3), "boxcar"):
+        assert np.array_equal(_window(spec, 300), scipy.signal.get_window(spec, 300))
+    x = rng_for(3, "hann").standard_normal((4000, 2))
+    _, S = psd_matrix(x, 0.01, segment_seconds=5.0)
+    _, S_scipy = psd_matrix(x, 0.01, segment_seconds=5.0, window=scipy.signal.get_window("hann", 500))
+    np.testing.assert_allclose(S, S_scipy, rtol=1e-13, atol=0)
+
+
+def test_importing_the_dynamics_does_not_import_scipy_signal():
+    """scipy.signal costs ~0.5 s to import, in the runner and in every worker of a study: the
+    default estimator must not need it (a detrend or another window imports it when used)."""
+    import subprocess
+    import sys
+
+    code = ("import sys, numpy as np, tubeid.dynamics.response, tubeid.dynamics.spectra as s\n"
+            "s.psd_matrix(np.ones((64, 1)), 0.01, segment_seconds=0.2)\n"
+            "assert 'scipy.signal' not in sys.modules, 'imported'\n"
+            "s.psd_matrix(np.ones((64, 1)), 0.01, segment_seconds=0.2, detrend='linear')\n"
+            "assert 'scipy.signal' in sys.modules\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+
+
+def test_a_window_given_as_weights():
+    """``window`` may be the weights themselves (as the docstring says): the same estimate as the
+    named window; a wrong length or a non-finite weight is refused naming the field."""
+    x = rng_for(4, "weights").standard_normal((3000, 2))
+    _, S = psd_matrix(x, 0.01, segment_seconds=4.0, window="hamming")
+    _, S_w = psd_matrix(x, 0.01, segment_seconds=4.0, window=list(scipy.signal.get_window("hamming", 400)))
+    assert np.array_equal(S, S_w)
+    for bad in (np.ones(399), np.ones((400, 1)), np.r_[np.ones(399), np.nan], ["a"] * 400):
+        with pytest.raises(SpecificationError, match="window"):
+            psd_matrix(x, 0.01, segment_seconds=4.0, window=bad)

@@ -32,7 +32,6 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-import scipy.signal
 import xarray as xr
 from numpy.typing import ArrayLike
 
@@ -42,6 +41,35 @@ __all__ = ["psd_matrix", "auto_psd", "psd_dataset", "variance_from_psd", "confid
            "log_band_energies"]
 
 _DETRENDS = (False, "constant", "linear")
+
+
+def _window(window: Any, n: int) -> np.ndarray:
+    """``scipy.signal.get_window(window, n)`` (periodic, for spectral analysis). The default
+    ``"hann"`` is computed here as scipy computes it (0.5 + 0.5 cos of ``linspace(-π, π, n + 1)``,
+    the last point dropped): importing ``scipy.signal`` costs ~0.5 s, paid by every process that
+    imports this module (a study's workers, each ``tubeid`` command). Other windows import it.
+    An array is the window itself: 1-D, finite, of length n (the segment's samples)."""
+    if not isinstance(window, (str, tuple)):
+        try:
+            w = np.asarray(window, dtype=float)
+        except (TypeError, ValueError):
+            raise SpecificationError("window", type(window).__name__, "must be a scipy window name, tuple or "
+                                                                      "an array of weights") from None
+        if w.shape != (n,) or not np.all(np.isfinite(w)):
+            raise SpecificationError("window", f"array of shape {w.shape}", f"must be 1-D and finite, with one weight "
+                                                                             f"per sample of a segment ({n})")
+        return w
+    if window == "hann":
+        if n <= 1:
+            return np.ones(n)
+        fac = np.linspace(-np.pi, np.pi, n + 1)
+        w = np.zeros(n + 1)
+        w += 0.5 * np.cos(0.0 * fac)
+        w += 0.5 * np.cos(fac)
+        return w[:-1]
+    import scipy.signal
+
+    return scipy.signal.get_window(window, n)
 
 
 def _segment_length(segment_seconds, dt, n_t) -> int:
@@ -141,7 +169,9 @@ def _welch_transforms(x, dt, segment_seconds, window, overlap, detrend) -> tuple
     if detrend is not False and detrend not in _DETRENDS:
         raise SpecificationError("detrend", detrend, f"must be one of {_DETRENDS}")
     try:
-        win = scipy.signal.get_window(window, nper)
+        win = _window(window, nper)
+    except SpecificationError:
+        raise
     except (ValueError, TypeError) as exc:
         raise SpecificationError("window", window, f"not a scipy window ({exc})") from None
 
@@ -151,6 +181,8 @@ def _welch_transforms(x, dt, segment_seconds, window, overlap, detrend) -> tuple
     step = nper - noverlap
     seg = np.lib.stride_tricks.sliding_window_view(xt, nper, axis=-1)[..., ::step, :]  # (..., m, n_seg, nper)
     if detrend:
+        import scipy.signal  # only here: see _window
+
         seg = scipy.signal.detrend(seg, type=detrend, axis=-1)
     X = np.fft.rfft(seg * win, axis=-1)  # (..., m, n_seg, F)
     return np.asarray(np.fft.rfftfreq(nper, dt), dtype=float), X, dt / float(np.sum(win * win))
