@@ -578,3 +578,60 @@ def test_the_workers_load_the_definition_while_the_runner_builds_the_first_stage
     loads = [(pid, float(t0)) for what, pid, t0, _ in notes if what == "definition" and pid in ran_on]
     assert sorted(pid for pid, _ in loads) == sorted(ran_on), notes  # once per worker that ran blocks
     assert all(t0 < built[0] for _, t0 in loads), notes  # started before the runner's build ended
+
+
+# -- the runner sends each built stage to the workers ---------------------------------------------------
+SHIPPED = '''
+import os
+import numpy as np
+from tubeid.runner import Output, Pipeline, Study
+
+LOG = {log!r}
+
+
+def _values(block, rng, *, scale):
+    return {{"v": np.array([scale * rng(i=i).standard_normal() for i in block["i"]])}}
+
+
+def first(results, *, k):
+    return Study(name="first", seed=5, axes={{"i": range(4)}}, chunks={{"i": 1}}, seed_axes=("i",), task=_values,
+                 outputs={{"v": Output()}}, parameters={{"scale": float(k)}})
+
+
+def second(results, *, k):
+    with open(LOG, "a") as f:  # every call of this stage function, by process
+        f.write(f"{{os.getpid()}}\\n")
+    scale = float(np.abs(results["first"].v.values).sum())  # a value derived from the earlier stage
+    task = {task}
+    return Study(name="second", seed=5, axes={{"i": range(6)}}, chunks={{"i": 1}}, seed_axes=("i",), task=task,
+                 outputs={{"v": Output()}}, parameters={{"scale": scale}})
+
+
+study = Pipeline(name="shipped", seed=5, stages=[first, second], parameters={{"k": 1}})
+'''
+
+
+@pytest.mark.distributed
+@pytest.mark.timeout(180)
+@pytest.mark.parametrize("task, calls", [("_values", "once"), ("lambda block, rng, *, scale: _values(block, rng, scale=scale)",
+                                                                 "per process")])
+def test_the_workers_get_the_runners_stage_instead_of_building_it_again(tmp_path, task, calls):
+    """The runner builds a stage once and sends it with its blocks: the stage function (which may
+    be an identification from earlier results) runs in the runner only. A stage that cannot be
+    pickled by reference (a lambda as its task) is rebuilt by each worker, as before. Both give the
+    in-process result."""
+    log = tmp_path / "calls.log"
+    (tmp_path / "shipped.py").write_text(SHIPPED.format(log=str(log), task=task))
+    run(tmp_path / "shipped.py", tmp_path / "here.zarr", workers=0, quiet=True)
+    assert log.read_text().split() == [str(os.getpid())]
+    log.unlink()
+    rep = run(tmp_path / "shipped.py", tmp_path / "two.zarr", workers=2, quiet=True)
+    assert rep.computed == 10
+    assert store_digest(tmp_path / "two.zarr") == store_digest(tmp_path / "here.zarr")
+    pids = log.read_text().split()
+    assert pids.count(str(os.getpid())) == 1, pids
+    others = [p for p in pids if p != str(os.getpid())]
+    if calls == "once":
+        assert others == [], pids
+    else:
+        assert 1 <= len(others) <= 2 and len(set(others)) == len(others), pids  # once per worker that ran blocks

@@ -4,9 +4,11 @@ Everything that can be refused (study definition, parameters, store path, store 
 checked before any task is submitted (for a pipeline stage built from earlier results: before
 that stage's tasks). Tasks are idempotent (a block always writes the same bytes to the same
 chunks, its flag last), so a rescheduled task after a worker death, a concurrent duplicate or a
-resumed run cannot change the result. A pipeline runs its stages in order on the same cluster; a
-worker rebuilds a stage from the pipeline source and the earlier stages' stored results (once per
-process) and checks that it gets the stage hash the client computed. As soon as the cluster runs,
+resumed run cannot change the result. A pipeline runs its stages in order on the same cluster; the
+runner builds each stage once and sends it to the workers with its blocks (``stage_payload``); a
+stage that cannot be sent that way (e.g. a task that is a lambda) is rebuilt by each worker from the
+pipeline source and the earlier stages' stored results (once per process), which checks that it gets
+the stage hash the client computed. As soon as the cluster runs,
 every worker loads the definition (``load_ahead``) while the runner creates the store and builds
 the first stage: the first blocks do not wait for the study's imports.
 """
@@ -37,7 +39,7 @@ from tubeid.runner.store import (append_history, block_flags, check_blocks, chec
                                  init_pipeline_store, init_stage, init_store, now, prepare_path, read_attrs, remove_store,
                                  remove_temporaries, _forget_nodes, _read_manifest, _remove_nodes,
                                  set_flags, tubeid_version, update_attrs, write_block)
-from tubeid.runner.study import _plain, load_definition, load_study
+from tubeid.runner.study import Study, _plain, load_definition, load_study
 
 if TYPE_CHECKING:
     import distributed
@@ -215,12 +217,51 @@ def load_ahead(source: str, overrides: dict) -> None:
         pass
 
 
+def stage_payload(study) -> tuple[bytes, str] | None:
+    """Runner side: the built stage as sent to the workers, ``(pickle, fingerprint)``, or None.
+
+    Pickled by reference (plain :mod:`pickle`): the study's functions are found by name in the
+    worker's copy of the definition, which every worker executes anyway, so a worker gets the
+    runner's stage without calling its stage function again (an identification from earlier results
+    is then computed once per stage, not once per process). A stage whose parts cannot be pickled by
+    reference (a lambda or a nested function as its task) gives None: each worker rebuilds it."""
+    import pickle
+
+    try:
+        return pickle.dumps(study, protocol=pickle.HIGHEST_PROTOCOL), study.fingerprint()
+    except (pickle.PicklingError, AttributeError, TypeError, ValueError):
+        return None
+
+
+def _unpack_stage(payload: tuple[bytes, str] | None):
+    """Worker side: the runner's stage from ``stage_payload`` (the definition loaded first), or
+    None if there is none or it does not unpickle to the same fingerprint (then it is rebuilt)."""
+    if payload is None:
+        return None
+    import pickle
+
+    blob, fingerprint = payload
+    try:
+        study = pickle.loads(blob)
+    except Exception:  # a definition that differs here (it should not): rebuilt and checked instead
+        return None
+    return study if isinstance(study, Study) and study.fingerprint() == fingerprint else None
+
+
 def run_stage_block(store: str, source: str, overrides: dict, name: str, expected_hash: str,
-                    index: tuple[int, ...]) -> dict:
-    """Worker side: compute one block of pipeline stage ``name`` and write it into its group."""
+                    index: tuple[int, ...], *, payload: tuple[bytes, str] | None = None) -> dict:
+    """Worker side: compute one block of pipeline stage ``name`` and write it into its group.
+
+    ``payload`` (:func:`stage_payload`): the stage as the runner built it; without it (or if it does
+    not unpickle to the runner's stage) the stage is rebuilt here from the store and must get
+    ``expected_hash``."""
     ck = (store, expected_hash)
     if ck not in _STAGES:
         pipeline, _, key = load_definition(source=source, overrides=overrides)
+        shipped = _unpack_stage(payload)
+        if shipped is not None:
+            _STAGES[ck] = shipped
+    if ck not in _STAGES:
         study, h = stage_study(pipeline, key, store, name)
         if h is None or h != expected_hash:
             got = "as End" if h is None else f"with hash {h[:12]}"
@@ -902,7 +943,8 @@ def _run_stage(ctx: _Run, name: str, client) -> RunReport | None:
     report.skipped = study.n_blocks - len(todo)
     _log(f"tubeid: stage {name}: {len(todo)} of {study.n_blocks} blocks to compute", quiet)
     report.prepare = time.perf_counter() - t0
-    fn = functools.partial(run_stage_block, str(path), ctx.source, ctx.overrides, name, shash)
+    fn = functools.partial(run_stage_block, str(path), ctx.source, ctx.overrides, name, shash,
+                           payload=stage_payload(study) if todo and client is not None and not study.in_process else None)
     if todo:
         report.warmup = _warm_up(client, study.warmup, quiet)
     if client is None or study.in_process:
