@@ -737,3 +737,63 @@ def test_hostile_records_are_refused_by_the_api_and_the_cli(tmp_path, capsys):
         err = capsys.readouterr().err
         assert err.startswith("tubeid: error: ") and path.name in err and words in err, (what, err)
         assert "Traceback" not in err
+
+
+# --------------------------------------------------------------------------- input validation (review)
+def test_time_x_and_samples_of_timedelta_or_datetime_type_are_refused():
+    """np.issubdtype(timedelta64, np.integer) is True: 1 ms steps were read as dt = 1.0 s."""
+    raw = raw_dataset(gaussian())
+    steps = np.arange(N) * np.timedelta64(1, "ms")
+    for t in (steps, np.datetime64("2024-01-01") + steps, np.arange(N) % 2 == 0):
+        refused(lambda: validate_measurements(raw.assign_coords(time=("time", t))), "time.dtype",
+                "time must be numeric seconds")
+    refused(lambda: validate_measurements(raw.assign_coords(x=("sensor", np.array([1, 2, 3]) * np.timedelta64(1, "s")))),
+            "x.dtype", "positions x must be numbers")
+    counts = (gaussian() * 1e9).astype("int64").astype("m8[ns]")
+    bad = raw.copy()
+    bad["displacement"] = (("time", "sensor"), counts, {"units": "nm", "scale_factor": 1.0})
+    refused(lambda: validate_measurements(bad), "displacement.dtype", "real numbers")
+
+
+@pytest.mark.parametrize("length", ["16", np.True_, True, None, np.nan, 0.0])
+def test_tube_lengths_must_be_numbers(tmp_path, length):
+    """The string "16" was a length of 16 m, and np.True_ one of 1 m (float() of either works)."""
+    path = good_csv(tmp_path / "good.csv")
+    with pytest.raises(SpecificationError, match=r"^tubes\['centre'\] = .*: must be a finite number > 0 \(m\)"):
+        read_measurements(path, tubes={"centre": length})
+    assert read_measurements(path, tubes={"centre": np.float32(16.0)}).sizes["sensor"] == 2
+
+
+def test_units_attribute_and_coordinate_compare_as_units_not_text():
+    """'um' beside a per-channel 'µm' was refused as conflicting; a different unit still is."""
+    raw = raw_dataset(gaussian())
+    same = raw.assign_coords(units=("sensor", ["\u00b5m", "\u03bcm", "micron"]))
+    same.displacement.attrs["units"] = "um"
+    out = validate_measurements(same)
+    np.testing.assert_array_equal(out.displacement.values, raw.displacement.values * 1e-6)
+    other = raw.assign_coords(units=("sensor", ["\u00b5m", "mm", "um"]))
+    other.displacement.attrs["units"] = "um"
+    refused(lambda: validate_measurements(other), "displacement.units", "conflicts")
+
+
+def test_epoch_time_stamps_pass_the_uniformity_rule(tmp_path):
+    """t0 = 1.7e9 s, dt = 1 ms: float64 stores the stamps to ±1.2e-7 s (1.2e-4 of a step), whatever
+    the record's length, and t - t0 cannot undo that; the rule allows that rounding on top of
+    UNIFORM_RTOL while it stays within STAMP_RTOL of dt."""
+    t = 1.7e9 + np.arange(50) * 1e-3
+    assert np.abs(np.diff(t) - 1e-3).max() > 1e-4 * 1e-3  # the stamps are not uniform to 1e-6
+    back = read_measurements(good_csv(tmp_path / "epoch.csv", t=t))
+    np.testing.assert_array_equal(back.time.values, t)  # the stamps as they are
+    assert back.attrs["dt"] == pytest.approx(1e-3, rel=validation.STAMP_RTOL / 49, abs=0)
+    # genuinely non-uniform sampling is still refused: 1 % of a step
+    jitter = t.copy()
+    jitter[10] += 1e-5
+    refused(lambda: read_measurements(good_csv(tmp_path / "jitter.csv", t=jitter)), "jitter.csv", "uniform",
+            "float64 rounding")
+    # stamps too coarse for the step (0.1 ms at 1.7e9 s) cannot show uniform sampling: refused, with the remedy
+    fast = 1.7e9 + np.arange(50) * 1e-4
+    refused(lambda: read_measurements(good_csv(tmp_path / "fast.csv", t=fast)), "fast.csv: time", "too coarse",
+            "record's start")
+    # exactly representable stamps stay valid however large they are
+    exact = 2.0**31 + np.arange(50) * 2.0**-14
+    assert read_measurements(good_csv(tmp_path / "exact.csv", t=exact)).attrs["dt"] == 2.0**-14

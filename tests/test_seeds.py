@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from tubeid.errors import SpecificationError
-from tubeid.seeds import rng_for
+from tubeid.seeds import key_to_ints, rng_for
 
 
 def _spawn_key(*key):
@@ -55,3 +55,36 @@ def test_a_bad_seed_is_refused():
     for bad in (-1, 1.5, "7", None):
         with pytest.raises(SpecificationError, match="seed"):
             rng_for(bad)
+
+
+def test_a_bool_seed_is_refused():
+    """True was the seed 1 (``isinstance(True, int)``)."""
+    for bad in (True, False, np.True_):
+        with pytest.raises(SpecificationError, match=r"^seed = .*: must be a non-negative integer"):
+            rng_for(bad)
+    assert rng_for(np.int64(1)).random() == rng_for(1).random()  # NumPy integers remain seeds
+
+
+@pytest.mark.parametrize("numpy_part, python_part", [
+    (np.float64(0.5), 0.5), (np.float32(0.5), 0.5), (np.int64(-3), -3), (np.int64(2**40), 2**40),
+    (np.str_("load"), "load"), (np.uint32(7), 7), (np.float64(1e-300), 1e-300)])
+def test_a_numpy_scalar_key_is_the_equal_python_scalar(numpy_part, python_part):
+    """Keys are hashed by repr, and NumPy 2 spells repr(np.float64(0.5)) 'np.float64(0.5)' (NumPy 1:
+    '0.5'): a NumPy scalar is made the Python scalar first, so the stream is the same on any NumPy."""
+    assert key_to_ints("x", numpy_part, 3) == key_to_ints("x", python_part, 3)
+    assert rng_for(0, numpy_part).integers(0, 2**63, 2).tolist() == rng_for(0, python_part).integers(0, 2**63, 2).tolist()
+
+
+@pytest.mark.parametrize("key, first", [
+    ((0,), [5874934615388537135, 2488343231644625808]),
+    ((7, "stiffness", 3), [4949791200326276079, 5328522082621220973]),
+    ((1, 0.5), [7071166186965270895, 690187961085608116]),
+    ((1, -3), [5123363935254244807, 1118225479178977256]),
+    ((1, 2**40), [7886795206730228152, 6090838656833696939]),
+    ((1, "load", 2.5, "x"), [3061924418888104004, 8952257964961971245]),
+    ((0, 1e-300), [3593740204082058847, 1048970735203124454]),
+    ((3, "\u00b5m", -0.0), [7537559135934562441, 906480096577395168]),
+])
+def test_python_keys_keep_their_streams(key, first):
+    """Recorded before NumPy scalars were normalised: the streams of Python keys did not change."""
+    assert rng_for(*key).integers(0, 2**63, 2).tolist() == first

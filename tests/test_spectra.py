@@ -300,3 +300,117 @@ def test_a_window_given_as_weights():
     for bad in (np.ones(399), np.ones((400, 1)), np.r_[np.ones(399), np.nan], ["a"] * 400):
         with pytest.raises(SpecificationError, match="window"):
             psd_matrix(x, 0.01, segment_seconds=4.0, window=bad)
+
+
+# --------------------------------------------------------------------------- input validation (review)
+def _welch_inputs():
+    x = rng_for(5, "validation").standard_normal((2000, 2))
+    f, S = psd_matrix(x, 0.01, segment_seconds=2.0)
+    return x, f, S
+
+
+def test_psd_dataset_time_must_be_seconds_and_agree_with_a_given_dt():
+    """A timedelta64 time coordinate was read as bare counts (1 ms steps gave dt = 1.0 s), and a given
+    dt silently overrode a time coordinate that disagreed with it."""
+    y = rng_for(5, "psd_dataset").standard_normal((4000, 1))
+    steps = np.arange(4000) * np.timedelta64(1, "ms")
+    for t in (steps, np.datetime64("2024-01-01T00:00:00") + steps):
+        da = xr.DataArray(y, dims=("time", "sensor"), coords={"time": t, "sensor": ["a"]})
+        with pytest.raises(SpecificationError, match=r"^x\.time\.dtype = .*numeric seconds"):
+            psd_dataset(da)
+        with pytest.raises(SpecificationError, match=r"^x\.time\.dtype = "):
+            psd_dataset(da, dt=1e-3)
+    da = xr.DataArray(y, dims=("time", "sensor"), coords={"time": 2.0 + np.arange(4000) * 1e-3, "sensor": ["a"]})
+    with pytest.raises(SpecificationError, match=r"^dt = 0\.01: disagrees with the step of the time coordinate"):
+        psd_dataset(da, dt=0.01)
+    with pytest.raises(SpecificationError, match=r"^dt = True: must be a finite number > 0"):
+        psd_dataset(da, dt=True)
+    # a dt that agrees (to 1e-6) is accepted: the coordinate's estimate, to the relative difference of the dts
+    np.testing.assert_allclose(psd_dataset(da, dt=1e-3 * (1 + 1e-8)).values, psd_dataset(da).values, rtol=1e-7)
+
+
+def test_variance_from_psd_refuses_a_descending_grid_non_finite_and_shapeless_spectra():
+    _, f, S = _welch_inputs()
+    with pytest.raises(SpecificationError, match=r"^f = .*must increase from 0 Hz"):
+        variance_from_psd(-f, S)  # was a negative variance
+    with pytest.raises(SpecificationError, match=r"^S = .*NaN or infinite.*must be finite"):
+        variance_from_psd(f, S * np.nan)  # was NaN
+    with pytest.raises(SpecificationError, match=r"^S = \(\): must be \(\.\.\., 101, m, m\)"):
+        variance_from_psd(f, 1.0)  # was an IndexError
+    with pytest.raises(SpecificationError, match=r"^f = "):
+        variance_from_psd(f * np.nan, S)
+
+
+def test_j_s_and_distance_refuse_non_finite_spectra_and_text_frequencies():
+    _, f, S = _welch_inputs()
+    with pytest.raises(SpecificationError, match=r"^S = .*must be finite"):
+        j_s(f, S * np.nan, 10)
+    with pytest.raises(SpecificationError, match=r"^S_exp = .*must be finite"):
+        distance(f, S, S * np.nan, 10)
+    with pytest.raises(SpecificationError, match=r"^S_model = .*must be finite"):
+        distance(f, np.where(f[:, None, None] > 3, np.inf, S), S, 10)
+    with pytest.raises(SpecificationError, match=r"^f = .*must be an array of real numbers"):
+        j_s(["a", "b"], S[:2], band=1)  # was a raw ValueError
+    with pytest.raises(SpecificationError, match=r"^band = True: must be a finite number > 0 \(Hz\)"):
+        j_s(f, S, band=True)
+
+
+@pytest.mark.parametrize("kw, field", [(dict(band="x"), "band"), (dict(band=None), "band"), (dict(band=True), "band"),
+                                       (dict(band_width="x"), "band_width"), (dict(band_width=True), "band_width"),
+                                       (dict(band_width=None), "band_width")])
+def test_log_level_band_and_band_width_must_be_numbers(kw, field):
+    """Text and None raised raw ValueError/TypeError; True passed as 1 Hz."""
+    _, f, S = _welch_inputs()
+    args = dict(band=10.0, band_width=0.5) | kw
+    with pytest.raises(SpecificationError, match=rf"^{field} = .*: must be a finite number > 0 \(Hz\)"):
+        log_level(f, S, **args)
+
+
+def test_log_level_refuses_a_descending_grid_and_non_finite_spectra():
+    _, f, S = _welch_inputs()
+    with pytest.raises(SpecificationError, match=r"^f = .*increasing"):
+        log_level(-f, S, band=10.0, band_width=0.5)
+    with pytest.raises(SpecificationError, match=r"^S = .*must be finite"):
+        log_level(f, S * np.nan, band=10.0, band_width=0.5)
+
+
+def test_psd_matrix_refuses_bool_numbers_complex_records_and_an_all_zero_window():
+    x = rng_for(5, "psd_matrix").standard_normal((1000, 2))
+    with pytest.raises(SpecificationError, match=r"^dt = True: must be a finite number > 0 \(s\)"):
+        psd_matrix(x, True, segment_seconds=100)
+    with pytest.raises(SpecificationError, match=r"^dt = '0.01': "):
+        psd_matrix(x, "0.01")
+    with pytest.raises(SpecificationError, match=r"^segment_seconds = True: must be a finite number > 0 \(s\)"):
+        psd_matrix(x, 0.01, segment_seconds=True)
+    for ov in (False, "0.5"):
+        with pytest.raises(SpecificationError, match=r"^overlap = .*: must be a finite number in \[0, 1\)"):
+            psd_matrix(x, 0.01, overlap=ov)
+    with pytest.raises(SpecificationError, match=r"^window = .*must not all be zero"):
+        psd_matrix(x, 0.01, window=np.zeros(200))  # was a ZeroDivisionError
+    with pytest.raises(SpecificationError, match=r"^window = .*must not all be zero"):
+        psd_matrix(x, 0.01, window=np.full(200, 1e-200))  # Σw² underflows to 0
+    for bad in (x + 1j * x, x > 0, np.ones((1000, 2), "m8[s]")):
+        with pytest.raises(SpecificationError, match=r"^x = array of dtype .*must be an array of real numbers"):
+            psd_matrix(bad, 0.01)  # complex was truncated to its real part, with only a ComplexWarning
+        with pytest.raises(SpecificationError, match=r"^x = "):
+            auto_psd(bad, 0.01)
+    with pytest.raises(SpecificationError, match=r"^window = .*real numbers"):
+        psd_matrix(x, 0.01, window=np.hanning(200) * (1 + 1j))
+
+
+def test_window_weights_may_be_negative():
+    """Negative weights are allowed (documented): scipy's own flat-top window has some, and the
+    estimate |FFT(w x)|² dt / Σw² stays a non-negative density."""
+    w = scipy.signal.get_window("flattop", 200)
+    assert w.min() < 0
+    x = rng_for(5, "flattop").standard_normal((1000, 2))
+    _, S = psd_matrix(x, 0.01, window="flattop")
+    _, S_w = psd_matrix(x, 0.01, window=w)
+    assert np.array_equal(S, S_w) and np.all(np.real(np.diagonal(S, axis1=-2, axis2=-1)) >= 0)
+
+
+def test_confidence_band_level_must_be_a_number():
+    samples = xr.DataArray(rng_for(5, "band").random((10, 4)), dims=("realisation", "frequency"))
+    for bad in ("0.9", True):
+        with pytest.raises(SpecificationError, match=r"^level = .*: must be a finite number in \(0, 1\)"):
+            confidence_band(samples, bad)

@@ -1,6 +1,7 @@
 """The package's shared argument checks (``tubeid._validation``): one wording, no booleans or text as numbers."""
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -80,3 +81,37 @@ def test_the_former_copies_now_agree_on_booleans():
         force_and_moment("1.3", 1.0)
     with pytest.raises(SpecificationError, match="f_max = True"):
         choose_step(True, 1e-3, 3e-3)
+
+
+def test_is_numeric_dtype_by_kind():
+    """np.issubdtype(timedelta64, np.integer) is True: the kind decides, not the type hierarchy."""
+    assert np.issubdtype(np.dtype("m8[ms]"), np.integer)
+    for dt in ("i1", "u8", "f4", "f8"):
+        assert v.is_numeric_dtype(dt)
+    for dt in ("m8[ms]", "M8[s]", "?", "U3", "O", "c16"):
+        assert not v.is_numeric_dtype(dt)
+    assert v.is_numeric_dtype("c16", complex_ok=True) and not v.is_numeric_dtype("m8[s]", complex_ok=True)
+
+
+@pytest.mark.parametrize("bad", [np.array([True, False]), ["1.0", "2.0"], np.array(["1.0"], dtype=object),
+                                 np.arange(3) * np.timedelta64(1, "ms"), np.array(["2024-01-01"], "M8[D]"),
+                                 np.array([1 + 1j]), [[1.0, 2.0], [3.0]], [1.0, None], [True, False], [2**2000]])
+def test_numeric_array_refuses_what_is_not_real_numbers(bad):
+    with pytest.raises(SpecificationError, match=r"^S = .*: must be an array of real numbers"):
+        v.numeric_array("S", bad)
+
+
+def test_numeric_array_complex_finite_and_conversion():
+    with pytest.raises(SpecificationError, match=r"^S = 2 NaN or infinite value\(s\), first at index \(1,\): must be finite"):
+        v.numeric_array("S", [1.0, np.nan, np.inf])
+    assert np.isnan(v.numeric_array("S", [1.0, np.nan], finite=False)[1])
+    with warnings.catch_warnings():  # finite values whose sum overflows are finite: no refusal, no warning
+        warnings.simplefilter("error")
+        assert v.numeric_array("S", np.array([1e308, 1e308])).tolist() == [1e308, 1e308]
+    z = v.numeric_array("S", np.array([1 + 1j, 2]), complex_ok=True)
+    assert z.dtype == np.complex128
+    assert v.numeric_array("S", [1, np.float32(2.5), 1 + 0j], complex_ok=True).dtype == np.complex128
+    out = v.numeric_array("x", [1, np.float64(2.5)])  # a list mixing Python and NumPy numbers
+    assert out.dtype == np.float64 and out.tolist() == [1.0, 2.5]
+    ints = np.arange(3)
+    assert v.numeric_array("x", ints) is ints and v.numeric_array("x", ints, dtype=float).dtype == np.float64

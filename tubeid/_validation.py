@@ -22,7 +22,7 @@ import numpy as np
 from tubeid.errors import Described, SpecificationError
 
 __all__ = ["real", "positive", "non_negative", "integer", "open_unit", "one_of", "seed", "is_number", "limit",
-           "byte_size", "channel_count"]
+           "byte_size", "channel_count", "is_numeric_dtype", "numeric_array"]
 
 
 def _unit(unit: str | None) -> str:
@@ -119,6 +119,84 @@ def one_of(field: str, value: Any, choices: Iterable) -> Any:
         if type(c) is type(value) and c == value or (c is None and value is None):
             return value
     raise SpecificationError(field, value, f"must be one of {', '.join(repr(c) for c in choices)}")
+
+
+def is_numeric_dtype(dtype: Any, *, complex_ok: bool = False) -> bool:
+    """True for an integer or floating dtype (also complex with ``complex_ok``); never ``bool``,
+    strings, objects, or ``timedelta64``/``datetime64``.
+
+    Decided by the dtype's kind, not ``np.issubdtype(dtype, np.integer)``: that is True for
+    ``timedelta64``, whose values would be read as bare counts of its unit (milliseconds as seconds).
+    """
+    return np.dtype(dtype).kind in ("iufc" if complex_ok else "iuf")
+
+
+def _finite_sum(arr: np.ndarray) -> bool:
+    with np.errstate(over="ignore", invalid="ignore"):  # finite values may sum beyond the float range
+        return bool(np.isfinite(arr.sum()))
+
+
+def numeric_array(field: str, value: Any, *, complex_ok: bool = False, finite: bool = True,
+                  dtype: Any = None) -> np.ndarray:
+    """``value`` as an array of real (or, with ``complex_ok``, complex) numbers, finite unless told.
+
+    Refused (naming ``field``): what does not form a regular array, bools, strings,
+    ``timedelta64``/``datetime64`` and complex values unless allowed (never truncated to their real
+    part), and NaN or infinity when ``finite``. An object array (a list mixing Python and NumPy
+    numbers) passes when every element is a number in the sense of :func:`is_number` (or a complex
+    number with ``complex_ok``). The check reads the dtype ``np.asarray`` gives: a list that NumPy
+    converts to floats as a whole (``[1.0, True]``) is not searched element by element.
+
+    Parameters
+    ----------
+    field : str
+        What the array is (``"x"``, ``"S"``).
+    value : array_like
+        The values.
+    complex_ok : bool
+        Whether complex values are allowed.
+    finite : bool
+        Whether NaN and infinity are refused.
+    dtype : numpy dtype, optional
+        The dtype of the returned array (``np.asarray(value, dtype=dtype)``, e.g. ``float``);
+        default: as ``np.asarray(value)`` makes it.
+
+    Returns
+    -------
+    numpy.ndarray
+    """
+    kind = "real or complex numbers" if complex_ok else "real numbers"
+    try:
+        arr = np.asarray(value)
+    except (TypeError, ValueError):  # ragged nesting
+        raise SpecificationError(field, Described(type(value).__name__), f"must be an array of {kind}") from None
+    if arr.dtype.kind == "O":
+        def number(v):
+            return is_number(v) or (complex_ok and isinstance(v, (numbers.Complex, np.complexfloating))
+                                    and not isinstance(v, (bool, np.bool_)))
+        if not all(number(v) for v in arr.flat):
+            raise SpecificationError(field, Described(f"array of dtype object, shape {arr.shape}"),
+                                     f"must be an array of {kind}")
+        try:
+            arr = np.asarray(arr.tolist(), dtype=complex if any(np.iscomplexobj(v) for v in arr.flat) else float)
+        except OverflowError:  # an int beyond the float range
+            raise SpecificationError(field, Described(f"array of dtype object, shape {arr.shape}"),
+                                     f"must be an array of {kind} within the float range") from None
+    elif not is_numeric_dtype(arr.dtype, complex_ok=complex_ok):
+        raise SpecificationError(field, Described(f"array of dtype {arr.dtype}, shape {arr.shape}"),
+                                 f"must be an array of {kind}" + ("" if complex_ok or arr.dtype.kind != "c" else
+                                                                  " (complex values are not truncated to their "
+                                                                  "real part)"))
+    if dtype is not None:
+        arr = np.asarray(arr, dtype=dtype)
+    # a finite sum means every value is finite (a NaN or an infinity makes the sum NaN or infinite):
+    # one pass without a boolean temporary; the elements are looked at only when the sum is not finite
+    if finite and arr.size and arr.dtype.kind in "fc" and not _finite_sum(arr) and not np.all(np.isfinite(arr)):
+        where = "" if arr.ndim == 0 else \
+            f", first at index {tuple(int(i) for i in np.argwhere(~np.isfinite(arr))[0])}"
+        raise SpecificationError(field, Described(f"{int(np.sum(~np.isfinite(arr)))} NaN or infinite value(s)"
+                                                  f"{where}"), "must be finite")
+    return arr
 
 
 def seed(field: str, value: Any) -> int:

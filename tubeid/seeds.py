@@ -11,7 +11,10 @@ import hashlib
 
 import numpy as np
 
-#: a part of a random-stream key: an int, a float or a string (anything with a stable ``repr``)
+from tubeid._validation import seed as _checked_seed
+
+#: a part of a random-stream key: an int, a float or a string (anything with a stable ``repr``; a NumPy
+#: scalar counts as the equal Python scalar)
 KeyPart = int | float | str
 
 __all__ = ["rng_for", "key_to_ints"]
@@ -24,15 +27,24 @@ def key_to_ints(*key: KeyPart) -> tuple[int, ...]:
     ----------
     *key : int, float or str
         The parts of the key; an int in [0, 2³²) maps to itself, anything else to the two 32-bit
-        words of the BLAKE2b-64 digest of its ``repr``.
+        words of the BLAKE2b-64 digest of its ``repr``. A NumPy scalar (``np.float64(0.5)``,
+        ``np.int64(-1)``, ``np.str_("load")``) is first made the equal Python scalar (``.item()``),
+        so it gives the stream of that scalar on every NumPy version (NumPy 2 spells
+        ``repr(np.float64(0.5))`` as ``'np.float64(0.5)'``, NumPy 1 as ``'0.5'``).
 
     Returns
     -------
     tuple of int
-        The ``spawn_key`` of the stream.
+        The ``spawn_key`` of the stream. The parts are concatenated without separators, so a
+        string and the two ints of its digest give the same spawn key: ``key_to_ints("load") ==
+        key_to_ints(*key_to_ints("load"))``. Two keys whose parts have the same kinds in the same
+        positions (the name of what is drawn, then ints, as every call site builds them) cannot
+        meet this; a bool part counts as the int 0 or 1.
     """
     out: list[int] = []
     for part in key:
+        if isinstance(part, np.generic):  # a NumPy scalar: hashed as the equal Python scalar
+            part = part.item()
         if isinstance(part, (bool, np.bool_)):
             out.append(int(part))
         elif isinstance(part, (int, np.integer)) and 0 <= int(part) < 2**32:
@@ -49,7 +61,7 @@ def rng_for(seed: int, *key: KeyPart) -> np.random.Generator:
     Parameters
     ----------
     seed : int
-        The study seed, ≥ 0.
+        The study seed: an integer ≥ 0 (Python or NumPy; never ``bool``).
     *key : int, float or str
         What is drawn, e.g. ``("stiffness", realisation)`` — never a block index or a worker.
 
@@ -59,8 +71,5 @@ def rng_for(seed: int, *key: KeyPart) -> np.random.Generator:
         ``PCG64(SeedSequence(seed, spawn_key=key_to_ints(*key)))``: the same key gives the same
         stream everywhere; different keys give independent streams.
     """
-    if not isinstance(seed, (int, np.integer)) or seed < 0:
-        from tubeid.errors import SpecificationError
-
-        raise SpecificationError("seed", seed, "must be a non-negative integer")
-    return np.random.Generator(np.random.PCG64(np.random.SeedSequence(int(seed), spawn_key=key_to_ints(*key))))
+    seed = _checked_seed("seed", seed)
+    return np.random.Generator(np.random.PCG64(np.random.SeedSequence(seed, spawn_key=key_to_ints(*key))))

@@ -35,7 +35,8 @@ import numpy as np
 import xarray as xr
 from numpy.typing import ArrayLike
 
-from tubeid.errors import SpecificationError
+from tubeid._validation import is_numeric_dtype, numeric_array, open_unit, positive, real
+from tubeid.errors import Described, SpecificationError
 
 __all__ = ["psd_matrix", "auto_psd", "psd_dataset", "variance_from_psd", "confidence_band", "j_s", "distance", "log_level",
            "log_band_energies"]
@@ -48,13 +49,11 @@ def _window(window: Any, n: int) -> np.ndarray:
     ``"hann"`` is computed here as scipy computes it (0.5 + 0.5 cos of ``linspace(-π, π, n + 1)``,
     the last point dropped): importing ``scipy.signal`` costs ~0.5 s, paid by every process that
     imports this module (a study's workers, each ``tubeid`` command). Other windows import it.
-    An array is the window itself: 1-D, finite, of length n (the segment's samples)."""
+    An array is the window itself: 1-D, finite real numbers, of length n (the segment's samples).
+    Negative weights are allowed (scipy's own ``"flattop"`` has some); all-zero weights are refused
+    by the caller (:func:`_welch_transforms`), as is any window whose Σw² is not finite and > 0."""
     if not isinstance(window, (str, tuple)):
-        try:
-            w = np.asarray(window, dtype=float)
-        except (TypeError, ValueError):
-            raise SpecificationError("window", type(window).__name__, "must be a scipy window name, tuple or "
-                                                                      "an array of weights") from None
+        w = numeric_array("window", window, finite=False, dtype=float)
         if w.shape != (n,) or not np.all(np.isfinite(w)):
             raise SpecificationError("window", f"array of shape {w.shape}", f"must be 1-D and finite, with one weight "
                                                                              f"per sample of a segment ({n})")
@@ -73,12 +72,7 @@ def _window(window: Any, n: int) -> np.ndarray:
 
 
 def _segment_length(segment_seconds, dt, n_t) -> int:
-    try:
-        seg = float(segment_seconds)
-    except (TypeError, ValueError):
-        raise SpecificationError("segment_seconds", segment_seconds, "must be a number (s)") from None
-    if not np.isfinite(seg) or seg <= 0:
-        raise SpecificationError("segment_seconds", segment_seconds, "must be > 0 (s)")
+    seg = positive("segment_seconds", segment_seconds, "s")
     nper = 2 * int(round(seg / (2.0 * dt)))
     if nper < 2:
         raise SpecificationError("segment_seconds", segment_seconds, f"must span at least 2 samples of dt = {dt:g} s")
@@ -96,13 +90,16 @@ def psd_matrix(x: ArrayLike, dt: float, segment_seconds: float = 2.0, window: An
     Parameters
     ----------
     x : array_like
-        Real records, shape (..., n_t, m), finite.
+        Real records, shape (..., n_t, m), finite (complex, boolean or time-typed records are
+        refused, never truncated or reinterpreted).
     dt : float
-        Sample interval (s).
+        Sample interval (s), a finite number > 0.
     segment_seconds : float
         Welch segment length (s; rounded to an even number of samples, at most the record).
     window : str, tuple or array_like
-        Any ``scipy.signal.get_window`` specification.
+        Any ``scipy.signal.get_window`` specification, or the weights themselves (n finite real
+        numbers for a segment of n samples; negative weights allowed, as in scipy's ``"flattop"``,
+        but not all zero).
     overlap : float
         Fraction of a segment shared with the next, in [0, 1).
     detrend : bool or str
@@ -143,28 +140,15 @@ def auto_psd(x: ArrayLike, dt: float, segment_seconds: float = 2.0, window: Any 
 def _welch_transforms(x, dt, segment_seconds, window, overlap, detrend) -> tuple[np.ndarray, np.ndarray, float]:
     """The checked arguments' Welch segments, windowed and transformed: f (F,) [Hz], X (..., m,
     n_seg, F) and the density scale dt/Σw² [s]."""
-    try:
-        x = np.asarray(x, dtype=float)
-    except (TypeError, ValueError):
-        raise SpecificationError("x", type(x).__name__, "must be a real numeric array (..., n_t, m)") from None
+    x = numeric_array("x", x, finite=False, dtype=float)  # real: complex records are refused, not truncated
     if x.ndim < 2:
         raise SpecificationError("x", x.shape, "must have shape (..., n_t, m)")
     if not np.all(np.isfinite(x)):
         raise SpecificationError("x", "non-finite", "records must be finite")
-    try:
-        dt = float(dt)
-    except (TypeError, ValueError):
-        raise SpecificationError("dt", dt, "must be a number (s)") from None
-    if not np.isfinite(dt) or dt <= 0:
-        raise SpecificationError("dt", dt, "must be > 0 (s)")
+    dt = positive("dt", dt, "s")
     n_t = x.shape[-2]
     nper = _segment_length(segment_seconds, dt, n_t)
-    try:
-        ov = float(overlap)
-    except (TypeError, ValueError):
-        raise SpecificationError("overlap", overlap, "must be a fraction in [0, 1)") from None
-    if not 0.0 <= ov < 1.0:
-        raise SpecificationError("overlap", overlap, "must be a fraction in [0, 1)")
+    ov = real("overlap", overlap, low=0.0, high=1.0, high_open=True)
     noverlap = min(int(round(ov * nper)), nper - 1)
     if detrend is not False and detrend not in _DETRENDS:
         raise SpecificationError("detrend", detrend, f"must be one of {_DETRENDS}")
@@ -174,6 +158,10 @@ def _welch_transforms(x, dt, segment_seconds, window, overlap, detrend) -> tuple
         raise
     except (ValueError, TypeError) as exc:
         raise SpecificationError("window", window, f"not a scipy window ({exc})") from None
+    sum_w2 = float(np.sum(win * win))
+    if not (math.isfinite(sum_w2) and sum_w2 > 0):
+        raise SpecificationError("window", Described(f"weights with sum of squares {sum_w2!r}"),
+                                 "the weights must not all be zero (the density is scaled by 1/Σw², finite and > 0)")
 
     xt = np.moveaxis(x, -1, -2)  # (..., m, n_t)
     # Welch as scipy.signal.csd (no boundary padding, segments from t = 0, mean over segments), but
@@ -185,7 +173,7 @@ def _welch_transforms(x, dt, segment_seconds, window, overlap, detrend) -> tuple
 
         seg = scipy.signal.detrend(seg, type=detrend, axis=-1)
     X = np.fft.rfft(seg * win, axis=-1)  # (..., m, n_seg, F)
-    return np.asarray(np.fft.rfftfreq(nper, dt), dtype=float), X, dt / float(np.sum(win * win))
+    return np.asarray(np.fft.rfftfreq(nper, dt), dtype=float), X, dt / sum_w2
 
 
 def psd_dataset(x: ArrayLike | xr.DataArray, dt: float | None = None, segment_seconds: float = 2.0,
@@ -199,9 +187,13 @@ def psd_dataset(x: ArrayLike | xr.DataArray, dt: float | None = None, segment_se
     x : array_like or xarray.DataArray
         Records (..., n_t, m), or a DataArray with dims (..., "time", "sensor") whose uniform
         "time" coordinate (s) gives dt and whose coordinates (sensor names, and non-index "x",
-        "tube" on "sensor") are carried over.
+        "tube" on "sensor") are carried over. The time coordinate must be numbers of seconds: a
+        ``timedelta64`` or ``datetime64`` coordinate is refused (convert it, e.g.
+        ``t / np.timedelta64(1, "s")``), never read as counts of its unit.
     dt : float, optional
-        Sample interval (s); required for array input.
+        Sample interval (s); required for array input. For a DataArray with a time coordinate
+        (of at least 2 samples), a given dt must agree with the coordinate's uniform step
+        (relative 1e-6); a disagreement is refused.
     segment_seconds : float
         Welch segment length (s).
     window : str, tuple or array_like
@@ -226,19 +218,30 @@ def psd_dataset(x: ArrayLike | xr.DataArray, dt: float | None = None, segment_se
     """
     coords: dict = {}
     sensor_extra = {}
+    if dt is not None:
+        dt = positive("dt", dt, "s")
     if isinstance(x, xr.DataArray):
         if "time" not in x.dims or "sensor" not in x.dims:
             raise SpecificationError("x.dims", x.dims, "must contain 'time' and 'sensor'")
         lead = [d for d in x.dims if d not in ("time", "sensor")]
         xv = x.transpose(*lead, "time", "sensor")
-        if dt is None:
-            if "time" not in x.coords or x.sizes["time"] < 2:
-                raise SpecificationError("x.time", None, "a time coordinate (s) is needed when dt is not given")
+        if "time" in x.coords and not is_numeric_dtype(x["time"].dtype):
+            raise SpecificationError("x.time.dtype", str(x["time"].dtype),
+                                     "time must be numeric seconds (convert a timedelta64 coordinate with "
+                                     "t / np.timedelta64(1, 's'))")
+        if dt is None and ("time" not in x.coords or x.sizes["time"] < 2):
+            raise SpecificationError("x.time", None, "a time coordinate (s) is needed when dt is not given")
+        if "time" in x.coords and x.sizes["time"] >= 2:
             t = np.asarray(x["time"].values, dtype=float)
             steps = np.diff(t)
-            dt = float(np.mean(steps))
-            if not np.allclose(steps, dt, rtol=1e-6, atol=0):
+            dt_time = float(np.mean(steps))
+            if not np.allclose(steps, dt_time, rtol=1e-6, atol=0):
                 raise SpecificationError("x.time", "non-uniform", "sampling must be uniform")
+            if dt is None:
+                dt = dt_time
+            elif not abs(dt - dt_time) <= 1e-6 * abs(dt_time):
+                raise SpecificationError("dt", dt, f"disagrees with the step of the time coordinate x.time, "
+                                                   f"{dt_time!r} s (relative tolerance 1e-6)")
         dims_lead = tuple(lead)
         for d in lead:
             if d in x.coords:
@@ -290,9 +293,9 @@ def variance_from_psd(f: ArrayLike, S: ArrayLike, nyquist_last: bool = True) -> 
     Parameters
     ----------
     f : array_like
-        Uniform grid 0, Δf, ... (Hz).
+        Uniform grid 0, Δf, 2Δf, ... (Hz), Δf > 0: increasing from 0.
     S : array_like
-        (..., F, m, m) matrix PSD or (..., F) auto-spectra, two-sided per Hz.
+        (..., F, m, m) matrix PSD or (..., F) auto-spectra, two-sided per Hz, finite.
     nyquist_last : bool
         Whether the last bin is the Nyquist frequency (as :func:`psd_matrix` returns).
 
@@ -301,13 +304,17 @@ def variance_from_psd(f: ArrayLike, S: ArrayLike, nyquist_last: bool = True) -> 
     numpy.ndarray
         (..., m) for matrices, (...) for auto-spectra, in [x]^2.
     """
-    f = np.asarray(f, dtype=float)
-    S = np.asarray(S)
+    f = numeric_array("f", f, dtype=float)
+    S = numeric_array("S", S, complex_ok=True)
     if f.ndim != 1 or f.size < 2 or f[0] != 0.0:
         raise SpecificationError("f", f, "must be a 1-D uniform grid starting at 0 Hz")
     df = f[1] - f[0]
+    if not df > 0:
+        raise SpecificationError("f", Described(f"{f.size} bins, f[1] = {f[1]:g} Hz"), "must increase from 0 Hz (Δf > 0)")
     if not np.allclose(np.diff(f), df, rtol=1e-9, atol=0):
         raise SpecificationError("f", f, "must be uniform")
+    if S.ndim == 0:
+        raise SpecificationError("S", S.shape, f"must be (..., {f.size}, m, m) or (..., {f.size})")
     if S.ndim >= 3 and S.shape[-1] == S.shape[-2] and S.shape[-3] == f.size:
         auto = np.diagonal(S, axis1=-2, axis2=-1).real  # (..., F, m)
         axis = -2
@@ -351,12 +358,7 @@ def confidence_band(psd_samples: xr.DataArray | xr.Dataset, level: float = 0.95,
     """
     if not isinstance(psd_samples, (xr.DataArray, xr.Dataset)):
         raise SpecificationError("psd_samples", type(psd_samples).__name__, "must be an xarray DataArray or Dataset")
-    try:
-        p = float(level)
-    except (TypeError, ValueError):
-        raise SpecificationError("level", level, "must be a probability in (0, 1)") from None
-    if not 0.0 < p < 1.0:
-        raise SpecificationError("level", level, "must be a probability in (0, 1)")
+    p = open_unit("level", level)
     if dim not in psd_samples.dims:
         raise SpecificationError("dim", dim, f"is not a dimension of the samples {tuple(psd_samples.dims)}")
     if psd_samples.sizes[dim] < 2:
@@ -387,13 +389,8 @@ def confidence_band(psd_samples: xr.DataArray | xr.Dataset, level: float = 0.95,
 
 
 def _check_band_grid(f, band, npts):
-    f = np.asarray(f, dtype=float)
-    try:
-        band = float(band)
-    except (TypeError, ValueError):
-        raise SpecificationError("band", band, "must be a number (Hz)") from None
-    if not np.isfinite(band) or band <= 0:
-        raise SpecificationError("band", band, "must be > 0 (Hz)")
+    f = numeric_array("f", f, finite=False, dtype=float)
+    band = positive("band", band, "Hz")
     if f.ndim != 1 or f.size < 2 or not np.all(np.isfinite(f)):
         raise SpecificationError("f", f, "must be a 1-D grid of >= 2 finite frequencies (Hz)")
     if f[0] != 0.0:
@@ -418,7 +415,7 @@ def j_s(f: ArrayLike, S: ArrayLike, band: float = 100.0) -> np.ndarray:
     f : array_like
         (F,) increasing grid in Hz from 0 (the f >= 0 half of a two-sided PSD), reaching ``band``.
     S : array_like
-        (..., F, m, m) two-sided PSD per Hz, or (..., F) for a scalar PSD.
+        (..., F, m, m) two-sided PSD per Hz, or (..., F) for a scalar PSD; finite.
     band : float
         Half-width of the band (Hz).
 
@@ -427,7 +424,11 @@ def j_s(f: ArrayLike, S: ArrayLike, band: float = 100.0) -> np.ndarray:
     numpy.ndarray
         Shape (...), in [S]^2 * rad/s, e.g. (m^2/Hz)^2 rad/s.
     """
-    S = np.asarray(S)
+    return _j_s(f, numeric_array("S", S, complex_ok=True), band)
+
+
+def _j_s(f, S: np.ndarray, band) -> np.ndarray:
+    """:func:`j_s` of a checked (numeric, finite) S."""
     if S.ndim >= 3 and S.shape[-1] == S.shape[-2] and S.shape[-3] == np.size(f):
         n2 = np.sum(np.abs(S) ** 2, axis=(-2, -1))
     elif S.ndim >= 1:
@@ -469,7 +470,8 @@ def log_level(f: ArrayLike, S: ArrayLike, band: float = 100.0, band_width: float
         (F,) uniform grid in Hz from 0 (the f >= 0 half of a two-sided PSD), reaching ``band`` to
         within one bin (the last band then ends at the last bin).
     S : array_like
-        (..., F, m, m) two-sided PSD matrix per Hz (its auto-spectra are used), or (..., F) scalar.
+        (..., F, m, m) two-sided PSD matrix per Hz (its auto-spectra are used), or (..., F) scalar;
+        finite.
     band : float
         Upper end of the bands [Hz]; the bands (a, a + band_width] tile (0, band].
     band_width : float
@@ -480,8 +482,10 @@ def log_level(f: ArrayLike, S: ArrayLike, band: float = 100.0, band_width: float
     numpy.ndarray
         Shape (...): natural log of band energies in [S]·Hz (e.g. m²), averaged.
     """
-    S = np.asarray(S)
-    f = np.asarray(f, dtype=float)
+    S = numeric_array("S", S, complex_ok=True)
+    f = numeric_array("f", f, dtype=float)
+    if f.ndim != 1:
+        raise SpecificationError("f", Described(f"array of shape {f.shape}"), "must be a 1-D uniform grid from 0 Hz")
     shape = S.shape
     if S.ndim >= 3 and S.shape[-1] == S.shape[-2] and S.shape[-3] == f.size:
         pass  # (..., F, m, m)
@@ -489,15 +493,14 @@ def log_level(f: ArrayLike, S: ArrayLike, band: float = 100.0, band_width: float
         S = S[..., None, None]  # (..., F) scalar
     else:
         raise SpecificationError("S", shape, f"must be (..., F, m, m) or (..., F) with F = len(f) = {f.size}")
-    if f.size < 2 or f[0] != 0 or not np.allclose(np.diff(f), f[1] - f[0], rtol=1e-9, atol=0):
-        raise SpecificationError("f", f"{f.size} bins from {f[0]:g} Hz", "must be a uniform grid from 0 Hz")
-    band = float(band)
-    if not (math.isfinite(band) and band > 0):
-        raise SpecificationError("band", band, "must be a finite number > 0 (Hz)")
+    if f.size < 2 or f[0] != 0 or not f[1] > f[0] or not np.allclose(np.diff(f), f[1] - f[0], rtol=1e-9, atol=0):
+        raise SpecificationError("f", Described(f"{f.size} bins" + (f" from {f[0]:g} Hz" if f.size else "")),
+                                 "must be a uniform grid from 0 Hz, increasing (Δf > 0)")
+    band = positive("band", band, "Hz")
     if not f[-1] >= band - (f[1] - f[0]) * (1 + 1e-9):
         raise SpecificationError("band", band, f"must lie within one bin above the grid's last frequency {f[-1]:g} Hz")
-    width = float(band_width)
-    n = band / width if width > 0 else math.inf
+    width = positive("band_width", band_width, "Hz")
+    n = band / width
     if not (math.isfinite(width) and width >= (f[1] - f[0]) * (1 - 1e-9)) or abs(n - round(n)) > 1e-9 * n:
         raise SpecificationError("band_width", band_width, f"must be at least the bin width {f[1] - f[0]:g} Hz and "
                                                            f"divide the band {band:g} Hz into whole bands")
@@ -518,7 +521,7 @@ def distance(f: ArrayLike, S_model: ArrayLike, S_exp: ArrayLike, band: float = 1
     f : array_like
         (F,) grid in Hz from 0.
     S_model, S_exp : array_like
-        Two-sided PSDs per Hz on the grid f, (..., F, m, m) or (..., F); shapes broadcast.
+        Two-sided PSDs per Hz on the grid f, (..., F, m, m) or (..., F), finite; shapes broadcast.
     band : float
         Half-width of the band (Hz).
 
@@ -527,8 +530,10 @@ def distance(f: ArrayLike, S_model: ArrayLike, S_exp: ArrayLike, band: float = 1
     numpy.ndarray
         The broadcast leading shape, in [S]^2 * rad/s.
     """
+    S_model = numeric_array("S_model", S_model, complex_ok=True)
+    S_exp = numeric_array("S_exp", S_exp, complex_ok=True)
     try:
-        diff = np.asarray(S_model) - np.asarray(S_exp)
+        diff = S_model - S_exp
     except ValueError:
         raise SpecificationError("S_exp", np.shape(S_exp), f"must broadcast with S_model {np.shape(S_model)}") from None
-    return j_s(f, diff, band)
+    return _j_s(f, diff, band)

@@ -10,9 +10,12 @@ Canonical form (what every reader returns, MODEL.md §5):
 
 Accepted input units: displacement in ``m``, ``mm``, ``um``/``µm``/``μm``, ``micron``, ``nm``
 (converted to metres), either one ``units`` attribute on ``displacement`` or a per-channel ``units``
-coordinate on the ``sensor`` dim (used by the CSV and UFF readers); ``x`` in the same length units
+coordinate on the ``sensor`` dim (used by the CSV and UFF readers; an attribute beside it must name
+the same unit, in any spelling: ``um`` and ``µm`` agree); ``x`` in the same length units
 (metres when it has no ``units`` attribute); ``time`` in seconds (``s``, ``seconds``, …, or
-``"seconds since …"``; seconds when it has no ``units`` attribute).
+``"seconds since …"``; seconds when it has no ``units`` attribute). Samples, ``time`` and ``x`` must
+be integer or floating numbers: ``bool``, ``timedelta64`` and ``datetime64`` are refused, never read
+as counts of their unit.
 
 Refusals (:class:`~tubeid.errors.SpecificationError`; the message names the source, the channel
 when there is one, and the rule):
@@ -25,7 +28,14 @@ when there is one, and the rule):
   an unknown tube or off it (``x < 0`` or ``x > length``);
 - missing or unknown units;
 - non-finite, non-increasing or non-uniform time: uniform means
-  ``max |diff(t) - dt| <= UNIFORM_RTOL * dt``;
+  ``max |diff(t) - dt| <= UNIFORM_RTOL * dt + 4 * spacing(max |t|)``, the second term the float64
+  rounding of the stamps (``spacing``: the gap between adjacent float64 numbers there). It matters for
+  stamps far from 0 only: epoch seconds (t ≈ 1.7e9 s) are stored to ±1.2e-7 s, 1.2e-4 of a 1 ms step,
+  whatever the record's length. When that rounding exceeds ``UNIFORM_RTOL * dt`` it is allowed only
+  while it stays within ``STAMP_RTOL * dt`` (epoch seconds: dt >= ~1 ms); beyond, the stamps are too
+  coarse to show uniform sampling and a record that is not exactly uniform is refused, asking for time
+  from the record's start (``dt`` of accepted rounded stamps carries the rounding of its end points,
+  at most ``STAMP_RTOL / (2 (n - 1))`` relative);
 - NaN or infinite samples; implausible samples, beyond ± ``tubeid.io.max-displacement`` m (default
   1 m: tube vibrations are micrometres; a sample of metres means wrong units or unscaled counts);
 - clipped channels: a channel is clipped at its top (bottom) when more than ``CLIP_FRACTION`` of
@@ -48,7 +58,7 @@ from collections.abc import Mapping
 import numpy as np
 import xarray as xr
 
-from tubeid._validation import channel_count, limit, real
+from tubeid._validation import channel_count, is_numeric_dtype, limit, positive, real
 from tubeid.errors import Described, SpecificationError
 
 __all__ = [
@@ -57,6 +67,7 @@ __all__ = [
     "LENGTH_UNITS",
     "TIME_UNITS",
     "UNIFORM_RTOL",
+    "STAMP_RTOL",
     "CLIP_FRACTION",
     "CLIP_RTOL",
     "CLIP_RUN",
@@ -72,8 +83,12 @@ LENGTH_UNITS: dict[str, float] = {
 #: Accepted spellings of seconds for the time coordinate.
 TIME_UNITS = frozenset({"s", "sec", "second", "seconds"})
 
-#: Relative tolerance on sample spacing (float time stamps t_i = t0 + i dt stay within it up to ~1e9 samples).
+#: Relative tolerance on sample spacing. Float64 stamps t_i = i dt counted from 0 stay within it up to ~1e9
+#: samples; stamps far from 0 (epoch seconds) are rounded by more, whatever the record's length: their
+#: rounding (4 float64 spacings of max |t|) is allowed on top, within STAMP_RTOL (module docstring).
 UNIFORM_RTOL = 1e-6
+#: Largest rounding of the time stamps, relative to dt, allowed on top of UNIFORM_RTOL.
+STAMP_RTOL = 1e-3
 #: Clipping rule: fraction of samples at an extreme, closeness to it, and run length.
 CLIP_FRACTION = 0.005
 CLIP_RTOL = 1e-12
@@ -95,6 +110,15 @@ def length_scale(unit, field: str) -> float:
     return LENGTH_UNITS[key]
 
 
+def _same_unit(a, b) -> bool:
+    """Whether two unit labels name the same unit: known length units compare by their size in
+    metres (``um``, ``µm``, ``micron``), anything else by its text."""
+    ka, kb = str(a).strip(), str(b).strip()
+    if ka in LENGTH_UNITS and kb in LENGTH_UNITS:
+        return LENGTH_UNITS[ka] == LENGTH_UNITS[kb]
+    return ka == kb
+
+
 def _where(source: str, channel: str | None, what: str) -> str:
     return f"{source}: channel {channel!r} {what}" if channel is not None else f"{source}: {what}"
 
@@ -102,10 +126,7 @@ def _where(source: str, channel: str | None, what: str) -> str:
 def check_options(min_resolution_hz, tubes) -> dict[str, float] | None:
     """Validate the ``min_resolution_hz`` and ``tubes`` options; return tubes as {name: length_m}."""
     if min_resolution_hz is not None:
-        ok = isinstance(min_resolution_hz, (int, float, np.integer, np.floating)) and not isinstance(
-            min_resolution_hz, bool)
-        if not ok or not math.isfinite(float(min_resolution_hz)) or float(min_resolution_hz) <= 0:
-            raise SpecificationError("min_resolution_hz", min_resolution_hz, "must be a finite number > 0 (Hz)")
+        positive("min_resolution_hz", min_resolution_hz, "Hz")
     if tubes is None:
         return None
     if not isinstance(tubes, Mapping) or len(tubes) == 0:
@@ -114,13 +135,7 @@ def check_options(min_resolution_hz, tubes) -> dict[str, float] | None:
     for name, length in tubes.items():
         if not isinstance(name, str) or not name:
             raise SpecificationError("tubes key", name, "must be a non-empty string")
-        try:
-            value = float(length)
-        except (TypeError, ValueError):
-            value = math.nan
-        if isinstance(length, bool) or not math.isfinite(value) or value <= 0:
-            raise SpecificationError(f"tubes[{name!r}]", length, "must be a finite length > 0 (m)")
-        out[name] = value
+        out[name] = positive(f"tubes[{name!r}]", length, "m")  # never a string ("16") or a bool
     return out
 
 
@@ -150,13 +165,13 @@ def layout(ds, source: str) -> dict:
     if set(da.dims) != {"time", "sensor"} or da.ndim != 2:
         raise SpecificationError(f"{source}: displacement.dims", tuple(da.dims), "must be ('time', 'sensor')")
     da = da.transpose("time", "sensor")
-    if not (np.issubdtype(da.dtype, np.integer) or np.issubdtype(da.dtype, np.floating)):
+    if not is_numeric_dtype(da.dtype):  # by kind: np.issubdtype(timedelta64, np.integer) is True
         raise SpecificationError(f"{source}: displacement.dtype", str(da.dtype), "must be real numbers")
     values = _unpacked(da, source)
     if "time" not in da.coords:
         raise SpecificationError(f"{source}: time", None, "coordinate 'time' (s) is missing")
     time = da.coords["time"]
-    if not (np.issubdtype(time.dtype, np.integer) or np.issubdtype(time.dtype, np.floating)):
+    if not is_numeric_dtype(time.dtype):  # timedelta64 would be read as counts of its unit (ms as s)
         raise SpecificationError(f"{source}: time.dtype", str(time.dtype), "time must be numeric seconds")
     if "sensor" not in da.coords:
         raise SpecificationError(f"{source}: sensor", None, "coordinate 'sensor' (names) is missing")
@@ -175,7 +190,7 @@ def layout(ds, source: str) -> dict:
     if xc is None:
         x, x_units = np.full(m, np.nan), None
     else:
-        if not (np.issubdtype(xc.dtype, np.integer) or np.issubdtype(xc.dtype, np.floating)):
+        if not is_numeric_dtype(xc.dtype):
             raise SpecificationError(f"{source}: x.dtype", str(xc.dtype), "positions x must be numbers (m)")
         x, x_units = np.asarray(xc.values, dtype=float), xc.attrs.get("units")
     tc = on_sensor("tube")
@@ -184,7 +199,7 @@ def layout(ds, source: str) -> dict:
     if uc is not None:
         units = _as_names(uc.values, source, "units")
         attr_unit = da.attrs.get("units")
-        if attr_unit is not None and any(u != attr_unit for u in units):
+        if attr_unit is not None and any(not _same_unit(u, attr_unit) for u in units):
             raise SpecificationError(f"{source}: displacement.units", attr_unit,
                                      "conflicts with the per-channel 'units' coordinate")
     else:
@@ -277,10 +292,23 @@ def _time_checks(t: np.ndarray, time_units, source: str) -> float:
     dev = np.abs(d - dt)
     i = int(np.argmax(dev))
     if dev[i] > UNIFORM_RTOL * dt:
-        raise SpecificationError(
-            f"{source}: time[{i + 1}] - time[{i}]", float(d[i]),
-            f"time must be uniform: step deviates from dt = {dt!r} s by {dev[i] / dt:.3g} relative "
-            f"(> {UNIFORM_RTOL:g})")
+        # The float64 rounding of the stamps: up to one spacing of max |t| each (t0 + i dt computed or
+        # parsed), two per step, and dt from the end points off by as much over n - 1.
+        t_max = float(np.max(np.abs(t)))
+        rounding = 4.0 * float(np.spacing(t_max))
+        if dev[i] > UNIFORM_RTOL * dt + rounding:
+            allowed = f"{UNIFORM_RTOL:g}" + (f" + float64 rounding {rounding / dt:.3g} of stamps up to {t_max:g} s"
+                                             if rounding > UNIFORM_RTOL * dt else "")
+            raise SpecificationError(
+                f"{source}: time[{i + 1}] - time[{i}]", float(d[i]),
+                f"time must be uniform: step deviates from dt = {dt!r} s by {dev[i] / dt:.3g} relative "
+                f"(> {allowed})")
+        if rounding > STAMP_RTOL * dt:
+            raise SpecificationError(
+                f"{source}: time", Described(f"stamps up to {t_max:g} s, float64 spacing {np.spacing(t_max):g} s"),
+                f"too coarse to show uniform sampling at dt = {dt!r} s: their rounding moves a step by up to "
+                f"{rounding / dt:.3g} of dt (> {STAMP_RTOL:g}), and the steps deviate by {dev[i] / dt:.3g}; give "
+                f"time from the record's start (t - t[0]; units 'seconds since <start>' keep the origin)")
     return dt
 
 
