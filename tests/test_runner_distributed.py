@@ -352,6 +352,31 @@ def test_a_scheduler_that_never_answers_is_refused_within_the_connect_timeout():
     assert dask.config.get("scheduler", None) is None
 
 
+def test_ctrl_c_while_the_embedded_cluster_starts_prints_one_line(study, reference, tmp_path):
+    """A terminal's Ctrl-C while the embedded cluster's worker processes are starting (importing,
+    before their preload ignores SIGINT): no worker traceback and no traceback from distributed's exit
+    handler. That Ctrl-C is not seen (the workers are spawned with SIGINT ignored); the next one stops
+    the run with the resume hint, and the resumed store is the uninterrupted one."""
+    store = tmp_path / "start.zarr"
+    proc = subprocess.Popen(RUNNER + [str(study), "--store", str(store), "--workers", "2", "--no-progress"],
+                            env=_env(**PACE), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    try:
+        t0 = time.monotonic()
+        while not [c for c in psutil.Process(proc.pid).children(recursive=True) if "python" in c.name()]:
+            assert proc.poll() is None and time.monotonic() - t0 < 60
+            time.sleep(0.01)
+        os.killpg(proc.pid, signal.SIGINT)  # a worker process exists: the cluster is starting
+        _wait_flags(store, 2, proc)
+        err = _ctrl_c(proc)
+    finally:
+        _stop(proc)
+    assert proc.returncode == 130 and "rerun the same command to resume" in err, err
+    assert "Traceback" not in err and "Exception ignored" not in err and "KeyboardInterrupt" not in err, err
+    _run([study, "--store", store, "--workers", 2])
+    assert store_digest(store) == reference
+
+
 def test_ctrl_c_while_connecting_exits_at_once(tmp_path):
     """Ctrl-C while the runner waits for a scheduler: exit 130 with the resume hint, promptly, no traceback."""
     listener, port = _silent_listener()
@@ -585,3 +610,21 @@ def test_ctrl_c_during_the_warmup_is_a_clean_exit(tmp_path):
     assert proc.returncode == 130, err
     assert "tubeid: a slow warm-up" in err and "rerun the same command to resume" in err
     assert "Traceback" not in err and "never retrieved" not in err, f"Ctrl-C during the warm-up is not clean:\n{err}"
+
+
+@pytest.mark.parametrize("env, says", [
+    ({"TUBEID_RUNNER__WORKERS": "-1"}, "tubeid.runner.workers (TUBEID_RUNNER__WORKERS) = -1: must be an integer >= 1"),
+    ({"TUBEID_RUNNER__WORKERS": "abc"}, "tubeid.runner.workers (TUBEID_RUNNER__WORKERS) = 'abc': must be an integer"),
+    ({"TUBEID_RUNNER__THREADS_PER_WORKER": "0"}, "tubeid.runner.threads-per-worker (TUBEID_RUNNER__THREADS_PER_WORKER) = 0"),
+    ({"TUBEID_RUNNER__HOST": "999.1.1.1"}, "check tubeid.runner.host and tubeid.runner.dashboard-address"),
+])
+def test_the_embedded_clusters_settings_are_checked(tmp_path, env, says):
+    """Settings of the embedded cluster from the environment: a bad one is one line naming it and its
+    variable, status 2, no store (-1 workers used to hang with the store locked; a host the scheduler
+    cannot bind to was blamed on an unguarded script, which `tubeid run` is not)."""
+    study = write_study(tmp_path, realisations=2, chunk=2, work=1)
+    out = subprocess.run(RUNNER + [str(study), "--store", str(tmp_path / "s.zarr"), "--no-progress"], env=_env(**env),
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and says in out.stderr and "Traceback" not in out.stderr, out.stderr
+    assert "calls run() outside" not in out.stderr
+    assert not (tmp_path / "s.zarr").exists()

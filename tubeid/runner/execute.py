@@ -427,6 +427,62 @@ def _main_script() -> str | None:
     return str(path) if path and pathlib.Path(path).is_file() else None
 
 
+def _embedded_settings(workers: int | None) -> tuple[int, int, str, str]:
+    """(worker processes, threads per worker, host, dashboard address) of the embedded cluster:
+    ``workers`` if given, else the configuration, checked here (a refusal names the setting and its
+    environment variable) rather than by the cluster, which would hang on 0 workers or fail deep inside."""
+    from tubeid._validation import integer
+
+    def named(key):
+        return f"tubeid.runner.{key} (TUBEID_RUNNER__{key.upper().replace('-', '_')})"
+
+    n = workers
+    if not n:
+        configured = config.get("runner.workers")
+        n = (os.cpu_count() or 1) if configured is None else integer(named("workers"), configured, minimum=1)
+    threads = integer(named("threads-per-worker"), config.get("runner.threads-per-worker", 1), minimum=1)
+    host = config.get("runner.host", "127.0.0.1")
+    if not isinstance(host, str) or not host:
+        raise SpecificationError(named("host"), host, "must be a host name or address to bind to (e.g. 127.0.0.1)")
+    dashboard = config.get("runner.dashboard-address", "127.0.0.1:0")
+    if not isinstance(dashboard, str) or not dashboard:
+        raise SpecificationError(named("dashboard-address"), dashboard, "must be an address host:port (\":0\" for any "
+                                                                        "free port)")
+    return int(n), threads, host, dashboard
+
+
+def _is_tubeid_command(script: str) -> bool:
+    """Whether this process is the ``tubeid`` command (its console script or ``python -m tubeid``),
+    whose call of run() is guarded: a cluster that does not start is not an unguarded script's doing."""
+    main = sys.modules.get("__main__")
+    spec = getattr(main, "__spec__", None)
+    return pathlib.Path(script).name == "tubeid" or (spec is not None and spec.name.split(".")[0] == "tubeid")
+
+
+@contextlib.contextmanager
+def _spawning_without_ctrl_c():
+    """Ignore SIGINT in this process while the embedded cluster spawns its worker processes (main
+    thread only; the previous handler is put back after).
+
+    A terminal's Ctrl-C reaches the whole foreground process group. A worker process still
+    importing, before its preload ignores SIGINT, would print a KeyboardInterrupt traceback, and a
+    LocalCluster interrupted while starting leaves distributed's exit handler a traceback of its own.
+    An ignored SIGINT is inherited as ignored by the spawned interpreters (a handler is not), so the
+    workers ignore it from their first instruction. The cost: a Ctrl-C during the cluster's start
+    (about a second) is not seen; the next one is answered as usual."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 @contextlib.contextmanager
 def _client(workers: int | None, scheduler: str | None, client, quiet: bool):
     """``(client, where)``: the Client to run on and a description of it for the progress line.
@@ -463,7 +519,7 @@ def _client(workers: int | None, scheduler: str | None, client, quiet: bool):
             return
     from distributed import Client
 
-    n = workers or config.get("runner.workers") or os.cpu_count() or 1
+    n, threads, host, dashboard = _embedded_settings(workers)
     security = _embedded_security()
     environ = _worker_environ()
     # each nanny also writes the variables into this process's environment (dask's pre-spawn rule):
@@ -473,19 +529,21 @@ def _client(workers: int | None, scheduler: str | None, client, quiet: bool):
         with dask.config.set({"distributed.scheduler.allowed-failures": config.get("runner.allowed-failures", 3),
                               "distributed.nanny.pre-spawn-environ": environ}):
             try:
-                cluster = LocalCluster(n_workers=int(n), threads_per_worker=int(config.get("runner.threads-per-worker", 1)),
-                                       processes=True, host=config.get("runner.host", "127.0.0.1"),
-                                       dashboard_address=config.get("runner.dashboard-address", "127.0.0.1:0"),
-                                       silence_logs=logging.CRITICAL, security=security,
-                                       protocol="tls://" if security is not None else None,
-                                       preload=["tubeid.runner._embedded_worker"])  # Ctrl-C is the runner's to answer
+                with _spawning_without_ctrl_c():
+                    cluster = LocalCluster(n_workers=n, threads_per_worker=threads, processes=True, host=host,
+                                           dashboard_address=dashboard, silence_logs=logging.CRITICAL, security=security,
+                                           protocol="tls://" if security is not None else None,
+                                           preload=["tubeid.runner._embedded_worker"])  # Ctrl-C is the runner's
             except Exception as exc:
                 script = _main_script()
                 if script is None:
                     raise
-                raise SpecificationError("workers", int(n), f"the embedded cluster's worker processes did not start "
-                                         f"({type(exc).__name__}: {exc}); if {script} calls run() outside "
-                                         f"`if __name__ == \"__main__\":`, that is why: {_UNGUARDED}") from None
+                why = (f"; if {script} calls run() outside `if __name__ == \"__main__\":`, that is why: {_UNGUARDED}"
+                       if not _is_tubeid_command(script) else "")
+                raise SpecificationError("embedded cluster", f"{n} workers on {host}, dashboard {dashboard}",
+                                         f"did not start ({type(exc).__name__}: {exc}); check tubeid.runner.host and "
+                                         f"tubeid.runner.dashboard-address (TUBEID_RUNNER__HOST, "
+                                         f"TUBEID_RUNNER__DASHBOARD_ADDRESS){why}") from None
         with cluster, Client(cluster, security=security, set_as_default=False) as own:
             own.run(_warm)  # imports once per worker, before the clock of the first task starts
             tls = ", TLS with ephemeral credentials" if security is not None else ""
