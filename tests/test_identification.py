@@ -102,3 +102,41 @@ def test_simplified_model_delta_is_interior_and_one_spring_model_sits_at_the_edg
     one = identify_delta("paper-simplified-one-spring", n_realisations=200, seed=2008, n_bootstrap=50)
     assert one.attrs["argmax_at_boundary"] == 1 and one.attrs["delta_opt"] == one.delta.values[0]
     assert float(one.J.isel(delta=0).median()) > one.attrs["J_ref"]
+
+
+@pytest.mark.parametrize("call, needle", [
+    (lambda: random_subsystem(SUB, Dispersion(stiffness=0.3), 5, [1.2, 1.9]), r"realisations = \[1.2, 1.9\]"),
+    (lambda: random_subsystem(SUB, Dispersion(stiffness=0.3), 5, [True]), r"realisations = \[True\]"),
+    (lambda: random_subsystem(SUB, Dispersion(stiffness=0.3), 5, [2, 2]), r"realisations = \[2, 2\]: .*repeated"),
+    (lambda: random_subsystem(SUB, Dispersion(stiffness=0.3), 5, []), r"realisations = \[\]"),
+    (lambda: j_monte_carlo(SUB, [0.1], 7, [0.5, 1.5], 100.0), r"realisations = \[0.5, 1.5\]"),
+    (lambda: j_monte_carlo(SUB, [0.1], 7, [0, 1, 0], 100.0), r"realisations = \[0, 1, 0\]: .*repeated"),
+    (lambda: random_condensed_stiffness(SUB, Dispersion(stiffness=0.3), 3, [0.0], [1.0]), r"realisations = \[0.0\]"),
+    (lambda: random_subsystem(SUB, Dispersion(stiffness=0.3), True, [0]), r"seed = True"),
+    (lambda: j_monte_carlo(SUB, [0.1], -1, [0], 100.0), r"seed = -1"),
+    (lambda: random_subsystem(SUB, 0.3, 5, [0]), r"dispersion = 0.3: must be a tubeid.uncertainty.Dispersion"),
+])
+def test_random_models_refuse_float_repeated_or_bool_indices_and_bad_seeds(call, needle):
+    """Float indices were truncated (1.2 and 1.9: realisation 1 twice), a repeat duplicated a sample of J,
+    seed=True ran as seed 1 and a bare float dispersion raised an AttributeError."""
+    with pytest.raises(SpecificationError, match=needle):
+        call()
+
+
+@pytest.mark.parametrize("call, needle", [
+    (lambda: j_monte_carlo(SUB, ["0.1", "0.2"], 7, [0], 100.0), r"^deltas = array of dtype <U3"),
+    (lambda: j_monte_carlo(SUB, np.array([0.1, 0.2]) + 0j, 7, [0], 100.0), r"^deltas = array of dtype complex128"),
+    (lambda: j_monte_carlo(SUB, [True], 7, [0], 100.0), r"^deltas = array of dtype bool"),
+    (lambda: random_condensed_stiffness(SUB, Dispersion(stiffness=0.3), 3, [0], np.array([1.0]) + 1j),
+     r"^frequency_hz = array of dtype complex128"),
+    (lambda: random_condensed_stiffness(SUB, Dispersion(stiffness=0.3), 3, [0], ["1"]), r"^frequency_hz = array of dtype <U1"),
+    (lambda: identify_delta(j_reference=1.0, deltas=["0.1", "0.2"], n_realisations=5, n_bootstrap=0),
+     r"^deltas = array of dtype <U3"),
+    (lambda: identify_delta(j_reference=1.0, n_realisations=5.5, n_bootstrap=0), r"^n_realisations = 5.5: must be an integer"),
+    (lambda: identify_delta(j_reference=1.0, n_realisations=True, n_bootstrap=0), r"^n_realisations = True"),
+    (lambda: identify_delta(j_reference=1.0, seed="2008", n_realisations=5, n_bootstrap=0), r"^seed = '2008'"),
+])
+def test_grids_counts_and_frequencies_are_numbers(call, needle):
+    """Strings were read as numbers, complex values lost their imaginary part, a float count was truncated."""
+    with pytest.raises(SpecificationError, match=needle):
+        call()

@@ -278,3 +278,37 @@ def test_variance_corrected_kernel_removes_the_bias_of_a_dispersion_read_from_a_
         corrected.append(likelihood_curve(samples, obs, grid, "theta", n_bootstrap=0, variance_corrected=True).attrs["argmax"])
     assert abs(np.median(corrected) - 1.0) <= 0.06, np.median(corrected)
     assert np.median(corrected) - np.median(plain) > 0.07, (np.median(plain), np.median(corrected))
+
+
+@pytest.mark.parametrize("call, needle", [
+    (lambda s: kde_pdf(s, True), r"^x = array of dtype bool, shape \(\): must be an array of real numbers"),  # x = 1
+    (lambda s: kde_pdf(s, 0.1, bandwidth=True), r"^bandwidth = array of dtype bool, shape \(\): must be an array"),  # h = 1
+    (lambda s: kde_pdf(s, "0.1"), r"^x = array of dtype <U3, shape \(\): must be an array of real numbers"),
+    (lambda s: kde_pdf(s, 0.1, bandwidth=np.array([True, False])), r"^bandwidth = array of dtype bool, shape \(2,\)"),
+    (lambda s: kde_pdf(s, 0.1 + 1e-3j), r"^x = array of dtype complex128, shape \(\): must be an array of real numbers "
+                                        r"\(complex values are not truncated to their real part\)"),
+    (lambda s: kde_pdf(s + 1e-3j, 0.1), r"^samples = array of dtype complex128, shape \(30,\): must be an array of real "
+                                        r"numbers \(complex values are not truncated to their real part\)"),
+    (lambda s: silverman_bandwidth(s + 0j), r"^samples = array of dtype complex128"),
+    (lambda s: kde_pdf(s > 0, 0.1), r"^samples = array of dtype bool, shape \(30,\)"),
+    (lambda s: likelihood_curve(np.tile(s, (3, 1)) + 1e-3j, 0.1, [0.1, 0.2, 0.3], n_bootstrap=0),
+     r"^samples = array of dtype complex128"),
+    (lambda s: likelihood_curve(np.tile(s, (3, 1)), 0.1 + 1e-3j, [0.1, 0.2, 0.3], n_bootstrap=0),
+     r"^x_ref = array of dtype complex128"),
+    (lambda s: likelihood_curve(np.tile(s, (3, 1)), np.array([True, False]), [0.1, 0.2, 0.3], n_bootstrap=0),
+     r"^x_ref = array of dtype bool"),
+    (lambda s: likelihood_curve(np.tile(s, (3, 1)), "0.1", [0.1, 0.2, 0.3], n_bootstrap=0), r"^x_ref = array of dtype <U3"),
+    (lambda s: likelihood_curve(np.tile(s, (3, 1)), 0.1, ["0.1", "0.2", "0.3"], n_bootstrap=0),
+     r"^grid = array of dtype <U3"),
+    (lambda s: likelihood_curve(np.tile(s, (3, 1)), 0.1, np.array([0.1, 0.2, 0.3]) + 0j, n_bootstrap=0),
+     r"^grid = array of dtype complex128"),
+])
+def test_bools_strings_and_complex_values_are_not_numbers(call, needle):
+    """Bools were read as 1/0, complex values lost their imaginary part (ComplexWarning only)."""
+    import warnings
+
+    s = _crn_samples(30, 3)[10]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(SpecificationError, match=needle):
+            call(s)

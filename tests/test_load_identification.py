@@ -529,3 +529,94 @@ def test_identify_r_refusals():
         identify_r(m, EXP, refine="spectrum")
     with pytest.raises(SpecificationError, match="psd"):  # a log distance needs positive levels
         identify_r(m.where(m.frequency > 10, 0.0), EXP, distance="log")
+
+
+# ---------------------------------------------------------------------- argument checks
+@pytest.mark.parametrize("distance", ["paper", "relative"])
+def test_negative_auto_spectra_are_refused(distance):
+    """A wholly negative PSD gave a confident grid-edge r_opt with the paper's and the relative D (only
+    finiteness was checked): an auto-PSD is >= 0, refused naming the field."""
+    from tubeid.identification import identify_r
+
+    m = _model(3, 0.0, 0)
+    with pytest.raises(SpecificationError, match=r"^psd_exp = 201 negative auto-spectrum values in the band .*"
+                                                 r"auto-spectra \(every value\) must be >= 0"):
+        identify_r(m, -EXP, distance=distance)
+    with pytest.raises(SpecificationError, match=r"^psd_model = .* negative auto-spectrum values in the band .*"
+                                                 r"the mean over 'realisation' of the auto-spectra"):
+        identify_r(-m, EXP, distance=distance)
+    with pytest.raises(SpecificationError, match=r"^psd_exp = 1 negative auto-spectrum values"):  # one bin suffices
+        identify_r(m, EXP.where(EXP.frequency != 50.0, -1.0), distance=distance)
+    # complex matrix PSDs: the real part of the diagonal (off-diagonal cross-spectra may be negative)
+    mc = m.astype(complex).expand_dims(sensor=["a"], sensor_=["a"], axis=(-2, -1))
+    ec = EXP.astype(complex).expand_dims(sensor=["a"], sensor_=["a"], axis=(-2, -1))
+    with pytest.raises(SpecificationError, match=r"^psd_exp = .*real part of the diagonal\) must be >= 0"):
+        identify_r(mc, -ec + 1j, distance=distance)
+    with pytest.raises(SpecificationError, match=r"^psd_model = .*real part of the diagonal\) must be >= 0"):
+        identify_r(-mc, ec, distance=distance)
+
+
+def test_negative_auto_spectra_judged_on_the_compared_means_with_round_off_tolerated():
+    m = _model(3, 0.0, 0)
+    # records: their mean is what D compares (a noisy record may dip below 0, the mean may not)
+    records = xr.concat([EXP * 3.0, -EXP], dim="record")
+    distance_map(m, records, n_bootstrap=0)  # mean = EXP: accepted
+    with pytest.raises(SpecificationError, match=r"^psd_exp = .*the mean over 'record' of the auto-spectra"):
+        distance_map(m, xr.concat([EXP, -3.0 * EXP], dim="record"), n_bootstrap=0)
+    # a matrix PSD whose cross-spectra are negative is a valid PSD
+    two = np.array([[1.0, -0.5], [-0.5, 1.0]])
+    mm = m.expand_dims(sensor=["a", "b"], sensor_=["a", "b"], axis=(-2, -1)) * two
+    em = EXP.expand_dims(sensor=["a", "b"], sensor_=["a", "b"], axis=(-2, -1)) * two
+    distance_map(mm, em, n_bootstrap=0)
+    # round-off around a zero level (1e-12 of the peak) is not a negative spectrum
+    distance_map(m, EXP - 1e-12 * float(EXP.max()), n_bootstrap=0)
+
+
+@pytest.mark.parametrize("call, needle", [
+    (lambda m: distance_map(m, EXP, band_hz=True, n_bootstrap=0), r"^band_hz = True: must be a finite number > 0"),
+    (lambda m: distance_map(m, EXP, band_hz="100", n_bootstrap=0), r"^band_hz = '100'"),
+    (lambda m: log_band_distance_map(m, EXP, band_width_hz=True, n_bootstrap=0), r"^band_width_hz = True"),
+    (lambda m: log_band_distance_map(m, EXP, band_width_hz="5", n_bootstrap=0), r"^band_width_hz = '5'"),
+    (lambda m: refine_grid([True], 2.0, 3), r"^r_opt\[0\] = True: must be a finite number > 0"),
+    (lambda m: refine_grid({"r1": "18"}, 2.0, 3), r"^r_opt\['r1'\] = '18'"),
+    (lambda m: refine_grid([18.0], "2", 3), r"^factor = '2': must be a finite number > 1"),
+    (lambda m: delta_f_likelihood(np.ones((2, 5)), 1.0, ["0.1", "0.2"], n_bootstrap=0), r"^grid = array of dtype <U3"),
+    (lambda m: delta_f_likelihood(np.ones((2, 5)), 1.0, [0.1 + 0j, 0.2], n_bootstrap=0), r"^grid = array of dtype "
+                                                                                           r"complex128"),
+])
+def test_bools_and_strings_are_not_numbers(call, needle):
+    with pytest.raises(SpecificationError, match=needle):
+        call(_model(3, 0.1, 0))
+
+
+def test_fine_grid_centre_as_a_dict_or_a_sequence():
+    """The type hint said dict, the docstring a sequence, and a dict raised a raw TypeError: both are accepted."""
+    from tubeid.identification import fine_grid, identify_r
+
+    coarse = identify_r(_model(3, 0.1, 0), EXP, refine=False)
+    by_seq = fine_grid(coarse, 5, centre=[20.0, 21.0])
+    by_dict = fine_grid(coarse, 5, centre={"r2": 21.0, "r1": 20.0})
+    assert list(by_dict) == ["r1", "r2"]
+    for d in ("r1", "r2"):
+        np.testing.assert_array_equal(by_dict[d], by_seq[d])
+    assert by_seq["r1"][2] == pytest.approx(20.0, rel=1e-15, abs=0)
+    assert by_seq["r2"][2] == pytest.approx(21.0, rel=1e-15, abs=0)
+
+
+@pytest.mark.parametrize("centre, needle", [
+    ({"r1": 1.0}, r"^centre = \{'r1': 1.0\}: must be keyed by the grid dims \['r1', 'r2'\] \(missing: \['r2'\]\)"),
+    ({"r1": 1.0, "r2": 2.0, "r3": 3.0}, r"^centre = .*\(unknown: \['r3'\]\)"),
+    ({"r1": 1.0, "r2": "2"}, r"^centre\['r2'\] = '2': must be a finite number > 0"),
+    (["1", 2.0], r"^centre\[0\] = '1': must be a finite number > 0"),  # was read as 1.0
+    ([True, 2.0], r"^centre\[0\] = True: must be a finite number > 0"),  # was read as 1.0
+    ([20.0, -1.0], r"^centre\[1\] = -1.0: must be a finite number > 0"),
+    ([20.0], r"^centre = \[20.0\]: must hold one value per grid dim"),
+    ("20", r"^centre = '20': must be a dict keyed by the grid dims"),
+    (True, r"^centre = bool: must be a dict keyed by the grid dims"),
+])
+def test_fine_grid_refuses_a_bad_centre(centre, needle):
+    from tubeid.identification import fine_grid, identify_r
+
+    coarse = identify_r(_model(3, 0.1, 0), EXP, refine=False)
+    with pytest.raises(SpecificationError, match=needle):
+        fine_grid(coarse, 5, centre=centre)

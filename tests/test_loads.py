@@ -207,3 +207,41 @@ def test_randomised_singular_mean():
     lam = np.linalg.eigvalsh(G)
     assert lam[0] - 1e-12 <= c <= lam[-1] + 1e-12
     np.testing.assert_allclose(randomised(s, np.eye(2)).matrix([10.0])[0], Sbar, atol=1e-13)
+
+
+@pytest.mark.parametrize("call, needle", [
+    # raw ValueErrors from numpy before
+    (lambda: coherent_forces(x=["a"]), r"^x = array of dtype <U1, shape \(1,\): must be an array of real numbers"),
+    (lambda: tabulated(["a", "b"], np.ones((2, 1, 1)), ["T"], ["force"], 8.0), r"^f = array of dtype <U1, shape \(2,\): "
+                                                                             r"must be an array of real numbers"),
+    (lambda: force_and_moment(1.0, 1.0).matrix("a"), r"^f = array of dtype <U1, shape \(\): must be an array of real"),
+    # strings and bools accepted as numbers before
+    (lambda: force_and_moment(1.0, 1.0, x=True), r"^x = True: must be a finite number"),
+    (lambda: force_and_moment(1.0, 1.0, x="8"), r"^x = '8': must be a finite number"),
+    (lambda: coherent_forces(x=["2", "4"]), r"^x = array of dtype <U1, shape \(2,\): must be an array of real numbers"),
+    (lambda: coherent_forces(x=[True, False]), r"^x = array of dtype bool, shape \(2,\): must be an array of real numbers"),
+    (lambda: tabulated(["0", "50", "100"], np.ones((3, 1, 1)), ["T"], ["force"], 8.0), r"^f = array of dtype <U3"),
+    (lambda: tabulated([0.0, 50.0, 100.0], np.ones((3, 1, 1)), ["T"], ["force"], "8"), r"^x = array of dtype <U1"),
+    (lambda: force_and_moment(1.0, 1.0).matrix([True]), r"^f = array of dtype bool, shape \(1,\): must be an array"),
+    # complex values lost their imaginary part
+    (lambda: force_and_moment(1.0, 1.0).matrix(1.0 + 1j), r"^f = array of dtype complex128, shape \(\): must be an "
+                                                           r"array of real numbers \(complex values are not truncated"),
+    (lambda: coherent_forces(x=np.array([2.0, 4.0]) + 0j), r"^x = array of dtype complex128, shape \(2,\): must be an "
+                                                           r"array of real numbers \(complex values are not truncated"),
+    (lambda: LoadSpectrum(("a",), ("force",), "c", (True,), 10.0, np.eye(1)), r"^x = array of dtype bool, shape \(1,\)"),
+    (lambda: LoadSpectrum(("a",), ("force",), "c", (0.0,), 10.0, np.ones((2, 1, 1)), ["0", "10"]), r"^f = array of dtype <U2"),
+    (lambda: check_psd_matrices(["a"], np.eye(1)[None]), r"^f = array of dtype <U1, shape \(1,\): must be an array of real"),
+])
+def test_numbers_are_real_numbers_not_bools_strings_or_complex(call, needle):
+    with pytest.raises(SpecificationError, match=needle):
+        call()
+
+
+def test_valid_numbers_of_any_real_type_are_read_as_before():
+    a = coherent_forces(x=[2, np.float32(4.5), np.int64(6)])
+    assert a.x == (2.0, 4.5, 6.0)
+    assert force_and_moment(1.0, 1.0, x=np.float64(3.0)).x == (3.0, 3.0)
+    S = force_and_moment(1.0, 2.0)
+    np.testing.assert_array_equal(S.matrix(np.array([-5, 0, 200])), S.matrix([-5.0, 0.0, 200.0]))
+    t = tabulated(np.array([0, 50, 100]), np.ones((3, 1, 1)), ["T"], ["force"], 8)
+    assert t.frequencies.dtype == float and t.x == (8.0,)

@@ -19,6 +19,7 @@ from tubeid.uncertainty.random_matrices import (
     se_plus,
     sg_plus,
     sg_plus_dispersion,
+    sg_plus_from_germs,
 )
 
 
@@ -184,3 +185,27 @@ def test_dispersion_spec_and_estimator_refusals():
         d.stiffness = 0.1  # frozen
     _raises(lambda: sg_plus_dispersion(np.ones((3, 2))), "G = array of shape (3, 2)")
     _raises(lambda: sg_plus_dispersion(np.ones((0, 2, 2))), "at least one realisation")
+
+
+@pytest.mark.parametrize("call, needle", [
+    (lambda: se_plus(np.eye(2) * (1 + 1e-3j), 0.3, rng=1), r"^mean = array of dtype complex128, shape \(2, 2\): must "
+                                                          r"be an array of real numbers \(complex values are not"),
+    (lambda: se_plus(np.eye(2) * (1 + 1e-3j), 0.3, rng=1, name="K_B"), r"^K_B = array of dtype complex128"),
+    (lambda: se_plus(np.eye(2, dtype=bool), 0.3, rng=1), r"^mean = array of dtype bool, shape \(2, 2\): must be an"),
+    (lambda: se_plus([["1", "0"], ["0", "1"]], 0.3, rng=1), r"^mean = array of dtype <U1, shape \(2, 2\)"),
+    (lambda: sg_plus_dispersion(np.eye(2)[None] + 0j), r"^G = array of dtype complex128, shape \(1, 2, 2\)"),
+    (lambda: sg_plus_from_germs(2, 0.3, np.zeros(1) + 1j, np.full(2, 0.5)), r"^normals = array of dtype complex128"),
+    (lambda: sg_plus_from_germs(2, 0.3, np.zeros(1), np.full(2, 0.5) + 0j), r"^uniforms = array of dtype complex128"),
+])
+def test_complex_bool_or_string_matrices_are_refused_not_truncated(call, needle):
+    """A complex mean lost its imaginary part with only a ComplexWarning; bools and strings were read as numbers."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # refused before any ComplexWarning
+        with pytest.raises(SpecificationError, match=needle):
+            call()
+
+
+def test_real_matrices_given_as_lists_are_read_as_before():
+    np.testing.assert_array_equal(se_plus([[2, 0], [0, 2]], 0.3, rng=5), se_plus(np.eye(2) * 2.0, 0.3, rng=5))

@@ -7,7 +7,8 @@ from tubeid.dynamics.response import ResponseSettings, simulate_responses
 from tubeid.errors import SpecificationError
 from tubeid.mechanics import builtin_spec, reduce
 from tubeid.mechanics.spec import StopSpec
-from tubeid.uncertainty import Dispersion, coherent_forces
+from tubeid.seeds import rng_for
+from tubeid.uncertainty import Dispersion, coherent_forces, force_and_moment
 
 SETTINGS = ResponseSettings(duration=64.0, discard=4.0, segment_seconds=4.0)
 LONG = ResponseSettings(duration=160.0, discard=4.0, segment_seconds=4.0)
@@ -280,3 +281,93 @@ def test_long_run_psd_is_step_independent_and_parseval_holds():
                       for lo in range(0, 100, 5)])
     assert np.all(np.abs(ratio - 1) <= 0.15), ratio
     assert abs(np.mean(ratio) - 1) <= 0.015, np.mean(ratio)
+
+
+# ---------------------------------------------------------------------- argument checks, up front
+SHORT = ResponseSettings(duration=3.0, discard=0.5, segment_seconds=2.0)
+
+
+@pytest.mark.parametrize("realisations, needle", [
+    ([1.2, 1.9], r"realisations = \[1.2, 1.9\]: must be distinct integers"),  # was truncated to [1, 1]
+    (np.array([1.0, 2.0]), r"realisations = array\(\[1., 2.\]\): must be distinct integers"),
+    ([True, False], r"realisations = \[True, False\]: must be distinct integers"),
+    (["0"], r"realisations = \['0'\]"),
+    ([], r"realisations = \[\]: .*at least one"),
+    ([[0, 1]], r"realisations = \[\[0, 1\]\]: .*1-D"),
+    ([3, 0, 3], r"realisations = \[3, 0, 3\]: must be distinct: index 3 is repeated"),
+])
+def test_realisation_indices_are_distinct_integers(realisations, needle):
+    """A float index was truncated (1.2 and 1.9 gave two copies of realisation 1 presented as independent),
+    a repeated index duplicated a realisation: both refused, naming the field."""
+    with pytest.raises(SpecificationError, match=needle):
+        simulate_responses(reduce(builtin_spec("paper-simplified")), force_and_moment(1.0, 1.0), realisations,
+                           seed=1, settings=SHORT)
+
+
+@pytest.mark.parametrize("kwargs, needle", [
+    (dict(realisations=[0, 1], rngs=[rng_for(1, "r")]),  # was a raw IndexError
+     r"^rngs = 1 generators: must be a sequence of numpy.random.Generator, one per realisation \(2\)"),
+    (dict(rngs=rng_for(1, "r")), r"^rngs = Generator: must be a sequence of numpy.random.Generator"),
+    (dict(realisations=[0, 1], rngs=[rng_for(1, "r"), 5]), r"^rngs\[1\] = int: must be a numpy.random.Generator"),
+    (dict(realisations=[0, 1], seed=1, system_rngs=[rng_for(1, "s")] * 3), r"^system_rngs = 3 generators"),
+    (dict(seed=1, dispersion=0.1), r"^dispersion = 0.1: must be a tubeid.uncertainty.Dispersion"),  # AttributeError
+    (dict(seed=True), r"^seed = True: must be a non-negative integer"),  # ran as seed 1
+    (dict(seed=-1), r"^seed = -1: must be a non-negative integer"),
+    (dict(seed=1, load_dispersion=True), r"^load_dispersion = True: must be a finite number >= 0"),
+    (dict(seed=1, load_dispersion="0.1"), r"^load_dispersion = '0.1': must be a finite number >= 0"),
+    (dict(seed=1, load_dispersion=-0.1), r"^load_dispersion = -0.1: must be a finite number >= 0"),
+    (dict(seed=1, load_dispersion=0.9), r"^load_dispersion = 0.9: must satisfy 0 < load_dispersion < delta_max"),
+    (dict(seed=1, settings={"duration": 3.0}), r"^settings = dict: must be a ResponseSettings"),
+    (dict(seed=1, load="T"), r"^load = str: must be a LoadSpectrum"),
+    (dict(seed=1, model="paper-simplified"), r"^model = str: must be a ReducedModel"),
+])
+def test_generators_seed_dispersion_and_load_dispersion_are_checked_up_front(kwargs, needle):
+    args = dict(model=reduce(builtin_spec("paper-simplified")), load=force_and_moment(1.0, 1.0), realisations=[0],
+                settings=SHORT)
+    args.update(kwargs)
+    with pytest.raises(SpecificationError, match=needle):
+        simulate_responses(args.pop("model"), args.pop("load"), args.pop("realisations"), **args)
+
+
+def test_negative_indices_are_keys_like_any_other():
+    """The diagnosis labels its probe realisations -2, -3, ...: a negative index is a valid key, and
+    an integer index of any integer dtype gives the bits of the same Python int."""
+    model, load = reduce(builtin_spec("paper-simplified")), force_and_moment(1.0, 1.0)
+    a = simulate_responses(model, load, [-2, 4], seed=1, settings=SHORT)
+    b = simulate_responses(model, load, np.array([4], dtype=np.int32), seed=1, settings=SHORT)
+    assert list(a.realisation.values) == [-2, 4] and a.realisation.dtype == np.int64
+    np.testing.assert_array_equal(a.psd.sel(realisation=4).values, b.psd.sel(realisation=4).values)
+
+
+@pytest.mark.parametrize("kwargs, needle", [
+    (dict(discard="a"), r"settings.discard = 'a': must be a finite number"),  # was a raw TypeError
+    (dict(discard=True), r"settings.discard = True: must be a finite number"),
+    (dict(discard=float("nan")), r"settings.discard = nan"),
+    (dict(duration=True, discard=0.0, segment_seconds=0.5), r"settings.duration = True: must be a finite number > 0"),
+    (dict(dt_load="2e-3"), r"settings.dt_load = '2e-3': must be a finite number > 0"),
+    (dict(output_dt=True), r"settings.output_dt = True"),
+    (dict(segment_seconds=float("inf")), r"settings.segment_seconds = inf"),
+    (dict(method="bogus"), r"settings.method = 'bogus': must be one of 'exact', 'symplectic-euler'"),
+])
+def test_response_settings_are_validated_when_made(kwargs, needle):
+    with pytest.raises(SpecificationError, match=needle):
+        ResponseSettings(**kwargs)
+
+
+def test_response_settings_accept_every_solver_method_and_keep_the_values_as_given():
+    from tubeid.dynamics.solver import METHODS
+
+    for method in METHODS:
+        assert ResponseSettings(method=method).method == method
+    s = ResponseSettings(duration=3, discard=0, segment_seconds=2)
+    assert type(s.duration) is int and type(s.discard) is int  # checked, not converted (recorded as given)
+
+
+def test_results_carry_the_units_the_docstring_states():
+    """rms and displacement [m], time [s], psd [m²/Hz], frequency [Hz]."""
+    ds = simulate_responses(reduce(builtin_spec("paper-simplified")), force_and_moment(1.0, 1.0), [0], seed=1,
+                            settings=ResponseSettings(duration=3.0, discard=0.5, segment_seconds=2.0, keep="series"))
+    assert ds.rms.attrs["units"] == "m"
+    assert ds.displacement.attrs["units"] == "m"
+    assert ds.time.attrs["units"] == "s" and ds.displacement.time.attrs["units"] == "s"
+    assert ds.psd.attrs["units"] == "m^2/Hz" and ds.frequency.attrs["units"] == "Hz"

@@ -539,3 +539,68 @@ def test_an_edit_of_a_callee_recompiles_the_cached_main_loop(tmp_path):
     modal.write_text(text[:at] + "x[nx + l] = 1.001 * fs[l] + f1[l] * t" + text[at + len("x[nx + l] = fs[l] + f1[l] * t"):])
     edited = _run_in_subprocess(1, cache, src)
     assert edited["compiled"] >= 1 and edited["sha256"] != first["sha256"], edited
+
+
+@pytest.mark.parametrize("which", ["M", "D", "K", "B", "C", "loads"])
+def test_complex_inputs_are_refused_not_truncated(which):
+    """numpy dropped the imaginary part with only a ComplexWarning: refused, naming the argument."""
+    M, D, K = chain()
+    args = dict(M=M, D=D, K=K, B=np.ones((4, 1)), C=np.eye(4), loads=np.zeros((11, 1)))
+    args[which] = args[which] + 1e-3j
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no ComplexWarning on the way
+        with pytest.raises(SpecificationError, match=rf"^{which} = array of dtype complex128, shape \(\d+, \d+\): "
+                                                     r"must be an array of real numbers \(complex values are not "
+                                                     r"truncated to their real part\)"):
+            simulate(args["M"], args["D"], args["K"], [], args["B"], args["C"], args["loads"], DT_LOAD)
+
+
+@pytest.mark.parametrize("b, needle", [
+    ((1.0 + 1e-3j, 0.0, 0.0, 0.0), r"^stop.b = array of dtype complex128, shape \(4,\): must be an array of real numbers "
+                                   r"\(complex values are not truncated"),
+    ((True, False, False, False), r"^stop.b = array of dtype bool, shape \(4,\): must be an array of real numbers"),
+    (("1", "0", "0", "0"), r"^stop.b = array of dtype <U1, shape \(4,\): must be an array of real numbers")])
+def test_stop_vector_must_hold_real_numbers(b, needle):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(SpecificationError, match=needle):
+            Stop(b, 1e-6, 1.0)
+
+
+def test_bool_and_string_arrays_are_refused():
+    M, D, K = chain()
+    with pytest.raises(SpecificationError, match=r"^C = array of dtype bool, shape \(4, 4\): must be an array of real numbers"):
+        simulate(M, D, K, [], np.ones((4, 1)), np.eye(4, dtype=bool), np.zeros((11, 1)), DT_LOAD)
+    with pytest.raises(SpecificationError, match=r"^B = array of dtype <U1, shape \(4, 1\): must be an array of real numbers"):
+        simulate(M, D, K, [], [["1"], ["0"], ["0"], ["0"]], np.eye(4), np.zeros((11, 1)), DT_LOAD)
+
+
+def test_stop_labels_must_be_distinct():
+    """The default label stop<i> collided with a user's name (the stop coordinate read ['stop1', 'stop1']):
+    refused up front, as two stops given one name."""
+    M, D, K = chain()
+    B, C, F = np.ones((4, 1)), np.eye(4)[:2], np.zeros((11, 1))
+    e0, e1 = np.eye(4)[0], np.eye(4)[1]
+    with pytest.raises(SpecificationError, match=r"stops\[1\].name = 'stop1': must differ from the label of stops\[0\]"):
+        simulate(M, D, K, [Stop(e0, 1e-3, 1e4, name="stop1"), Stop(e1, 1e-3, 1e4)], B, C, F, DT_LOAD)
+    with pytest.raises(SpecificationError, match=r"stops\[1\].name = 'a': must differ from the label of stops\[0\]"):
+        simulate(M, D, K, [Stop(e0, 1e-3, 1e4, name="a"), Stop(e1, 1e-3, 1e4, name="a")], B, C, F, DT_LOAD)
+    res = simulate(M, D, K, [Stop(e0, 1e-3, 1e4, name="stop1"), Stop(e1, 1e-3, 1e4, name="x")], B, C, F, DT_LOAD)
+    assert list(res.contact_events.stop.values) == ["stop1", "x"]
+    # the defaults stay as they were: stop<i>
+    res = simulate(M, D, K, [Stop(e0, 1e-3, 1e4), Stop(e1, 1e-3, 1e4)], B, C, F, DT_LOAD)
+    assert list(res.contact_events.stop.values) == ["stop0", "stop1"]
+
+
+def test_sensor_names_must_be_distinct_strings():
+    """Repeated sensor names labelled two outputs alike; a bare string was split into its characters."""
+    M, D, K = chain()
+    B, C, F = np.ones((4, 1)), np.eye(4)[:2], np.zeros((11, 1))
+    with pytest.raises(SpecificationError, match=r"sensor_names\[1\] = 'a': must differ from sensor_names\[0\]"):
+        simulate(M, D, K, [], B, C, F, DT_LOAD, sensor_names=["a", "a"])
+    with pytest.raises(SpecificationError, match=r"sensor_names = 'ab': must be a sequence of names"):
+        simulate(M, D, K, [], B, C, F, DT_LOAD, sensor_names="ab")
+    with pytest.raises(SpecificationError, match=r"sensor_names\[0\] = 0: must be a string"):
+        simulate(M, D, K, [], B, C, F, DT_LOAD, sensor_names=[0, 1])
+    assert list(simulate(M, D, K, [], B, C, F, DT_LOAD, sensor_names=["a", "b"]).rms.sensor.values) == ["a", "b"]
+    assert list(simulate(M, D, K, [], B, C, F, DT_LOAD).rms.sensor.values) == ["y0", "y1"]  # the default y<i>

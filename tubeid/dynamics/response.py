@@ -19,7 +19,6 @@ same whatever its batch, and grids over δ, r or δ_F share common random number
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -27,16 +26,18 @@ import numpy as np
 import xarray as xr
 from numpy.typing import ArrayLike
 
-from tubeid.dynamics.solver import Stop, simulate
+from tubeid._validation import non_negative, one_of, positive, real
+from tubeid._validation import seed as _seed
+from tubeid.dynamics.solver import METHODS, Stop, simulate
 from tubeid.dynamics.spectra import psd_matrix
-from tubeid.errors import SpecificationError
+from tubeid.errors import Described, SpecificationError
 from tubeid.mechanics.reduction import ReducedModel
 from tubeid.mechanics.spec import LoadPoint
 from tubeid.seeds import rng_for
 from tubeid.uncertainty.loads import LoadSpectrum, randomised
 from tubeid.uncertainty.processes import gaussian_loads
-from tubeid.uncertainty.random_matrices import Dispersion, sg_plus
-from tubeid.uncertainty.random_models import germs_from_rngs, random_subsystem
+from tubeid.uncertainty.random_matrices import Dispersion, _check_delta, sg_plus
+from tubeid.uncertainty.random_models import germs_from_rngs, random_subsystem, realisation_indices
 
 __all__ = ["ResponseSettings", "realisation_streams", "simulate_responses"]
 
@@ -66,7 +67,7 @@ class ResponseSettings:
     segment_seconds : float
         Welch segment [s] (Hann window, 50 % overlap), at most duration − discard.
     method : str
-        The solver's method (``tubeid.dynamics.simulate``).
+        The solver's method, a key of ``tubeid.dynamics.solver.METHODS`` (``tubeid.dynamics.simulate``).
     keep : str
         ``"psd"`` (the PSD and statistics only), ``"series"`` (also the displacement series) or
         ``"series-only"`` (the series and statistics, no PSD: for a caller that estimates its own).
@@ -81,16 +82,17 @@ class ResponseSettings:
     keep: str = "psd"
 
     def __post_init__(self) -> None:
+        # checked, not converted: the values stay as given (they are recorded in the results' attributes)
         for f in ("duration", "dt_load", "output_dt", "segment_seconds"):
-            v = getattr(self, f)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise SpecificationError(f"settings.{f}", v, "must be a finite number > 0 (s)")
+            positive(f"settings.{f}", getattr(self, f), "s")
+        real("settings.discard", self.discard, unit="s")
         if not (0 <= self.discard < self.duration):
             raise SpecificationError("settings.discard", self.discard, f"must be in [0, duration = {self.duration}) s")
         if self.segment_seconds > self.duration - self.discard:
             raise SpecificationError("settings.segment_seconds", self.segment_seconds, "must not exceed duration − discard")
         if self.keep not in KEEP:
             raise SpecificationError("settings.keep", self.keep, f"must be one of {KEEP}")
+        one_of("settings.method", self.method, METHODS)
 
 
 def realisation_streams(seed: int | None, realisation: int,
@@ -114,6 +116,25 @@ def realisation_streams(seed: int | None, realisation: int,
     """
     base = rng if rng is not None else rng_for(seed, "response", int(realisation))
     return base.spawn(4)
+
+
+def _generators(field: str, gens, count: int) -> list[np.random.Generator] | None:
+    """``gens`` as a list of ``count`` generators (None stays None), else refused naming ``field``."""
+    if gens is None:
+        return None
+    rule = f"must be a sequence of numpy.random.Generator, one per realisation ({count})"
+    if isinstance(gens, (np.random.Generator, str, bytes)):
+        raise SpecificationError(field, Described(type(gens).__name__), rule)
+    try:
+        gens = list(gens)
+    except TypeError:
+        raise SpecificationError(field, Described(type(gens).__name__), rule) from None
+    if len(gens) != count:
+        raise SpecificationError(field, Described(f"{len(gens)} generators"), rule)
+    for i, g in enumerate(gens):
+        if not isinstance(g, np.random.Generator):
+            raise SpecificationError(f"{field}[{i}]", Described(type(g).__name__), "must be a numpy.random.Generator")
+    return gens
 
 
 def _load_points(load: LoadSpectrum) -> tuple[LoadPoint, ...]:
@@ -141,15 +162,16 @@ def simulate_responses(
     load : LoadSpectrum
         The mean load spectrum, acting on the model's tube at its load positions.
     realisations : array_like of int
-        Realisation indices (R of them).
+        Realisation indices (R of them): distinct integers (not bools or floats; each keys its
+        realisation's streams, a repeat would duplicate a realisation).
     seed : int, optional
-        Study seed: realisation r draws from ``rng_for(seed, "response", r)``.
+        Study seed, an integer >= 0: realisation r draws from ``rng_for(seed, "response", r)``.
     rngs : sequence of numpy.random.Generator, optional
         One generator per realisation instead (e.g. the runner's); ``seed`` or ``rngs`` is required.
     dispersion : Dispersion
         SE+ dispersions of B's reduced matrices (default: the mean model).
     load_dispersion : float
-        δ_F of the random load spectrum (0: the mean spectrum).
+        δ_F of the random load spectrum, >= 0 (0: the mean spectrum).
     settings : ResponseSettings
         Time and spectral settings.
     system_rngs : sequence of numpy.random.Generator, optional
@@ -163,17 +185,32 @@ def simulate_responses(
         Over ``realisation``: ``psd`` (realisation, frequency, sensor, sensor_) two-sided PSD
         matrix [m²/Hz] (complex; not with ``keep="series-only"``), ``rms`` (realisation, sensor)
         [m], ``contact_fraction`` and ``contact_events`` (realisation, stop); with ``keep="series"``
-        or ``"series-only"`` also ``displacement`` (realisation, time, sensor) [m].
+        or ``"series-only"`` also ``displacement`` (realisation, time [s], sensor) [m]. Every
+        variable and the ``time`` and ``frequency`` coordinates carry their ``units`` attribute
+        where they have one.
     """
-    realisations = np.atleast_1d(np.asarray(realisations, dtype=int))
+    realisations = realisation_indices(realisations)
     if rngs is None and seed is None:
         raise SpecificationError("seed", None, "give a seed or one generator per realisation")
+    if seed is not None:
+        _seed("seed", seed)
+    if not isinstance(model, ReducedModel):
+        raise SpecificationError("model", Described(type(model).__name__), "must be a ReducedModel (tubeid.mechanics.reduce)")
+    if not isinstance(load, LoadSpectrum):
+        raise SpecificationError("load", Described(type(load).__name__), "must be a LoadSpectrum (tubeid.uncertainty)")
+    if not isinstance(dispersion, Dispersion):
+        raise SpecificationError("dispersion", dispersion, "must be a tubeid.uncertainty.Dispersion "
+                                 "(e.g. Dispersion(stiffness=0.1))")
+    non_negative("load_dispersion", load_dispersion)  # checked, not converted: recorded as given
+    if load_dispersion != 0.0:
+        _check_delta(load_dispersion, len(load.names), "load_dispersion")
+    if not isinstance(settings, ResponseSettings):
+        raise SpecificationError("settings", Described(type(settings).__name__), "must be a ResponseSettings")
+    rngs = _generators("rngs", rngs, len(realisations))
+    system_rngs = _generators("system_rngs", system_rngs, len(realisations))
     streams = [realisation_streams(seed, r, None if rngs is None else rngs[i]) for i, r in enumerate(realisations)]
     sub = model.subsystem
     dispersion.check(sub.n)
-    if system_rngs is not None and len(system_rngs) != len(realisations):
-        raise SpecificationError("system_rngs", f"{len(system_rngs)} generators",
-                                 f"must hold one generator per realisation ({len(realisations)})")
     germs = germs_from_rngs(sub.n, [s[0] for s in streams] if system_rngs is None else system_rngs)
     if dispersion.is_deterministic:  # one model for every realisation: the solver builds its tables once
         M, D, K = model.mean_matrices
@@ -230,11 +267,13 @@ def simulate_responses(
             "method": settings.method,
         },
     )
+    ds["rms"].attrs["units"] = "m"
     if settings.keep != "series-only":
         f, S = psd_matrix(y.values, settings.output_dt, segment_seconds=settings.segment_seconds)
         ds = ds.assign_coords(frequency=("frequency", f, {"units": "Hz"}), sensor_=names)
         ds["psd"] = (("realisation", "frequency", "sensor", "sensor_"), S,
                      {"units": "m^2/Hz", "long_name": "two-sided response PSD matrix"})
     if settings.keep != "psd":
-        ds["displacement"] = y.assign_coords(realisation=realisations)
+        ds["displacement"] = y.assign_coords(realisation=realisations).assign_attrs(units="m")
+        ds["time"].attrs["units"] = "s"
     return ds

@@ -15,6 +15,8 @@ import numpy as np
 import xarray as xr
 from numpy.typing import ArrayLike
 
+from tubeid._validation import integer, numeric_array
+from tubeid._validation import seed as _seed
 from tubeid.identification.likelihood import likelihood_curve
 from tubeid.mechanics.library import resolve_spec
 from tubeid.mechanics.reduction import J_UNITS, j_functional, reduce
@@ -101,10 +103,14 @@ def identify_delta(
         (delta, realisation); attributes ``delta_opt``, ``delta_opt_std``, ``delta_opt_low``,
         ``delta_opt_high``, ``J_ref``, ``J_units`` and the settings.
     """
+    # checked up front (recorded as given): bools, strings and floats are not counts or seeds
+    n_realisations = integer("n_realisations", n_realisations, minimum=1)
+    _seed("seed", seed)
+    given = None if deltas is None else numeric_array("deltas", deltas, finite=False, dtype=float)
     spec = resolve_spec(model)
     sub = reduce(spec).subsystem
     j_ref = reference_j(reference) if j_reference is None else j_reference
-    grid = default_delta_grid(sub.n) if deltas is None else np.asarray(deltas, dtype=float)
+    grid = default_delta_grid(sub.n) if deltas is None else given
     J = j_monte_carlo(sub, grid, seed, np.arange(n_realisations), spec.band_hz, which=which)
     ds = likelihood_curve(J, j_ref, grid, "delta", n_bootstrap=n_bootstrap, rng=seed)
     ds["J"] = J

@@ -36,6 +36,7 @@ import xarray as xr
 from numpy.typing import ArrayLike
 from scipy.special import logsumexp
 
+from tubeid._validation import numeric_array
 from tubeid.errors import Described as _Desc, SpecificationError
 from tubeid.seeds import rng_for
 
@@ -49,10 +50,8 @@ LR_THRESHOLD = 1.920729410347062
 
 
 def _as_samples(samples, field: str, min_n: int) -> np.ndarray:
-    try:
-        s = np.asarray(samples, dtype=float)
-    except (TypeError, ValueError):
-        raise SpecificationError(field, _Desc(type(samples).__name__), "must be an array of real numbers") from None
+    # complex samples are not truncated to their real part, bools and strings are not numbers
+    s = numeric_array(field, samples, finite=False, dtype=float)
     if s.ndim < 1 or s.shape[-1] < min_n:
         raise SpecificationError(field, _Desc(f"array of shape {s.shape}"),
                                  f"must have at least {min_n} samples along its last axis")
@@ -114,13 +113,13 @@ def kde_pdf(samples: ArrayLike, x: ArrayLike, bandwidth: ArrayLike | None = None
         p̂(x), in the inverse unit of the samples (a float when the result is 0-d).
     """
     s = _as_samples(samples, "samples", 2)
-    xa = np.asarray(x, dtype=float)
+    xa = numeric_array("x", x, finite=False, dtype=float)
     if not np.all(np.isfinite(xa)):
         raise SpecificationError("x", x, "must be finite")
     if bandwidth is None:
         h = np.asarray(silverman_bandwidth(s))
     else:
-        h = np.asarray(bandwidth, dtype=float)
+        h = numeric_array("bandwidth", bandwidth, finite=False, dtype=float)
         if not np.all(np.isfinite(h) & (h > 0)):
             raise SpecificationError("bandwidth", bandwidth, "must be finite and > 0")
     try:
@@ -227,10 +226,7 @@ def likelihood_curve(samples: ArrayLike | xr.DataArray, x_ref: float | ArrayLike
     # ---- validation (all up front) ----
     if not isinstance(grid_name, str) or not grid_name:
         raise SpecificationError("grid_name", grid_name, "must be a non-empty string")
-    try:
-        g = np.asarray(grid, dtype=float)
-    except (TypeError, ValueError):
-        raise SpecificationError("grid", grid, "must be a 1-D array of real numbers") from None
+    g = numeric_array("grid", grid, finite=False, dtype=float)
     if g.ndim != 1 or g.size < 1 or not np.all(np.isfinite(g)):
         raise SpecificationError("grid", _Desc(f"array of shape {g.shape}"), "must be a non-empty finite 1-D array")
     if g.size > 1 and not np.all(np.diff(g) > 0):
@@ -241,10 +237,7 @@ def likelihood_curve(samples: ArrayLike | xr.DataArray, x_ref: float | ArrayLike
     if s.ndim != 2 or s.shape[0] != g.size:
         raise SpecificationError("samples", _Desc(f"array of shape {s.shape}"),
                                  f"must have shape (len(grid), N) = ({g.size}, N) with N >= 5")
-    try:
-        xs = np.atleast_1d(np.asarray(x_ref, dtype=float))
-    except (TypeError, ValueError):
-        raise SpecificationError("x_ref", x_ref, "must be a finite real number or a 1-D array of them") from None
+    xs = np.atleast_1d(numeric_array("x_ref", x_ref, finite=False, dtype=float))
     if isinstance(x_ref, (bool, np.bool_)) or xs.ndim != 1 or xs.size == 0 or not np.all(np.isfinite(xs)):
         raise SpecificationError("x_ref", x_ref, "must be a finite real number or a 1-D array of them")
     x_ref = float(xs[0]) if xs.size == 1 else xs

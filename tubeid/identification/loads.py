@@ -55,7 +55,7 @@ import xarray as xr
 from numpy.typing import ArrayLike
 
 from tubeid.dynamics.spectra import distance, j_s, log_band_energies
-from tubeid._validation import integer, open_unit
+from tubeid._validation import integer, numeric_array, open_unit, positive, real
 from tubeid.errors import Described as _Desc, SpecificationError
 from tubeid.identification.likelihood import likelihood_curve
 from tubeid.seeds import rng_for
@@ -70,6 +70,9 @@ JS_UNITS = D_UNITS
 _SENSOR_DIMS = ("sensor", "sensor_")
 _REFINE = ("spectrum", "distance", None)
 _CHUNK_ELEMENTS = 4_000_000  # bootstrap work arrays are capped at this many complex values
+# An auto-spectrum below -_AUTO_RTOL times the largest auto-spectrum magnitude of its array is negative
+# (refused); above it, round-off of a zero level.
+_AUTO_RTOL = 1e-9
 
 
 def _generator(rng, key: str) -> np.random.Generator:
@@ -347,12 +350,7 @@ def _grid_inputs(psd_model, psd_exp, band_hz, n_bootstrap, rng, dim, fit, confid
         raise SpecificationError("dim", dim, f"must be a dimension of psd_model {tuple(psd_model.dims)}")
     if fit not in ("log", "linear"):
         raise SpecificationError("fit", fit, "must be 'log' or 'linear'")
-    try:
-        band = float(band_hz)
-    except (TypeError, ValueError):
-        raise SpecificationError("band_hz", band_hz, "must be a number (Hz)") from None
-    if not (math.isfinite(band) and band > 0):
-        raise SpecificationError("band_hz", band_hz, "must be > 0 (Hz)")
+    band = positive("band_hz", band_hz, "Hz")
     n_bootstrap = integer("n_bootstrap", n_bootstrap, minimum=0)
     confidence = open_unit("confidence", confidence)
     sensor_dims = tuple(d for d in _SENSOR_DIMS if d in psd_model.dims)
@@ -408,6 +406,19 @@ def _grid_inputs(psd_model, psd_exp, band_hz, n_bootstrap, rng, dim, fit, confid
     if not np.all(np.isfinite(E)):
         raise SpecificationError("psd_exp", _Desc(f"{int(np.sum(~np.isfinite(E)))} non-finite values in the band"),
                                  "must be finite")
+    # an auto-PSD is >= 0. Judged on the spectra every distance compares: the model's mean over realisations
+    # S̄ at each grid point, and the experimental PSD (its mean over records when it has them)
+    for name, arr, what in (("psd_model", P.mean(axis=len(grid_dims)), f"mean over {dim!r} of the "),
+                            ("psd_exp", E.mean(axis=0) if exp_extra else E,
+                             f"mean over {exp_extra[0]!r} of the " if exp_extra else "")):
+        auto = np.real(np.diagonal(arr, axis1=-2, axis2=-1)) if sensor_dims else np.real(arr)
+        low = auto < -_AUTO_RTOL * np.max(np.abs(auto), initial=0.0)
+        if np.any(low):
+            raise SpecificationError(name, _Desc(f"{int(np.sum(low))} negative auto-spectrum values in the band "
+                                                 f"(smallest {float(np.min(auto)):.3g})"),
+                                     f"the {what}auto-spectra ("
+                                     + ("real part of the diagonal" if sensor_dims else "every value")
+                                     + ") must be >= 0: a PSD S_aa(f) is never negative")
     gen = _generator(rng, key) if n_bootstrap > 0 else None
     return dict(psd_model=psd_model, grid_dims=grid_dims, axes=axes, sensor_dims=sensor_dims, exp_extra=exp_extra,
                 f=f, band=band, n_bootstrap=n_bootstrap, confidence=confidence, N=N, gen=gen, sl=sl, P=P, E=E)
@@ -446,10 +457,12 @@ def distance_map(psd_model: xr.DataArray, psd_exp: xr.DataArray, band_hz: float 
     Parameters
     ----------
     psd_model : xarray.DataArray
-        Model PSDs (*grid, ``dim``, "frequency"[, "sensor", "sensor_"]) [m²/Hz], as above.
+        Model PSDs (*grid, ``dim``, "frequency"[, "sensor", "sensor_"]) [m²/Hz], as above. Their mean
+        over ``dim`` must have auto-spectra >= 0 in the band (every value of a scalar PSD, the real
+        part of the diagonal of a matrix one; -1e-9 of the largest is taken as round-off).
     psd_exp : xarray.DataArray
         Experimental PSD ("frequency"[, "sensor", "sensor_"]) [m²/Hz], optionally with one records
-        dimension.
+        dimension; its auto-spectra (averaged over the records) >= 0 in the band likewise.
     band_hz : float
         B = 2π[−band, band] rad/s [Hz].
     n_bootstrap : int
@@ -665,10 +678,7 @@ def log_band_distance_map(psd_model: xr.DataArray, psd_exp: xr.DataArray, band_h
     """
     if not isinstance(refine, (bool, np.bool_)):
         raise SpecificationError("refine", refine, "must be True or False")
-    try:
-        width = float(band_width_hz)
-    except (TypeError, ValueError):
-        raise SpecificationError("band_width_hz", band_width_hz, "must be a number (Hz)") from None
+    width = real("band_width_hz", band_width_hz, unit="Hz")
     g_ = _grid_inputs(psd_model, psd_exp, band_hz, n_bootstrap, rng, dim, "log", confidence, "log_band_distance_map")
     grid_dims, axes, sensor_dims, exp_extra, f, band, N, gen = (
         g_[k] for k in ("grid_dims", "axes", "sensor_dims", "exp_extra", "f", "band", "N", "gen"))
@@ -860,25 +870,16 @@ def refine_grid(r_opt: dict[str, float] | ArrayLike, factor: float,
     dict of str to numpy.ndarray, or tuple of numpy.ndarray
         {dim: values} for a mapping, else one array per component.
     """
-    try:
-        fac = float(factor)
-    except (TypeError, ValueError):
-        raise SpecificationError("factor", factor, "must be a number > 1") from None
-    if not (math.isfinite(fac) and fac > 1):
-        raise SpecificationError("factor", factor, "must be a finite number > 1")
+    fac = real("factor", factor, low=1.0, low_open=True)
     n = integer("n", n, minimum=2)
     as_map = isinstance(r_opt, dict)
-    items = list(r_opt.items()) if as_map else list(enumerate(np.atleast_1d(r_opt)))
+    items = list(r_opt.items()) if as_map else list(enumerate(r_opt if isinstance(r_opt, (list, tuple))
+                                                              else np.atleast_1d(r_opt)))
     if not items:
         raise SpecificationError("r_opt", r_opt, "must hold at least one value")
     out = []
     for key, v in items:
-        try:
-            v = float(v)
-        except (TypeError, ValueError):
-            raise SpecificationError(f"r_opt[{key!r}]", v, "must be a number > 0") from None
-        if not (math.isfinite(v) and v > 0):
-            raise SpecificationError(f"r_opt[{key!r}]", v, "must be a finite number > 0")
+        v = positive(f"r_opt[{key!r}]", v)
         out.append((key, v * np.exp(np.linspace(-math.log(fac), math.log(fac), n))))
     return {k: a for k, a in out} if as_map else tuple(a for _, a in out)
 
@@ -951,10 +952,7 @@ def delta_f_likelihood(j_s_samples: xr.DataArray | ArrayLike, j_s_exp: float | A
             raise SpecificationError("grid", None, "is required when j_s_samples is not a DataArray with a "
                                                    f"{grid_name!r} coordinate")
         samples = j_s_samples
-    try:
-        g = np.atleast_1d(np.asarray(grid, dtype=float))
-    except (TypeError, ValueError):
-        raise SpecificationError("grid", grid, "must be numbers in (0, δ_max(m))") from None
+    g = np.atleast_1d(numeric_array("grid", grid, finite=False, dtype=float))  # bools, strings, complex refused
     dmax = delta_max(m)
     if g.ndim != 1 or not np.all(np.isfinite(g)) or np.any(g <= 0) or np.any(g >= dmax):
         raise SpecificationError(grid_name, _Desc(np.array2string(g, threshold=8)),

@@ -32,10 +32,12 @@ PSDs are two-sided per Hz (m²/Hz for displacements); r in the grid's units (N²
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
+
 import numpy as np
 import xarray as xr
 
-from tubeid._validation import integer, one_of, positive
+from tubeid._validation import integer, is_number, one_of, positive
 from tubeid.errors import Described as _Desc, SpecificationError
 from tubeid.identification.loads import (distance_map, log_band_distance_map, log_spectral_distance_map,
                                          refine_grid, relative_weight)
@@ -70,11 +72,12 @@ def identify_r(psd_grid: xr.DataArray, psd_exp: xr.DataArray, *, distance: str =
         Model PSDs, dims (*grid, ``dim``, "frequency"[, "sensor", "sensor_"]) in any order, two-sided
         per Hz, complex or real (auto-spectra). Every other dimension is a grid axis with a strictly
         increasing positive coordinate (e.g. r1 [N²/Hz], r2 [(N·m)²/Hz]). Realisation k should use
-        the same random germs at every grid point (common random numbers).
+        the same random germs at every grid point (common random numbers). Auto-spectra (their mean
+        over ``dim``) must be >= 0 in the band.
     psd_exp
         Experimental PSD ("frequency"[, "sensor", "sensor_"]) on the same frequencies (Hz, from 0)
         and sensors; one extra dimension holds independent records (averaged; resampled by the
-        bootstrap).
+        bootstrap). Auto-spectra (averaged over the records) >= 0 in the band.
     distance
         A key of :data:`DISTANCES`.
     band_hz
@@ -168,7 +171,7 @@ def identify_r(psd_grid: xr.DataArray, psd_exp: xr.DataArray, *, distance: str =
 
 
 def fine_grid(coarse: xr.Dataset, n: int, *, steps: float = 1.0,
-              centre: dict[str, float] | None = None) -> dict[str, np.ndarray]:
+              centre: Mapping[str, float] | Sequence[float] | None = None) -> dict[str, np.ndarray]:
     """A finer trial grid around a coarse identification's grid minimum.
 
     Parameters
@@ -182,7 +185,9 @@ def fine_grid(coarse: xr.Dataset, n: int, *, steps: float = 1.0,
         centre·c^(steps), c the ratio between the coarse values next to the centre (the larger one
         at an uneven spacing). Axes with one value stay at that value.
     centre
-        Override of the centre (sequence in ``grid_dims`` order); default: the coarse grid minimum.
+        Override of the centre, each value a number > 0 in the grid's units: a dict keyed by every
+        grid dim (no other key), or a sequence in ``grid_dims`` order (a number for a one-dim grid);
+        default: the coarse grid minimum.
 
     Returns
     -------
@@ -197,9 +202,28 @@ def fine_grid(coarse: xr.Dataset, n: int, *, steps: float = 1.0,
     disc = [float(v) for v in coarse.attrs["r_opt_discrete"]]
     if centre is None:
         centre = disc
-    centre = [float(v) for v in np.atleast_1d(centre)]
-    if len(centre) != len(dims):
-        raise SpecificationError("centre", centre, f"must hold one value per grid dim {dims}")
+    elif isinstance(centre, Mapping):
+        if set(centre) != set(dims):
+            unknown = [k for k in centre if k not in dims]
+            missing = [d for d in dims if d not in centre]
+            raise SpecificationError("centre", centre, f"must be keyed by the grid dims {dims}"
+                                     + (f" (unknown: {unknown})" if unknown else "")
+                                     + (f" (missing: {missing})" if missing else ""))
+        centre = [positive(f"centre[{d!r}]", centre[d]) for d in dims]
+    else:
+        if is_number(centre):
+            centre = [centre]
+        elif isinstance(centre, (str, bytes)):
+            raise SpecificationError("centre", centre, f"must be a dict keyed by the grid dims {dims} or a sequence "
+                                     "of numbers in that order")
+        try:
+            centre = list(np.atleast_1d(centre)) if isinstance(centre, np.ndarray) else list(centre)
+        except TypeError:
+            raise SpecificationError("centre", _Desc(type(centre).__name__), f"must be a dict keyed by the grid dims "
+                                     f"{dims} or a sequence of numbers in that order") from None
+        if len(centre) != len(dims):
+            raise SpecificationError("centre", centre, f"must hold one value per grid dim {dims}")
+        centre = [positive(f"centre[{i}]", v) for i, v in enumerate(centre)]
     out = {}
     for d, c, m in zip(dims, centre, disc):
         ax = np.asarray(coarse[d].values, dtype=float)

@@ -31,7 +31,7 @@ from typing import Sequence
 import numpy as np
 from numpy.typing import ArrayLike
 
-from tubeid._validation import positive
+from tubeid._validation import numeric_array, positive, real
 from tubeid.errors import SpecificationError
 
 __all__ = [
@@ -65,7 +65,7 @@ def check_psd_matrices(f, S, field: str = "S(f)") -> None:
     spectral matrices. Tolerances: asymmetry and negative eigenvalues up to 1e-8 resp. 1e-9
     of the matrix's largest eigenvalue magnitude are accepted as round-off.
     """
-    f = np.asarray(f, dtype=float).reshape(-1)
+    f = numeric_array("f", f, finite=False, dtype=float).reshape(-1)
     S = np.asarray(S)
     if S.ndim != 3 or S.shape[1] != S.shape[2] or S.shape[0] != f.size:
         raise SpecificationError(field, getattr(S, "shape", None),
@@ -193,10 +193,7 @@ class LoadSpectrum:
                 raise SpecificationError("kinds", k, f"must be one of {sorted(KIND_UNITS)}")
         if not isinstance(self.tube, str) or not self.tube:
             raise SpecificationError("tube", self.tube, "must be a non-empty string")
-        try:
-            x = tuple(float(v) for v in np.atleast_1d(np.asarray(self.x, dtype=float)))
-        except (TypeError, ValueError):
-            raise SpecificationError("x", self.x, "must be positions in m (numbers)") from None
+        x = tuple(float(v) for v in np.atleast_1d(numeric_array("x", self.x, finite=False, dtype=float)))
         if len(x) != m or not all(np.isfinite(x)):
             raise SpecificationError("x", self.x, f"must be {m} finite positions (m)")
         band = positive("band", self.band, "Hz")
@@ -214,7 +211,7 @@ class LoadSpectrum:
             values = values.real.astype(complex)
             freqs = None
         else:
-            freqs = np.asarray(self.frequencies, dtype=float)
+            freqs = numeric_array("f", self.frequencies, finite=False, dtype=float)
             if freqs.ndim != 1 or freqs.size < 2 or not np.all(np.isfinite(freqs)):
                 raise SpecificationError("f", self.frequencies, "must be a 1-D grid of >= 2 finite frequencies (Hz)")
             if freqs[0] != 0.0:
@@ -296,7 +293,7 @@ class LoadSpectrum:
             Complex, shape (len(f), m, m), Hermitian positive semi-definite; entry (a, b) in
             [load_a][load_b]/Hz (N^2/Hz, N^2 m/Hz, (N m)^2/Hz).
         """
-        f = np.asarray(f, dtype=float)
+        f = numeric_array("f", f, finite=False, dtype=float)
         if f.ndim > 1:
             raise SpecificationError("f", f.shape, "must be a scalar or a 1-D array of frequencies (Hz)")
         f = np.atleast_1d(f)
@@ -391,7 +388,7 @@ def coherent_forces(x: Sequence[float] = (2.0, 4.0, 6.0, 8.0, 10.0, 12.0, 14.0),
     LoadSpectrum
         Constant in the band, loads named ``"F1"``..``"Fm"``.
     """
-    x = np.atleast_1d(np.asarray(x, dtype=float))
+    x = np.atleast_1d(numeric_array("x", x, finite=False, dtype=float))
     if x.ndim != 1 or x.size == 0 or not np.all(np.isfinite(x)):
         raise SpecificationError("x", x, "must be a non-empty list of finite positions (m)")
     level = positive("level", level, "N^2/Hz")
@@ -427,6 +424,7 @@ def force_and_moment(r1: float, r2: float, x: float = 8.0, band: float = 100.0,
     """
     r1 = positive("r1", r1, "N^2/Hz")
     r2 = positive("r2", r2, "(N m)^2/Hz")
+    x = real("x", x, unit="m")
     return LoadSpectrum(("T", "M"), ("force", "moment"), tube, (x, x), band, np.diag([r1, r2]))
 
 
@@ -459,14 +457,14 @@ def tabulated(f: ArrayLike, S: ArrayLike, names: Sequence[str], kinds: Sequence[
     LoadSpectrum
         The tabulated spectrum.
     """
-    f = np.asarray(f, dtype=float)
+    f = numeric_array("f", f, finite=False, dtype=float)
     if band is None:
         if f.ndim != 1 or f.size == 0:
             raise SpecificationError("f", f, "must be a 1-D grid of frequencies (Hz)")
         band = float(f[-1])
     names = _tuple_str("names", names)
     kinds = _tuple_str("kinds", kinds)
-    x = np.atleast_1d(np.asarray(x, dtype=float))
+    x = np.atleast_1d(numeric_array("x", x, finite=False, dtype=float))
     if x.size == 1 and len(names) > 1:
         x = np.full(len(names), float(x[0]))
     return LoadSpectrum(names, kinds, tube, tuple(x), band, np.asarray(S), f)

@@ -23,6 +23,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from tubeid._validation import numeric_array
 from tubeid.errors import Described as _Desc, SpecificationError
 from tubeid.seeds import rng_for
 
@@ -170,7 +171,8 @@ def sg_plus_from_germs(n: int, delta: float, normals: np.ndarray, uniforms: np.n
 
     n = _check_size_n(n, "n")
     d = _check_delta(delta, n)
-    normals, uniforms = np.asarray(normals, float), np.asarray(uniforms, float)
+    normals = numeric_array("normals", normals, finite=False, dtype=float)
+    uniforms = numeric_array("uniforms", uniforms, finite=False, dtype=float)
     sigma = d / math.sqrt(n + 1)
     j = np.arange(1, n + 1)
     a = (n + 1) / (2.0 * d * d) + (1.0 - j) / 2.0
@@ -183,10 +185,7 @@ def sg_plus_from_germs(n: int, delta: float, normals: np.ndarray, uniforms: np.n
 
 
 def _check_mean(mean, name: str) -> np.ndarray:
-    try:
-        m = np.asarray(mean, dtype=float)
-    except (TypeError, ValueError):
-        raise SpecificationError(name, mean, "must be a real square matrix") from None
+    m = numeric_array(name, mean, finite=False, dtype=float)  # complex, bool, strings refused; finite: below
     if m.ndim != 2 or m.shape[0] != m.shape[1] or m.shape[0] < 1:
         raise SpecificationError(name, _Desc(f"array of shape {m.shape}"), "must be a square matrix (n, n) with n >= 1")
     if not np.all(np.isfinite(m)):
@@ -253,7 +252,7 @@ def sg_plus_dispersion(G: np.ndarray) -> float:
     float
         The estimated dispersion.
     """
-    g = np.asarray(G, dtype=float)
+    g = numeric_array("G", G, finite=False, dtype=float)
     if g.ndim < 2 or g.shape[-1] != g.shape[-2] or g.shape[-1] < 1:
         raise SpecificationError("G", _Desc(f"array of shape {g.shape}"), "must have shape (..., n, n) with n >= 1")
     if g.size == 0:

@@ -11,13 +11,16 @@ Everything here is vectorised over realisations (and frequencies for Z).
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Iterable
 
 import numpy as np
 import xarray as xr
 from numpy.typing import ArrayLike
 
-from tubeid.errors import SpecificationError
+from tubeid._validation import numeric_array
+from tubeid._validation import seed as _seed
+from tubeid.errors import Described, SpecificationError
 from tubeid.mechanics.reduction import J_UNITS, ReducedSubsystem, condensed_stiffness, j_functional
 from tubeid.seeds import rng_for
 from tubeid.uncertainty.random_matrices import Dispersion, _check_mean, sg_plus_from_germs, sg_plus_germs
@@ -25,6 +28,56 @@ from tubeid.uncertainty.random_matrices import Dispersion, _check_mean, sg_plus_
 __all__ = ["germs_from_rngs", "random_subsystem", "random_j", "j_monte_carlo", "random_condensed_stiffness"]
 
 _MATRICES = ("mass", "damping", "stiffness")
+_INT64 = np.iinfo(np.int64)
+
+
+def realisation_indices(realisations, field: str = "realisations") -> np.ndarray:
+    """Realisation indices as a 1-D int array: at least one, distinct integers (never bools or floats).
+
+    An index names a realisation and keys its random streams, so a float (1.9 would be read as 1)
+    or a repeated index (the same realisation twice, presented as two) is refused, not truncated.
+    Negative indices are keys like any other (the diagnosis labels its probe realisations -2, -3, ...).
+
+    Parameters
+    ----------
+    realisations : array_like of int
+        The indices.
+    field : str
+        The argument's name in error messages.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``np.asarray(realisations, dtype=int)``, at least 1-D.
+    """
+    rule = "must be distinct integers (not bools or floats), at least one, in a 1-D sequence"
+    try:
+        raw = np.atleast_1d(np.asarray(realisations))
+    except (TypeError, ValueError):
+        raise SpecificationError(field, Described(type(realisations).__name__), rule) from None
+    if raw.ndim != 1 or raw.size == 0:
+        raise SpecificationError(field, realisations if raw.size <= 8 else Described(f"array of shape {raw.shape}"), rule)
+    if raw.dtype.kind == "O":  # Python ints beyond int64, or mixed objects
+        if not all(isinstance(v, (numbers.Integral, np.integer)) and not isinstance(v, (bool, np.bool_))
+                   and _INT64.min <= v <= _INT64.max for v in raw):
+            raise SpecificationError(field, realisations, rule + " within the int64 range")
+    elif raw.dtype.kind not in "iu" or (raw.dtype.kind == "u" and raw.max() > _INT64.max):
+        raise SpecificationError(field, realisations if raw.size <= 8 else Described(f"array of dtype {raw.dtype}"),
+                                 rule)
+    out = np.asarray(raw.tolist() if raw.dtype.kind == "O" else raw, dtype=int)
+    uniq, counts = np.unique(out, return_counts=True)
+    if np.any(counts > 1):
+        raise SpecificationError(field, realisations if out.size <= 8 else Described(f"{out.size} indices"),
+                                 f"must be distinct: index {int(uniq[np.argmax(counts > 1)])} is repeated (one "
+                                 "index is one realisation: a repeat would duplicate it)")
+    return out
+
+
+def _check_dispersion(dispersion) -> Dispersion:
+    if not isinstance(dispersion, Dispersion):
+        raise SpecificationError("dispersion", dispersion, "must be a tubeid.uncertainty.Dispersion "
+                                 "(e.g. Dispersion(stiffness=0.1))")
+    return dispersion
 
 
 def germs_from_rngs(n: int, rngs: Iterable[np.random.Generator]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -70,9 +123,10 @@ def random_subsystem(sub: ReducedSubsystem, dispersion: Dispersion, seed: int, r
     dispersion : Dispersion
         δ of each matrix (0 keeps it deterministic); checked against ``delta_max(n)``.
     seed : int
-        Study seed: realisation r draws from ``rng_for(seed, "subsystem-B", r)``.
+        Study seed, an integer >= 0: realisation r draws from ``rng_for(seed, "subsystem-B", r)``
+        (unused when ``germs`` are given).
     realisations : array_like of int
-        Realisation indices (R of them).
+        Realisation indices (R of them): distinct integers (:func:`realisation_indices`).
     germs : dict, optional
         Germs from :func:`germs_from_rngs`, used instead of the draws from (seed, realisation).
 
@@ -81,9 +135,11 @@ def random_subsystem(sub: ReducedSubsystem, dispersion: Dispersion, seed: int, r
     tuple of numpy.ndarray
         (M_B, D_B, K_B), each (R, n, n); a deterministic matrix is a broadcast view of the mean.
     """
-    realisations = np.atleast_1d(np.asarray(realisations, dtype=int))
+    realisations = realisation_indices(realisations)
     n = sub.n
-    dispersion.check(n)
+    _check_dispersion(dispersion).check(n)
+    if germs is None:
+        _seed("seed", seed)
     germs = _germs(n, seed, realisations) if germs is None else germs
     out = []
     for k, mean, name in zip(_MATRICES, (sub.M, sub.D, sub.K), ("M_B", "D_B", "K_B")):
@@ -111,7 +167,7 @@ def random_j(sub: ReducedSubsystem, dispersion: Dispersion, seed: int, realisati
     seed : int
         Study seed (see :func:`random_subsystem`).
     realisations : array_like of int
-        Realisation indices (R of them).
+        Realisation indices (R of them): distinct integers (:func:`realisation_indices`).
     band_hz : float
         Half-width of the band of J [Hz].
 
@@ -137,7 +193,7 @@ def j_monte_carlo(sub: ReducedSubsystem, deltas: ArrayLike, seed: int, realisati
     seed : int
         Study seed (see :func:`random_subsystem`).
     realisations : array_like of int
-        Realisation indices.
+        Realisation indices: distinct integers (:func:`realisation_indices`).
     band_hz : float
         Half-width of the band of J [Hz].
     which : str
@@ -150,10 +206,11 @@ def j_monte_carlo(sub: ReducedSubsystem, deltas: ArrayLike, seed: int, realisati
     """
     if which not in (*_MATRICES, "all"):
         raise SpecificationError("which", which, f"must be one of {(*_MATRICES, 'all')}")
-    deltas = np.asarray(deltas, dtype=float)
+    deltas = numeric_array("deltas", deltas, finite=False, dtype=float)  # finite and in range: Dispersion checks
     if deltas.ndim != 1 or deltas.size == 0:
         raise SpecificationError("deltas", deltas.tolist(), "must be a non-empty 1-D grid")
-    realisations = np.atleast_1d(np.asarray(realisations, dtype=int))
+    realisations = realisation_indices(realisations)
+    _seed("seed", seed)
     germs = _germs(sub.n, seed, realisations)
     J = np.empty((deltas.size, realisations.size))
     for i, d in enumerate(deltas):
@@ -181,7 +238,7 @@ def random_condensed_stiffness(sub: ReducedSubsystem, dispersion: Dispersion, se
     seed : int
         Study seed (see :func:`random_subsystem`).
     realisations : array_like of int
-        Realisation indices.
+        Realisation indices: distinct integers (:func:`realisation_indices`).
     frequency_hz : array_like of float
         Frequencies [Hz], 1-D.
 
@@ -190,8 +247,8 @@ def random_condensed_stiffness(sub: ReducedSubsystem, dispersion: Dispersion, se
     xarray.DataArray
         ``Z`` [N/m], complex, over (realisation, frequency, interface, interface_).
     """
-    realisations = np.atleast_1d(np.asarray(realisations, dtype=int))
-    f = np.asarray(frequency_hz, dtype=float)
+    realisations = realisation_indices(realisations)
+    f = numeric_array("frequency_hz", frequency_hz, dtype=float)
     M, D, K = random_subsystem(sub, dispersion, seed, realisations)
     Z = condensed_stiffness(M, D, K, sub.n_c, 2 * np.pi * f)
     return xr.DataArray(

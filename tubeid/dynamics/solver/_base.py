@@ -7,10 +7,10 @@ from dataclasses import dataclass
 import numpy as np
 import xarray as xr
 
-from tubeid._validation import non_negative
+from tubeid._validation import non_negative, numeric_array
 from tubeid.errors import Described, SpecificationError
 
-__all__ = ["Stop", "TransientResult", "assemble_result"]
+__all__ = ["Stop", "TransientResult", "assemble_result", "stop_labels"]
 
 
 @dataclass(frozen=True)
@@ -20,13 +20,15 @@ class Stop:
     Parameters
     ----------
     b : sequence of float, length N
-        Direction of the stop in the model's coordinates q (stored as a tuple); finite, not zero.
+        Direction of the stop in the model's coordinates q (stored as a tuple); real, finite, not
+        zero.
     gap : float
         g >= 0 (m).
     stiffness : float
         k >= 0 (N/m).
     name : str
-        Label of the stop in results (default ``stop<i>``).
+        Label of the stop in results (default ``stop<i>``, i its index); the labels of the stops of
+        one ``simulate`` call must be distinct.
 
     Notes
     -----
@@ -40,10 +42,8 @@ class Stop:
     name: str = ""
 
     def __post_init__(self):
-        try:
-            b = np.asarray(self.b, dtype=float).ravel()
-        except (TypeError, ValueError):
-            raise SpecificationError("stop.b", self.b, "must be a vector of real numbers") from None
+        # complex values refused (never truncated to their real part), bools and strings are not numbers
+        b = numeric_array("stop.b", self.b, finite=False, dtype=float).ravel()
         if b.size == 0 or not np.all(np.isfinite(b)) or not np.any(b != 0):
             raise SpecificationError("stop.b", self.b, "must be a finite, non-zero vector")
         object.__setattr__(self, "b", tuple(float(v) for v in b))
@@ -56,6 +56,12 @@ class Stop:
     def vector(self) -> np.ndarray:
         """b as a float array (N,)."""
         return np.array(self.b)
+
+
+def stop_labels(stops) -> list[str]:
+    """The label of each stop in results: its name, or ``stop<i>`` (i its index in ``stops``) without
+    one. ``simulate`` refuses stops whose labels are not distinct."""
+    return [s.name or f"stop{i}" for i, s in enumerate(stops)]
 
 
 @dataclass(frozen=True)
@@ -120,7 +126,7 @@ def assemble_result(y, rms, contact_fraction, contact_events, dts, stops, sensor
     """Label the solver's arrays: y (R, n_keep, n_obs) or None, rms (R, n_obs), contact_fraction
     and contact_events (R, S), dts (R,); the kept series starts at output sample j0."""
     R = len(dts)
-    stop_names = [s.name or f"stop{i}" for i, s in enumerate(stops)]
+    stop_names = stop_labels(stops)  # distinct: checked up front (check_stops)
     coords = {"realisation": np.arange(R), "sensor": list(sensors), "stop": stop_names}
     data = {
         "rms": (("realisation", "sensor"), rms, {"long_name": "RMS (not centred) of C q at output_dt, t >= discard"}),

@@ -9,8 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tubeid._validation import one_of, positive, real
-from tubeid.dynamics.solver._base import Stop
+from tubeid._validation import numeric_array, one_of, positive, real
+from tubeid.dynamics.solver._base import Stop, stop_labels
 from tubeid.errors import Described, SpecificationError
 
 __all__ = ["MAX_STOPS", "KEEPS", "Problem", "matrix_stack", "check_definite", "check_stops", "prepare"]
@@ -23,11 +23,8 @@ KEEPS = ("series", "stats")
 
 def matrix_stack(name: str, a, n: int | None = None) -> np.ndarray:
     """A symmetric (R, N, N) float array from an (N, N) or (R, N, N) one (symmetrised; relative
-    asymmetry up to 1e-10 is accepted as round-off)."""
-    try:
-        arr = np.asarray(a, dtype=float)
-    except (TypeError, ValueError):
-        raise SpecificationError(name, Described(type(a).__name__), "must be a real array") from None
+    asymmetry up to 1e-10 is accepted as round-off); complex, bool and string arrays are refused."""
+    arr = numeric_array(name, a, finite=False, dtype=float)  # finiteness: below, with its own message
     if arr.ndim == 2:
         arr = arr[None]
     if arr.ndim != 3 or arr.shape[1] != arr.shape[2] or arr.shape[1] == 0:
@@ -56,7 +53,8 @@ def check_definite(name: str, arr: np.ndarray, strict: bool) -> None:
 
 
 def check_stops(stops, n: int) -> tuple[Stop, ...]:
-    """A tuple of :class:`Stop` whose vectors have length n."""
+    """A tuple of :class:`Stop` whose vectors have length n and whose labels (the name, default
+    ``stop<i>``) are distinct."""
     if isinstance(stops, Stop):
         stops = (stops,)
     try:
@@ -68,6 +66,13 @@ def check_stops(stops, n: int) -> tuple[Stop, ...]:
             raise SpecificationError(f"stops[{i}]", s, "must be a tubeid.dynamics.Stop")
         if len(s.b) != n:
             raise SpecificationError(f"stops[{i}].b", Described(f"length {len(s.b)}"), f"must have length N = {n}")
+    labels = stop_labels(stops)
+    for i, name in enumerate(labels):
+        if name in labels[:i]:
+            j = labels.index(name)
+            raise SpecificationError(f"stops[{i}].name", name,
+                                     f"must differ from the label of stops[{j}] (a stop's name, default stop<i>, "
+                                     "labels its results)")
     return stops
 
 
@@ -126,12 +131,11 @@ def prepare(M, D, K, stops, B, C, loads, dt_load, output_dt, discard, method, me
     if len(gapped_index) > MAX_STOPS:
         raise SpecificationError("stops", Described(f"{len(gapped_index)} stops with a gap"),
                                  f"at most {MAX_STOPS} (3**S regimes are tabulated)")
-    try:
-        Bm = np.asarray(B, dtype=float)
-        Cm = np.asarray(C, dtype=float)
-        L = np.asarray(loads, dtype=float)
-    except (TypeError, ValueError):
-        raise SpecificationError("B/C/loads", Described("non-numeric"), "must be real arrays") from None
+    # complex values refused (never truncated to their real part), bools and strings are not numbers;
+    # finiteness is checked below
+    Bm = numeric_array("B", B, finite=False, dtype=float)
+    Cm = numeric_array("C", C, finite=False, dtype=float)
+    L = numeric_array("loads", loads, finite=False, dtype=float)
     if Bm.ndim == 1:
         Bm = Bm[:, None]
     if Bm.ndim != 2 or Bm.shape[0] != N or not np.all(np.isfinite(Bm)):
@@ -159,9 +163,17 @@ def prepare(M, D, K, stops, B, C, loads, dt_load, output_dt, discard, method, me
     if n_out_total - j0 < 1:
         raise SpecificationError("discard", discard, "leaves no output sample")
     n_obs = Cm.shape[0]
+    if isinstance(sensor_names, (str, bytes)):
+        raise SpecificationError("sensor_names", sensor_names, "must be a sequence of names, not one string")
     sensors = tuple(sensor_names) if sensor_names is not None else tuple(f"y{i}" for i in range(n_obs))
     if len(sensors) != n_obs:
         raise SpecificationError("sensor_names", sensor_names, f"must have n_obs = {n_obs} names")
+    for i, name in enumerate(sensors):
+        if not isinstance(name, str):
+            raise SpecificationError(f"sensor_names[{i}]", name, "must be a string")
+        if name in sensors[:i]:
+            raise SpecificationError(f"sensor_names[{i}]", name,
+                                     f"must differ from sensor_names[{sensors.index(name)}] (names label the outputs)")
     linear = [s for s in stops if s.gap == 0.0]
     if linear:  # zero-gap stops are linear springs
         Ks = Ks + sum(s.stiffness * np.outer(s.vector, s.vector) for s in linear)[None]

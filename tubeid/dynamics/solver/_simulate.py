@@ -72,16 +72,19 @@ def simulate(M: ArrayLike, D: ArrayLike, K: ArrayLike, stops: Sequence[Stop], B:
     Parameters
     ----------
     M, D, K : array (N, N) or (R, N, N)
-        Mass, damping, stiffness (symmetric; M and K positive definite, D semi-definite; SI units).
-        A stack is realisation-wise; a single matrix is shared by every realisation.
+        Mass, damping, stiffness (real, symmetric; M and K positive definite, D semi-definite; SI
+        units). A stack is realisation-wise; a single matrix is shared by every realisation.
     stops : sequence of Stop
-        f_s(u) = k_s (|u| - g_s) sign(u) for |u| > g_s, else 0. At most 3 with a gap > 0.
+        f_s(u) = k_s (|u| - g_s) sign(u) for |u| > g_s, else 0. At most 3 with a gap > 0. Their
+        labels (the name, default ``stop<i>``) must be distinct.
     B : array (N, m)
-        Load matrix.
+        Load matrix (real).
     C : array (n_obs, N)
-        Observation matrix.
+        Observation matrix (real).
     loads : array (R, n_t, m) or (n_t, m)
-        Samples of F at t = i dt_load, read as their continuous piecewise-linear interpolant.
+        Samples of F at t = i dt_load (real), read as their continuous piecewise-linear interpolant.
+        Complex arrays are refused (never truncated to their real part); bools and strings are not
+        numbers.
     dt_load : float
         Load sampling (s).
     output_dt : float
@@ -95,7 +98,7 @@ def simulate(M: ArrayLike, D: ArrayLike, K: ArrayLike, stops: Sequence[Stop], B:
     discard : float
         Transient (s) removed from the series and the statistics (rounded up to the output grid).
     sensor_names : sequence of str, optional
-        Labels of the n_obs outputs (default y0, y1, ...).
+        Labels of the n_obs outputs, distinct strings (default y0, y1, ...).
 
     Returns
     -------
