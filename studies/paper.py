@@ -212,14 +212,27 @@ def delta(results, *, size, experiment, simplified):
     )
 
 
-def _delta_for(results, delta, simplified):
-    """δ of the later stages: imposed (``--set delta``, > 0) or δ_opt of stage ``delta``."""
-    d = float(delta) if delta > 0 else float(results["delta"].attrs["delta_opt"])
+def _admissible(d, simplified):
+    """``d`` if it lies in (0, δ_max) of the simplified model's reduced B, else refused."""
     dmax = delta_max(_model(simplified).subsystem.n)
     if not 0 < d < dmax:
         raise SpecificationError("parameters.delta", d, f"must lie in (0, {dmax:.4f}), the admissible set of the "
                                                         "simplified model's reduced B")
     return d
+
+
+def _delta_for(results, delta, simplified):
+    """δ of the later stages: imposed (``--set delta``, > 0) or δ_opt of stage ``delta``."""
+    return _admissible(float(delta) if delta > 0 else float(results["delta"].attrs["delta_opt"]), simplified)
+
+
+class DeltaParameter(Parameter):
+    """``delta``: 0 (δ_opt of stage ``delta``) or an imposed δ, which must lie below δ_max of the model
+    that parameter ``simplified`` names: checked with it when the study is loaded, before any stage runs."""
+
+    def check_with(self, name, value, values):
+        if value > 0:
+            _admissible(value, values["simplified"])
 
 
 # -- stage 2: the experiment and the mean model ------------------------------------------------------
@@ -505,7 +518,7 @@ study = Pipeline(
     warmup=Warmup(warmup.MESSAGE, run=warmup.compile_solver, needed=warmup.cache_is_cold),
     parameters={
         "size": Parameter("paper", choices=("paper", "quick"), doc="sample sizes: the paper's, or a quick look"),
-        "delta": Parameter(0.0, bounds=(0.0, 1.0), doc="delta for the later stages; 0 = delta_opt of stage 'delta' "
+        "delta": DeltaParameter(0.0, bounds=(0.0, 1.0), doc="delta for the later stages; 0 = delta_opt of stage 'delta' "
                                                        "(must be below the simplified model's delta_max)"),
         "experiment": Parameter("reference", choices=("reference", "synthetic"), doc="the paper's reference model, or the simplified model with known TRUTH"),
         "distance": Parameter("paper", choices=tuple(DISTANCES),

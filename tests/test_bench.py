@@ -51,3 +51,31 @@ def test_baseline_agrees_with_symplectic_euler_kernel():
     se = simulate(M, D, K, [stop], B, C, F, DT_LOAD, output_dt=DT_LOAD, dt=h, method="symplectic-euler")
     # same scheme, same step; only summation order differs
     np.testing.assert_allclose(y_b, se.observations.values[0], rtol=0, atol=1e-9 * np.max(np.abs(y_b)))
+
+
+def test_bench_runner_refuses_bad_arguments_before_any_work(capsys, monkeypatch):
+    """``tubeid bench-runner``: NaN, infinity or a count below its minimum is one error line, status 2, checked
+    before the calibration and the header (a bad --workers used to be refused only by the first run)."""
+    import pytest
+
+    from tubeid.cli import main
+    from tubeid.runner import bench
+
+    def never(*args, **kwargs):
+        raise AssertionError("the benchmark started")
+
+    monkeypatch.setattr(bench, "_calibrate", never)
+    for args, field in ((["--block-seconds", "nan"], "--block-seconds = nan"),
+                        (["--block-seconds", "inf"], "--block-seconds = inf"),
+                        (["--block-seconds", "-1"], "--block-seconds = -1.0"),
+                        (["--block-seconds", "1e308"], "--block-seconds = 1e+308"),
+                        (["--workers", "-1"], "--workers = -1"),
+                        (["--workers", "1", "-2"], "--workers = -2"),
+                        (["--blocks", "0"], "--blocks = 0")):
+        assert main(["bench-runner", *args]) == 2, args
+        out, err = capsys.readouterr()
+        assert out == "" and err.startswith(f"tubeid: error: {field}: must be") and err.count("\n") == 1, (args, err)
+    from tubeid.errors import SpecificationError
+
+    with pytest.raises(SpecificationError, match="--workers"):
+        bench.main(worker_counts=[])

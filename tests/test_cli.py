@@ -299,3 +299,35 @@ def test_output_that_cannot_be_written_is_one_error_line(store):
                               stderr=subprocess.PIPE, text=True, env=env, timeout=60)
     assert proc.returncode == 74, proc.stderr
     assert proc.stderr.startswith("tubeid: error: cannot write the output:") and proc.stderr.count("\n") == 1, proc.stderr
+
+
+@pytest.mark.parametrize("command", ["status", "show"])
+def test_ctrl_c_ends_any_command_in_one_line_with_status_130(store, command):
+    """A SIGINT (Ctrl-C) while a command works: ``tubeid: interrupted`` on stderr, status 130, no traceback
+    (only ``run`` and ``diagnose`` used to catch it). The signal is sent by the command itself, mid-way."""
+    import signal
+
+    probe = ("import os, signal, sys, time\n"
+             "import tubeid.runner.cli as rc\n"
+             "def interrupted(args):\n"
+             "    os.kill(os.getpid(), signal.SIGINT)\n"
+             "    time.sleep(30)\n"
+             f"rc._{command} = interrupted\n"
+             "from tubeid.cli import main\n"
+             f"sys.exit(main([{command!r}, {str(store)!r}]))\n")
+    proc = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=60,
+                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    assert proc.returncode == 130, proc.stderr
+    assert proc.stderr.strip() == "tubeid: interrupted" and proc.stdout == ""
+
+
+def test_an_interrupt_before_the_command_runs_is_one_line_too(monkeypatch, capsys):
+    """Ctrl-C while the command's modules are still being imported (before its own code runs)."""
+    import tubeid.cli as cli
+
+    def interrupted(command=None):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "build_parser", interrupted)
+    assert main(["report", "x.zarr"]) == 130
+    assert capsys.readouterr().err.strip() == "tubeid: interrupted"

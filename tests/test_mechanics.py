@@ -499,6 +499,28 @@ def test_yaml_key_given_twice_is_refused(tmp_path):
         load_spec(_write(tmp_path, "dup.yaml", text))
 
 
+@pytest.mark.parametrize("text, where, problem", [
+    ("a: [\n", "line 2, column 1", "expected the node content, but found '<stream end>' (while parsing a flow node)"),
+    ("a:\n\tb: 1\n", "line 2, column 1", "found character '\\t' that cannot start any token"),
+    ("{a\n", "line 2, column 1", "expected ',' or '}', but got '<stream end>' (while parsing a flow mapping at "
+                                  "line 1, column 1)"),
+    ("a: b: c\n", "line 1, column 5", "mapping values are not allowed here"),
+])
+def test_a_yaml_syntax_error_is_one_line_with_its_position(tmp_path, capsys, text, where, problem):
+    """PyYAML's message spans 3–4 lines (problem, context, marks); the refusal keeps its position in one line."""
+    from tubeid.cli import main
+
+    p = _write(tmp_path, "b.yaml", text)
+    with pytest.raises(SpecificationError) as info:
+        load_spec(p)
+    assert "\n" not in str(info.value)
+    assert f"specification file = {str(p)!r}: is not valid YAML ({where}: {problem}" in str(info.value)
+    assert main(["model", str(p)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("tubeid: error: specification file = ") and where in err
+    assert "Traceback" not in err
+
+
 @pytest.mark.parametrize("name, content, rule", [
     ("deep.yaml", "name: " + "[" * 100_000 + "]" * 100_000, "nested more than 32 levels deep"),
     ("deep.toml", "name = " + "[" * 100_000 + "]" * 100_000, "nested too deeply"),

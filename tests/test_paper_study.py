@@ -167,6 +167,26 @@ def test_a_bad_simplified_model_is_refused_before_anything_runs(tmp_path):
         assert not (tmp_path / "s.zarr").exists()
 
 
+def test_an_inadmissible_delta_is_refused_before_anything_runs(tmp_path, capsys):
+    """``--set delta=0.8`` with the default simplified model (δ_max = 0.7746): refused before any task runs and
+    before the store exists, naming the parameter, the value and the interval (it used to be refused only by
+    stage ``response``, leaving a store of 3 of 7 stages). δ_max is the chosen simplified model's: the same 0.8
+    is admissible for a model whose reduced B is larger."""
+    from tubeid.cli import main
+
+    store = tmp_path / "d08.zarr"
+    assert main(["run", str(STUDY), "--store", str(store), "--workers", "0", "--set", "size=quick",
+                 "--set", "delta=0.8"]) == 2
+    err = capsys.readouterr().err
+    assert err == ("tubeid: error: parameters.delta = 0.8: must lie in (0, 0.7746), the admissible set of the "
+                   "simplified model's reduced B\n")
+    assert not store.exists()
+    with pytest.raises(SpecificationError, match=r"parameters\.delta = 0\.775: must lie in \(0, 0\.7746\)"):
+        load_definition(STUDY, overrides={"delta": 0.775})
+    assert load_definition(STUDY, overrides={"delta": 0.77})[0].values["delta"] == 0.77
+    assert load_definition(STUDY, overrides={"delta": 0.8, "simplified": "paper-reference"})[0].values["delta"] == 0.8
+
+
 @pytest.mark.slow
 def test_full_synthetic_proof_recovers_the_truth(tmp_path):
     """The full proof (paper size, a few minutes on 2 cores): ``experiment=synthetic``, ``distance=bands``.

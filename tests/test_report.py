@@ -424,3 +424,127 @@ def test_every_figure_is_legible(tmp_path, monkeypatch, real):
     assert sorted(figures) == sorted(FIGURES)
     for name, fig in figures.items():
         assert _texts_fit(fig) == [], name
+
+
+def _tubeid_study_store(path):
+    """A store of a tubeid study that is not the paper's (studies/pi.py's kind), written by the runner."""
+    from tubeid.runner.execute import run
+
+    study = path.with_suffix(".py")
+    study.write_text("import numpy as np\n"
+                     "from tubeid.runner import Output, Study, pointwise\n"
+                     "@pointwise\n"
+                     "def estimate(point, rng):\n"
+                     "    return {'pi': 4 * np.mean(np.sum(rng.random((2, 100)) ** 2, axis=0) <= 1)}\n"
+                     "study = Study(name='pi', seed=1, axes={'realisation': range(4)}, task=estimate,\n"
+                     "              outputs={'pi': Output(units='1')})\n")
+    run(study, path, workers=0, quiet=True)
+
+
+@pytest.mark.parametrize("kind, rule", [
+    ("file", "is not a Zarr store (not a directory)"),
+    ("empty directory", "is not a Zarr store (GroupNotFoundError)"),
+    ("plain zarr", "is not a paper study store: a Zarr store with none of the paper study's groups"),
+    ("tubeid study", "is not a paper study store: a tubeid study store (study 'pi') with none"),
+])
+def test_what_is_not_a_paper_store_is_refused_and_nothing_is_written(tmp_path, capsys, kind, rule):
+    """``tubeid report`` on anything that exists used to "succeed" (status 0, every stage "missing") and create
+    ``<store>-report/``: now one line saying it is not a paper study store, status 2, no output directory."""
+    store = tmp_path / "thing"
+    if kind == "file":
+        store.write_text("hi\n")
+    elif kind == "empty directory":
+        store.mkdir()
+    elif kind == "plain zarr":
+        zarr.open_group(str(store), mode="w").create_array("x", shape=(3,), dtype="f8")
+    else:
+        _tubeid_study_store(store)
+    before = sorted(p.name for p in tmp_path.iterdir())
+    assert main(["report", str(store)]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.startswith(f"tubeid: error: store = {str(store)!r}: {rule}"), err
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == before  # no thing-report/
+    with pytest.raises(SpecificationError, match="store"):
+        make_report(store, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_paper_store_none_of_whose_stages_is_written_yet_is_reported_as_missing(tmp_path):
+    """A partly finished paper store is a paper store, also before its first stage is written (a pipeline
+    store that lists the paper's stages): every stage is reported missing, status 0."""
+    store = tmp_path / "new.zarr"
+    zarr.open_group(str(store), mode="w").attrs.update(
+        format="tubeid-pipeline-store/2", study_name="paper",
+        stages=["delta", "reference", "calibration", "response", "load_r", "load_r_fine", "load_delta_f"])
+    assert _run(str(store), tmp_path / "out") == 0
+    s = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert s["figures"] == [] and all(v.startswith("missing") for v in s["stages"].values())
+
+
+@pytest.mark.parametrize("real", [True, False])
+def test_an_unknown_sensor_is_refused_before_anything_is_written(tmp_path, capsys, real):
+    """``--sensor bogus``: refused whether the PSDs have a sensor dimension or not (without one, the figures
+    used to be labelled "at bogus"); P_obs, the paper's sensor, is accepted either way."""
+    groups = _groups(real=real)
+    store = _write(tmp_path / "p.zarr", {k: groups[k] for k in ("reference", "calibration", "response")})
+    out = tmp_path / "out"
+    assert _run(store, out, "--sensor", "bogus") == 2
+    err = capsys.readouterr().err
+    assert err.startswith("tubeid: error: sensor = 'bogus': not among the store's sensors ['P_obs']"), err
+    assert err.count("\n") == 1 and not out.exists()
+    assert _run(store, out, "--sensor", "P_obs") == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["details"]["response"]["sensor"] == "P_obs"
+
+
+def _report_state(out):
+    return {p.name: p.read_bytes() for p in sorted(out.iterdir())} if out.exists() else None
+
+
+def test_an_interrupted_report_leaves_no_half_written_report(tmp_path, capsys, monkeypatch):
+    """Ctrl-C (KeyboardInterrupt) while the stages are analysed: status 130, one line, and the output
+    directory as it was (absent if the report was creating it; an earlier report and the user's file
+    untouched). Interrupted while the files are written: no report at all rather than some figures of the
+    new one and some of the old (tubeid's files only; the user's file stays)."""
+    import tubeid.report as report
+
+    groups = _groups()
+    store = _write(tmp_path / "p.zarr", {k: groups[k] for k in ("delta", "reference", "calibration", "response")})
+
+    def interrupt(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    out = tmp_path / "new" / "rq2"
+    with monkeypatch.context() as m:
+        m.setattr(report, "_stage_response", interrupt)  # after stage delta has drawn its figure
+        assert _run(store, out) == 130
+    assert capsys.readouterr().err.strip() == "tubeid: interrupted"
+    assert not (tmp_path / "new").exists()  # the directories it created are gone again
+
+    out = tmp_path / "out"
+    assert _run(store, out) == 0
+    (out / "notes.txt").write_text("mine")
+    earlier = _report_state(out)
+    assert {"fig4_mean_model.png", "fig5_delta_likelihood.png", "summary.md"} <= set(earlier)
+    with monkeypatch.context() as m:
+        m.setattr(report, "_stage_load_delta_f", interrupt)
+        assert _run(store, out) == 130
+    assert _report_state(out) == earlier  # nothing written yet: the earlier report stands
+
+    writes = []
+    original = OutputDir.write_bytes
+
+    def interrupted_write(self, name, data):
+        writes.append(name)
+        if len(writes) == 2:  # after the first new figure replaced the earlier one
+            raise KeyboardInterrupt
+        return original(self, name, data)
+
+    with monkeypatch.context() as m:
+        m.setattr(OutputDir, "write_bytes", interrupted_write)
+        assert _run(store, out, "--seed", "7") == 130
+    left = {p.name for p in out.iterdir()}
+    assert not left & set(OUTPUTS) and (out / "notes.txt").read_text() == "mine", left
+    assert OutputDir(out).entries() == {}
+    assert _run(store, out) == 0 and "summary.md" in {p.name for p in out.iterdir()}  # the next run is clean

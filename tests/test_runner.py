@@ -84,6 +84,142 @@ def test_cli_refuses_bad_override_before_creating_a_store(tmp_path, capsys):
     assert "axes.delta" in capsys.readouterr().err and not store.exists()
 
 
+class _Below(Parameter):
+    """A parameter whose admissible set depends on another parameter: k < limit."""
+
+    def check_with(self, name, value, values):
+        if not value < values["limit"]:
+            raise SpecificationError(f"parameters.{name}", value, f"must be below parameters.limit = {values['limit']}")
+
+
+def _limited_task(block, rng, *, k=1, limit=3):
+    return {"y": np.zeros((len(block["r"]),))}
+
+
+def test_a_parameter_check_may_depend_on_other_parameters(tmp_path, capsys):
+    """``Parameter.check_with`` sees every parameter's value: its rule holds for the defaults, for overrides of
+    either parameter, and ``tubeid run`` refuses a breach before any store is created."""
+    s = _study(task=_limited_task, parameters={"k": _Below(1, bounds=(0, 10)), "limit": Parameter(3)})
+    assert s.with_parameters({"k": 2}).values == {"k": 2, "limit": 3}
+    assert s.with_parameters({"k": 5, "limit": 6}).values == {"k": 5, "limit": 6}
+    for overrides in ({"k": 3}, {"limit": 1}):
+        with pytest.raises(SpecificationError, match=r"parameters\.k = \d: must be below parameters\.limit = \d"):
+            s.with_parameters(overrides)
+    source = ("import numpy as np\n"
+              "from tubeid.errors import SpecificationError\n"
+              "from tubeid.runner.study import Output, Parameter, Study\n"
+              "class Below(Parameter):\n"
+              "    def check_with(self, name, value, values):\n"
+              "        if not value < values['limit']:\n"
+              "            raise SpecificationError('parameters.' + name, value, 'must be below limit')\n"
+              "def task(block, rng, *, k, limit):\n"
+              "    return {'y': np.zeros(len(block['r']))}\n"
+              "study = Study(name='limited', seed=1, axes={'r': range(2)}, task=task, outputs={'y': Output()},\n"
+              "              parameters={'k': Below(1), 'limit': LIMIT})\n")
+    path, store = tmp_path / "limited.py", tmp_path / "limited.zarr"
+    for limit, sets in ((3, ["k=4"]), (3, ["limit=0"]), (0, [])):  # an override, or the defaults themselves
+        path.write_text(source.replace("LIMIT", str(limit)))
+        argv = ["run", str(path), "--store", str(store), "--workers", "0"] + [a for v in sets for a in ("--set", v)]
+        assert cli(argv) == 2, sets
+        err = capsys.readouterr().err
+        assert err.startswith("tubeid: error: parameters.k = ") and "must be below limit" in err and err.count("\n") == 1
+        assert not store.exists()
+
+
+TINY = """import numpy as np
+from tubeid.runner.study import Output, Study, pointwise
+@pointwise
+def f(point, rng):
+    return {'y': float(point['r']) + rng.standard_normal()}
+study = Study(name='tiny', seed=3, axes={'r': range(2)}, task=f, outputs={'y': Output(units='m')}, description=NAME)
+"""
+
+
+def test_a_study_file_is_decoded_as_python_decodes_it(tmp_path, capsys):
+    """A study file in another encoding declared by a PEP 263 coding line runs (it used to be a
+    UnicodeDecodeError traceback) and stores its decoded text; a file that cannot be decoded is one error line
+    naming it; a UTF-8 file's text and study hash are what ``Path.read_text`` gives (CRLF line endings too)."""
+    from tubeid.cli import main
+    from tubeid.runner.study import load_definition, read_source, study_hash
+
+    latin = tmp_path / "latin.py"
+    latin.write_bytes(("# -*- coding: latin-1 -*-\n" + TINY.replace("NAME", "'étude'")).encode("latin-1"))
+    assert main(["run", str(latin), "--store", str(tmp_path / "latin.zarr"), "--workers", "0", "--no-progress"]) == 0
+    assert open_results(tmp_path / "latin.zarr").attrs["title"] == "étude"
+    assert store_status(tmp_path / "latin.zarr")["attrs"]["study_source"] == read_source(latin)
+    capsys.readouterr()
+    for name, data, why in (
+            ("noutf8.py", b"# \xff\xfe\n" + TINY.replace("NAME", "''").encode(), "byte 0xff at position 2 is not UTF-8"),
+            ("late.py", TINY.replace("NAME", "''").encode() + b"# \xe9\n", "is not UTF-8"),
+            ("cookie.py", b"# coding: no-such-codec\n" + TINY.replace("NAME", "''").encode(), "unknown encoding"),
+            ("ascii.py", b"# coding: ascii\n" + TINY.replace("NAME", "'\xc3\xa9'").encode(), "'ascii' codec")):
+        path, store = tmp_path / name, tmp_path / f"{name}.zarr"
+        path.write_bytes(data)
+        assert main(["run", str(path), "--store", str(store), "--workers", "0"]) == 2, name
+        err = capsys.readouterr().err
+        assert err.startswith(f"tubeid: error: study = {str(path)!r}: cannot be decoded (") and why in err, err
+        assert err.count("\n") == 1 and "Traceback" not in err and not store.exists()
+    crlf = tmp_path / "crlf.py"
+    crlf.write_bytes(TINY.replace("NAME", "'é'").replace("\n", "\r\n").encode())
+    for path in (crlf, REPO / "studies" / "paper.py", REPO / "studies" / "pi.py"):
+        assert read_source(path) == path.read_text()  # the text, hence the hash, of existing stores' studies
+    assert load_definition(crlf)[2] == study_hash(crlf.read_text())
+
+
+FAILING_AT_IMPORT = """import numpy as np
+
+def helper(x):
+    return np.linalg.inv(x)   # a library's frames below this line are not the study's
+
+try:
+    {}["k"]
+except KeyError:
+    helper(np.zeros((2, 2)))
+"""
+
+
+def test_a_study_that_raises_at_import_shows_its_own_frames_then_one_line(tmp_path, capsys):
+    """A study file whose code raises: the traceback of the study's own frames (none of tubeid's or of the
+    libraries'), then ``tubeid: error: study = ...: raised TYPE: MESSAGE while being executed``, status 1, as a
+    failing task; no store. A refusal raised by tubeid while the study builds itself stays one line (status 2)."""
+    from tubeid.cli import main
+    from tubeid.runner.study import StudyRaised, load_definition
+
+    boom = tmp_path / "r.py"
+    boom.write_text('raise RuntimeError("boom")\n')
+    store = tmp_path / "r.zarr"
+    assert main(["run", str(boom), "--store", str(store), "--workers", "0"]) == 1
+    err = capsys.readouterr().err
+    lines = err.rstrip("\n").splitlines()
+    assert lines == ["Traceback (most recent call last):", f'  File "{boom}", line 1, in <module>',
+                     '    raise RuntimeError("boom")', "RuntimeError: boom",
+                     f"tubeid: error: study = {str(boom)!r}: raised RuntimeError: boom while being executed"], err
+    assert not store.exists()
+
+    lib = tmp_path / "lib.py"
+    lib.write_text(FAILING_AT_IMPORT)
+    assert main(["run", str(lib), "--store", str(store), "--workers", "0"]) == 1
+    err = capsys.readouterr().err
+    assert err.count(f'File "{lib}"') == 3 and "in helper" in err and "KeyError: 'k'" in err  # the chain is kept
+    assert "/tubeid/" not in err and "numpy" + os.sep not in err and "site-packages" not in err and "<frozen" not in err
+    assert err.rstrip().splitlines()[-1] == (f"tubeid: error: study = {str(lib)!r}: raised LinAlgError: Singular matrix "
+                                             "while being executed")
+    with pytest.raises(StudyRaised) as info:
+        load_definition(lib)
+    assert type(info.value.__cause__).__name__ == "LinAlgError"
+    import pickle
+
+    again = pickle.loads(pickle.dumps(info.value))  # it may come back from a worker
+    assert str(again) == str(info.value) and again.user_traceback == info.value.user_traceback
+
+    refused = tmp_path / "refused.py"
+    refused.write_text("from tubeid.runner.study import Output, Study\n"
+                       "study = Study(name='x', seed=1, axes={}, task=print, outputs={'y': Output()})\n")
+    assert main(["run", str(refused), "--store", str(store), "--workers", "0"]) == 2
+    err = capsys.readouterr().err
+    assert err == "tubeid: error: axes = {}: must name at least one axis\n"
+
+
 def test_unwritable_store_is_refused_up_front(tmp_path):
     study = write_study(tmp_path)
     blocker = tmp_path / "a-file"
@@ -311,6 +447,54 @@ def test_status_and_show_cli(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "study runner-test" in out and "x [m]:" in out and "(100% written)" in out
     assert cli(["status", str(tmp_path / "nothing.zarr")]) == 2
+
+
+def _edit_attrs(store, **changes):
+    """Set root attributes of a store as a damaged or hand-edited one would have them."""
+    meta_path = pathlib.Path(store) / "zarr.json"
+    meta = json.loads(meta_path.read_text())
+    meta["attributes"].update(changes)
+    meta_path.write_text(json.dumps(meta))
+
+
+def test_status_and_show_report_damaged_attributes_without_a_traceback(tmp_path, capsys):
+    """Store attributes of an unexpected type (a damaged or hand-edited store): ``status`` and ``show`` show
+    them as damaged (they used to end in TypeError/KeyError tracebacks); a pipeline whose stage list is
+    damaged is refused in one line."""
+    from tubeid.cli import main
+    from tubeid.runner.testing import write_pipeline
+
+    study = write_study(tmp_path, realisations=4, work=2)
+    store = tmp_path / "t.zarr"
+    run(study, store, workers=0, quiet=True)
+    _edit_attrs(store, runs=5, summary_keys=["nope"], model_specification=5, study_source=7)
+    assert main(["status", str(store)]) == 0
+    out, err = capsys.readouterr()
+    assert "runs: DAMAGED (attribute runs = 5)" in out and err == ""
+    assert main(["show", str(store), "--source"]) == 0
+    out, err = capsys.readouterr()
+    assert "summary: nope = DAMAGED (attribute missing)" in out and err == ""
+    assert "model specification: DAMAGED (attribute model_specification = 5)" in out
+    assert "# study source\nDAMAGED (attribute study_source = 7)" in out
+    _edit_attrs(store, summary_keys=5)
+    assert main(["show", str(store)]) == 0
+    assert "summary: DAMAGED (attribute summary_keys = 5)" in capsys.readouterr().out
+
+    pipe = tmp_path / "p.zarr"
+    run(write_pipeline(tmp_path, curve=2, around=2, work=0), pipe, workers=0, quiet=True)
+    _edit_attrs(pipe, ended=5, runs={"a": 1})
+    for command in ("status", "show"):
+        assert main([command, str(pipe)]) == 0
+        out, err = capsys.readouterr()
+        assert "ended: DAMAGED (attribute ended = 5)" in out and err == "", command
+    for damage, shown in (({"stages": 5}, "stages = 5"), ({"stages": ["curve", 3]}, "stages = ['curve', 3]"),
+                          ({"stages": ["curve", "around", "final"], "stage_status": [1]}, "stage_status = [1]")):
+        _edit_attrs(pipe, **damage)
+        for command in ("status", "show"):
+            assert main([command, str(pipe)]) == 2
+            out, err = capsys.readouterr()
+            assert err.startswith(f"tubeid: error: store = {str(pipe)!r}: has a damaged attribute {shown}"), err
+            assert err.count("\n") == 1 and "Traceback" not in err
 
 
 def test_worker_environ_goes_over_dasks_and_refuses_bad_entries():

@@ -193,3 +193,66 @@ def test_two_runs_started_at_once_on_a_new_store(tmp_path):
         assert st["complete"] and len(st["attrs"]["runs"]) == 1 and st["attrs"]["study_source"] == SLEEPY
         assert st["lock"] is None and store_digest(store) == reference
         assert open_results(store).u.notnull().all()
+
+
+def test_a_lock_file_that_is_not_utf8_is_unreadable_not_a_crash(tmp_path, capsys):
+    """A lock file of bytes that are not UTF-8 is damaged like a lock of JSON garbage: ``status`` says
+    "lock file unreadable", ``run`` refuses in one line naming it (no UnicodeDecodeError traceback)."""
+    from tubeid.cli import main
+    from tubeid.runner.execute import run
+    from tubeid.runner.testing import write_study
+
+    study = write_study(tmp_path, realisations=2)
+    store = tmp_path / "lk.zarr"
+    run(study, store, workers=0, quiet=True)
+    (store / LOCK_NAME).write_bytes(b"\xff garbage")
+    assert read_lock(store / LOCK_NAME) == {}
+    assert main(["status", str(store)]) == 0
+    out, err = capsys.readouterr()
+    assert "  lock file unreadable" in out and err == ""
+    assert main(["run", str(study), "--store", str(store), "--workers", "0", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"tubeid: error: store = {str(store)!r}: has an unreadable lock file") and err.count("\n") == 1
+    assert (store / LOCK_NAME).read_bytes() == b"\xff garbage"  # not ours: left for the user
+
+
+@pytest.mark.parametrize("variable, value, rule", [
+    ("TUBEID_RUNNER__LOCK_HEARTBEAT", "abc", "must be a duration > 0"),
+    ("TUBEID_RUNNER__LOCK_HEARTBEAT", "-1", "must be a duration > 0"),
+    ("TUBEID_RUNNER__LOCK_HEARTBEAT", "0", "must be a duration > 0"),
+    ("TUBEID_RUNNER__LOCK_STALE_AFTER", "nan", "must be a duration > 0"),
+    ("TUBEID_RUNNER__LOCK_HEARTBEAT", "90s", "must be shorter than tubeid.runner.lock-stale-after = 60 s"),
+])
+def test_a_bad_lock_setting_is_refused_before_the_store_is_created(tmp_path, variable, value, rule):
+    """``TUBEID_RUNNER__LOCK_HEARTBEAT=abc tubeid run ...``: one line naming the setting and its environment
+    variable, status 2, and no store directory holding only a lock file (it used to be a KeyError traceback
+    once the lock file existed)."""
+    from tubeid.runner.testing import write_study
+
+    study = write_study(tmp_path, realisations=2)
+    store = tmp_path / "ev3.zarr"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("TUBEID_RUNNER__LOCK")} | {variable: value}
+    env.pop("DASK_SCHEDULER_ADDRESS", None)
+    proc = subprocess.run(RUNNER + [str(study), "--store", str(store), "--workers", "0", "--no-progress"],
+                          capture_output=True, text=True, env=env, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    key = variable.removeprefix("TUBEID_RUNNER__").lower().replace("_", "-")
+    assert proc.stderr.startswith(f"tubeid: error: tubeid.runner.{key} ({variable}) = "), proc.stderr
+    assert rule in proc.stderr and proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
+    assert not store.exists()
+
+
+def test_the_lock_settings_are_checked_before_anything_is_created(tmp_path):
+    import dask.config
+
+    store = tmp_path / "s.zarr"
+    with dask.config.set({"tubeid.runner.lock-heartbeat": "abc"}):
+        with pytest.raises(SpecificationError, match=r"tubeid\.runner\.lock-heartbeat \(TUBEID_RUNNER__LOCK_HEARTBEAT\) "
+                                                     r"= 'abc': must be a duration > 0"):
+            StoreLock(store).acquire()
+    assert not store.exists()
+    with dask.config.set({"tubeid.runner.lock-heartbeat": 30, "tubeid.runner.lock-stale-after": "20s"}):
+        with pytest.raises(SpecificationError, match="must be shorter than tubeid.runner.lock-stale-after = 20 s"):
+            StoreLock(store).acquire()
+    assert not store.exists()
+    assert lockmod.lock_settings() == (10.0, 60.0)  # the defaults

@@ -120,11 +120,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     -------
     int
         The exit status: 0 on success, 2 for a refused input (a ``SpecificationError``) or a
-        missing optional dependency, both reported in one line on stderr; a command may return
-        others (130 when ``run`` is interrupted; 141, silently, when the reader of its output went
-        away, as ``tubeid status STORE | head -1``; 74 when the output's last write failed otherwise,
-        e.g. on a full disk, said in one line on stderr).
+        missing optional dependency, both reported in one line on stderr; 1 for an error in a study's
+        own code (a failing task, or a study file that raises while being executed: the traceback of
+        the study's code, then one line); 130 when interrupted (Ctrl-C, SIGINT), said in one line
+        (``run`` adds how to resume); a command may return others (141, silently, when the reader of
+        its output went away, as ``tubeid status STORE | head -1``; 74 when the output's last write
+        failed otherwise, e.g. on a full disk, said in one line on stderr).
     """
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:  # Ctrl-C anywhere (importing, parsing, computing): one line, no traceback
+        try:
+            print("\ntubeid: interrupted", file=sys.stderr)
+        except (OSError, ValueError):
+            pass
+        return 130  # 128 + SIGINT, as a shell reports a process ended by Ctrl-C
+
+
+def _main(argv: Sequence[str] | None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     command = _chosen(argv)
     needs = next((c.needs for c in COMMANDS if c.name == command), ())
@@ -171,3 +184,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BrokenPipeError:  # the reader of stdout went away (`tubeid status STORE | head`): stop quietly
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at interpreter exit
         return 128 + 13  # as a process ended by SIGPIPE
+    except Exception as exc:
+        # a study file that raised while being executed (tubeid.runner.study.StudyRaised, not imported here):
+        # likewise the traceback of the study's own frames, then one line
+        trace = getattr(exc, "user_traceback", None)
+        if not isinstance(trace, str):
+            raise
+        print(trace, end="", file=sys.stderr)
+        print(f"tubeid: error: {exc}", file=sys.stderr)
+        return 1

@@ -24,14 +24,21 @@ The report reads what the study stored and passed downstream (δ used, r_opt per
 δ_F,opt); it recomputes, with the same functions (``tubeid.identification``), only the bootstrap
 spreads, and says so if a recomputed point estimate ever differs from the stored one. PSDs are
 two-sided per Hz (m²/Hz), complex or real. Realisations with missing values (a partial run reads
-them as NaN) are left out and counted; a missing stage is reported, not fatal.
+them as NaN) are left out and counted; a missing stage is reported, not fatal (a paper store whose
+later stages are not written yet is reported as far as it goes). What is not a paper study store (not
+a Zarr group, or a Zarr store with none of the groups above, e.g. another study's store) is refused
+before anything is written, as is an unknown ``sensor``.
 
 Writes into DIR (default: ``<store>-report`` beside the store), through ``tubeid._outputs.OutputDir``
 (a file there that tubeid did not write, e.g. the user's own ``summary.md``, is never overwritten:
 the report is refused before anything is written): fig4_mean_model.png, fig5_delta_likelihood.png,
 fig6_confidence_region.png, d_map.png, delta_f_likelihood.png (and delta_f_pairs_likelihood.png),
 summary.md and summary.json. Outputs
-of an earlier report in DIR that this run does not produce are removed (only if unchanged).
+of an earlier report in DIR that this run does not produce are removed (only if unchanged). The
+figures are rendered in memory and the files written only once the whole report is computed: a report
+that fails or is interrupted (Ctrl-C) before leaves DIR as it was (and no DIR if it created it); one
+interrupted while writing removes the report files tubeid wrote there (no mix of two reports), never
+another file.
 
 Definitions used in the summary:
 
@@ -73,6 +80,8 @@ __all__ = ["register", "make_report", "region_coverage", "PAPER_VALUES", "STAGES
 PAPER_VALUES = {"delta_opt": 0.45, "r1_opt": 18.0, "r2_opt": 20.0, "delta_F_opt": 0.04}
 #: The analysis sections of the report (each reads one or more groups of the store).
 STAGES = ("delta", "response", "load_r", "load_delta_f")
+#: The groups of a paper study store (the stages of ``studies/paper.py``).
+GROUPS = ("delta", "reference", "calibration", "response", "load_r", "load_r_fine", "load_delta_f")
 FIGURES = ("fig4_mean_model.png", "fig5_delta_likelihood.png", "fig6_confidence_region.png", "d_map.png",
            "delta_f_likelihood.png", "delta_f_pairs_likelihood.png")
 #: Every file the report may write.
@@ -138,17 +147,42 @@ class _StageMissing(Exception):
 
 
 class _Store:
-    """The groups of a paper store, opened once (lazily), with their parameters."""
+    """The groups of a paper store, opened once (lazily), with their parameters.
+
+    Opening refuses (``SpecificationError``) what is not a paper study store: a path that is not a
+    Zarr group, or a Zarr store with none of the paper study's groups (:data:`GROUPS`), neither written
+    nor, for a pipeline store of tubeid, among its stages. A paper store whose later stages are not
+    written yet is a paper store: the report lists them as missing.
+    """
 
     def __init__(self, path: str):
         self.path = path
         self._groups: dict = {}
         import zarr
 
+        if not os.path.isdir(path):
+            raise SpecificationError("store", path, "is not a Zarr store (not a directory): give the store that "
+                                     "`tubeid run studies/paper.py` wrote")
         try:
-            self.root = dict(zarr.open_group(path, mode="r").attrs)
-        except Exception:  # not a pipeline store: no root provenance
-            self.root = {}
+            with warnings.catch_warnings():  # tubeid's own files in a store (its manifest, its lock) are not Zarr nodes
+                warnings.simplefilter("ignore")
+                root = zarr.open_group(path, mode="r", use_consolidated=False)
+                self.root = dict(root.attrs)
+                members = set(root.group_keys())
+        except Exception as exc:  # zarr raises several not-a-group types across versions
+            raise SpecificationError("store", path, f"is not a Zarr store ({type(exc).__name__}): give the store "
+                                     "that `tubeid run studies/paper.py` wrote") from None
+        stages = self.root.get("stages")
+        stages = set(stages) if isinstance(stages, list) and all(isinstance(n, str) for n in stages) else set()
+        if not set(GROUPS) & (members | stages):
+            fmt, name = self.root.get("format"), self.root.get("study_name")
+            what = (f"a tubeid study store (study {name!r})" if fmt == "tubeid-study-store/2" else
+                    f"a tubeid pipeline store (pipeline {name!r}, stages {sorted(stages)})"
+                    if fmt == "tubeid-pipeline-store/2" else "a Zarr store"
+                    + (f" (groups {sorted(members)[:8]})" if members else ""))
+            raise SpecificationError("store", path, f"is not a paper study store: {what} with none of the paper "
+                                     f"study's groups {', '.join(GROUPS)} (a paper store is written by "
+                                     "`tubeid run studies/paper.py`)")
         self.parameters = self._json(self.root.get("parameters"))
 
     @staticmethod
@@ -236,9 +270,15 @@ def _auto(da: xr.DataArray, sensor) -> xr.DataArray:
 
 
 def _sensor_name(da: xr.DataArray, sensor) -> str:
+    """The chosen sensor's name; an unknown one is refused (a PSD without a sensor dimension is P_obs's)."""
     if "sensor" in da.dims and "sensor" in da.coords:
         return str(da["sensor"].values[_sensor_index(da, sensor)])
-    return sensor or "P_obs"
+    if "sensor" in da.dims:
+        _sensor_index(da, sensor)  # unnamed sensors: none can be chosen by name
+    elif sensor is not None and sensor != "P_obs":
+        raise SpecificationError("sensor", sensor, "not among the store's sensors ['P_obs'] (its PSDs have no "
+                                 "sensor dimension: they are P_obs's, the paper's observation point)")
+    return "P_obs"
 
 
 def _figure(height=4.4):
@@ -944,7 +984,8 @@ def make_report(store, out=None, *, n_bootstrap: int = 200, seed: int = 2008, se
     seed : int
         Seed of the bootstrap generators ``rng_for(seed, "report", STAGE)``.
     sensor : str, optional
-        Sensor of Figures 4 and 6 (default P_obs, else the first).
+        Sensor of Figures 4 and 6 (default P_obs, else the first); one the store does not have is
+        refused (PSDs without a sensor dimension are P_obs's).
 
     Returns
     -------
@@ -953,20 +994,98 @@ def make_report(store, out=None, *, n_bootstrap: int = 200, seed: int = 2008, se
         value, bootstrap spread, ``at_grid_edge``, ``flat`` and a computed ``verdict``), ``delta_used``,
         ``delta_opt_at_grid_edge``, ``reference_coverage``, ``reference_self_coverage``, ``details``,
         ``missing`` stages, ``notes`` and ``figures``.
+
+    Raises
+    ------
+    SpecificationError
+        ``store`` is not a paper study store, a bad argument, or a file in ``out`` that tubeid did
+        not write: before any output is written (``out`` is not created).
     """
     store = os.fspath(store)
     if not os.path.exists(store):
         raise SpecificationError("store", store, "no such Zarr store")
     n_bootstrap = integer("n_bootstrap", n_bootstrap, minimum=0)
     seed = _seed("seed", seed)
+    if sensor is not None and not isinstance(sensor, str):
+        raise SpecificationError("sensor", sensor, "must be a sensor name (a string)")
+    st = _Store(store)  # refused here, before any output directory exists, unless it is a paper study store
+    if sensor is not None:  # an unknown sensor is refused before any work
+        try:
+            _sensor_name(_variable(st.group("reference"), "reference", "psd_reference"), sensor)
+        except _StageMissing:  # no experimental PSD: no figure that names a sensor
+            pass
     out_path = Path(out) if out is not None else Path(store.rstrip("/\\").removesuffix(".zarr") + "-report")
+    created = [p for p in (out_path, *out_path.parents) if not (p.exists() or p.is_symlink())]
     od = OutputDir(out_path, "out")
-    for name in OUTPUTS:  # refuse before writing anything, not half-way through
-        target = od.path / name
-        if (target.exists() or target.is_symlink()) and not od.owned(name):
-            raise SpecificationError(f"out/{name}", str(target), "exists and was not written by tubeid (or was "
-                                     "changed since): it is left untouched; move it or choose another --out")
-    st = _Store(store)
+    try:
+        for name in OUTPUTS:  # refuse before writing anything, not half-way through
+            target = od.path / name
+            if (target.exists() or target.is_symlink()) and not od.owned(name):
+                raise SpecificationError(f"out/{name}", str(target), "exists and was not written by tubeid (or was "
+                                         "changed since): it is left untouched; move it or choose another --out")
+        pending = _Pending()
+        summary = _analyse(st, store, pending, n_bootstrap, seed, sensor)
+    except BaseException:  # refused, failed or interrupted (Ctrl-C) before writing: DIR as it was
+        _discard(od, created, outputs=False)
+        raise
+    try:
+        _commit(od, pending, summary)
+    except BaseException:  # interrupted while writing: no half-written report is left
+        _discard(od, created, outputs=True)
+        raise
+    return summary
+
+
+class _Pending:
+    """The report's files, rendered in memory while the stages are analysed and written by :func:`_commit`
+    once every figure and the summary exist (a report that fails or is interrupted writes nothing)."""
+
+    def __init__(self):
+        self.files: dict[str, bytes] = {}
+
+    def write_bytes(self, name: str, data: bytes) -> None:
+        self.files[name] = data
+
+    def save_figure(self, fig, name: str, **kwargs) -> None:
+        OutputDir.save_figure(self, fig, name, **kwargs)  # rendered as OutputDir renders (here into memory)
+
+
+def _commit(od: OutputDir, pending: _Pending, summary: dict) -> None:
+    """Write the report: first away with an earlier report's summary (its figures are about to change), then
+    the figures, the summaries last (a report without summary.md is incomplete), then an earlier report's
+    figures that this one does not have (they would mislead)."""
+    od.remove([n for n in ("summary.md", "summary.json") if od.owned(n)])
+    for name, data in pending.files.items():
+        od.write_bytes(name, data)
+    od.write_text("summary.json", json.dumps(summary, indent=2, ensure_ascii=False) + "\n")
+    od.write_text("summary.md", _markdown(summary))
+    stale = [n for n in FIGURES if n not in pending.files and od.owned(n)]
+    if stale:
+        od.remove(stale)
+
+
+def _discard(od: OutputDir, created: list, outputs: bool) -> None:
+    """After a refusal, a failure or an interruption: with ``outputs`` (it happened while the report was
+    being written), remove the report's files tubeid wrote in ``od`` (this report's, and an earlier
+    report's that it had begun to replace); then the directories this report created, if nothing else
+    is in them. Files tubeid did not write, or that changed since, are always kept."""
+    import contextlib
+
+    with contextlib.suppress(Exception):  # the original error or interruption is what the user must see
+        if outputs and od.manifest_path.exists():
+            od.remove([n for n in OUTPUTS if od.owned(n)])
+        if created and od.path == created[0]:
+            if od.manifest_path.exists() and not od.entries():  # tubeid's own bookkeeping, recording nothing
+                os.unlink(od.manifest_path)
+            with contextlib.suppress(OSError):
+                os.unlink(od.path / ".tubeid-manifest.lock")
+            for d in created:  # deepest first; a directory that holds anything is kept
+                with contextlib.suppress(OSError):
+                    os.rmdir(d)
+
+
+def _analyse(st: _Store, store: str, od, n_bootstrap: int, seed: int, sensor) -> dict:
+    """Every stage of the store analysed, its figures rendered into ``od``: the summary (make_report)."""
     run = _describe_run(st)
     targets = _targets(st)
     written: list = []
@@ -1012,11 +1131,6 @@ def make_report(store, out=None, *, n_bootstrap: int = 200, seed: int = 2008, se
         "paper_values": PAPER_VALUES, "target_values": target_values, "target_label": label, "stages": stages,
         "missing": missing, "notes": notes, "quantities": quantities, "details": details, "figures": written,
     })
-    od.write_text("summary.json", json.dumps(summary, indent=2, ensure_ascii=False) + "\n")
-    od.write_text("summary.md", _markdown(summary))
-    stale = [n for n in FIGURES if n not in written and od.owned(n)]
-    if stale:  # figures of an earlier report that this run could not draw: they would mislead
-        od.remove(stale)
     return summary
 
 

@@ -658,9 +658,33 @@ def _read_yaml(text: str, source: str):
     try:
         return yaml.load(stream, Loader=_spec_loader())  # noqa: S506 - a SafeLoader subclass
     except yaml.YAMLError as exc:
-        raise SpecificationError("specification file", source, f"is not valid YAML ({exc})") from None
+        raise SpecificationError("specification file", source, f"is not valid YAML ({_yaml_problem(exc)})") from None
     except (ValueError, RecursionError) as exc:
         _unreadable(source, exc)
+
+
+def _yaml_problem(exc) -> str:
+    """PyYAML's error in one line: ``line L, column C: PROBLEM (CONTEXT at line L, column C)``.
+
+    PyYAML's own message spreads the problem, its context and their positions (with the source line
+    and a caret) over several lines; the file is named by the message this goes into."""
+    def at(mark):
+        return f"line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+
+    def one_line(text):
+        return " ".join(str(text).split())
+
+    problem, context = getattr(exc, "problem", None), getattr(exc, "context", None)
+    p_mark, c_mark = getattr(exc, "problem_mark", None), getattr(exc, "context_mark", None)
+    if problem is None and context is None:
+        return one_line(exc)
+    out = ": ".join(filter(None, (at(p_mark), one_line(problem or ""))))
+    if context:
+        where = at(c_mark) if c_mark is not None and (p_mark is None or (c_mark.line, c_mark.column) !=
+                                                         (p_mark.line, p_mark.column)) else ""
+        out += f" ({one_line(context)}{' at ' + where if where else ''})" if out else one_line(context)
+    note = getattr(exc, "note", None)
+    return out + (f"; {one_line(note)}" if note else "")
 
 
 def _unreadable(source: str, exc: Exception):

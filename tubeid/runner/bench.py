@@ -108,12 +108,35 @@ def integrity(mb: float = 16.0, reps: int = 9) -> dict:
 
 
 def main(blocks: int = 16, block_seconds: float = 1.0, worker_counts=(1, 2)) -> int:
+    """Run the benchmark (``tubeid bench-runner``); every argument is checked before anything runs.
+
+    Parameters
+    ----------
+    blocks : int
+        Blocks (tasks) of the benchmark study, >= 1.
+    block_seconds : float
+        Target compute seconds per block, > 0 and at most a day.
+    worker_counts : sequence of int
+        Worker counts to compare, each >= 0 (0: in this process), the first the baseline of the speedup.
+
+    Returns
+    -------
+    int
+        0 if the stores of every worker count are identical, else 1.
+    """
+    from tubeid._validation import integer, real
     from tubeid.errors import SpecificationError
+
+    blocks = integer("--blocks", blocks, minimum=1)
+    block_seconds = real("--block-seconds", block_seconds, unit="s", low=0.0, low_open=True, high=86400.0)
+    worker_counts = list(worker_counts)
+    if not worker_counts:
+        raise SpecificationError("--workers", worker_counts, "must name at least one worker count")
+    worker_counts = [integer("--workers", w, minimum=0) for w in worker_counts]
+
     from tubeid.runner.execute import run
     from tubeid.runner.testing import store_digest
 
-    if blocks < 1 or block_seconds <= 0:
-        raise SpecificationError("bench", (blocks, block_seconds), "blocks >= 1 and block-seconds > 0")
     work = _calibrate(block_seconds)
     with tempfile.TemporaryDirectory(prefix="tubeid-bench-") as tmp:
         # untimed warm-up in this process: one-off imports (xarray's Zarr backend, dask.array) that

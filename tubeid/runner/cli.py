@@ -95,6 +95,45 @@ def _stage_line(name, st) -> str:
     return f"  {name}: {st['done']}/{st['total']} blocks done ({pct:.1f} %), {state}{damaged}"
 
 
+def _damaged(name: str, value) -> str:
+    """How a store attribute of an unexpected type (a damaged or hand-edited store) is shown."""
+    from tubeid.errors import shown
+
+    return f"DAMAGED (attribute {name} = {shown(value)})"
+
+
+def _runs(a: dict) -> str:
+    runs = a.get("runs", [])
+    return str(len(runs)) if isinstance(runs, list) else _damaged("runs", runs)
+
+
+def _ended_line(a: dict) -> str | None:
+    ended = a.get("ended")
+    if not ended:
+        return None
+    if isinstance(ended, dict) and "stage" in ended and "reason" in ended:
+        return f"  ended before stage {ended['stage']}: {ended['reason']}"
+    return f"  ended: {_damaged('ended', ended)}"
+
+
+def _summary_line(a: dict) -> str | None:
+    """``summary: k = v, ...`` of the attributes a study's ``summarize`` wrote (named in ``summary_keys``)."""
+    keys = a.get("summary_keys")
+    if not keys:
+        return None
+    if not isinstance(keys, list) or not all(isinstance(k, str) for k in keys):
+        return f"  summary: {_damaged('summary_keys', keys)}"
+    return "  summary: " + ", ".join(f"{k} = {a[k]}" if k in a else f"{k} = DAMAGED (attribute missing)" for k in keys)
+
+
+def _text(a: dict, name: str) -> str | None:
+    """A text attribute (``model_specification``, ``study_source``): None if absent, shown damaged if not text."""
+    value = a.get(name)
+    if value is None or isinstance(value, str):
+        return value
+    return _damaged(name, value)
+
+
 def _lock_line(st) -> str | None:
     from tubeid.runner.lock import describe_holder, holder_state, LOCK_NAME
     import pathlib
@@ -141,8 +180,8 @@ def _status(args) -> int:
         print(f"pipeline {a.get('study_name')}: {n_done}/{len(st['stages'])} stages complete, {state}")
         for name, s in st["stages"].items():
             print(_stage_line(name, s))
-        if a.get("ended"):
-            print(f"  ended before stage {a['ended']['stage']}: {a['ended']['reason']}")
+        if _ended_line(a):
+            print(_ended_line(a))
     else:
         pct = 100.0 * st["done"] / max(st["total"], 1)
         state = "complete" if st["complete"] else "incomplete"
@@ -150,7 +189,7 @@ def _status(args) -> int:
         if st["damaged"]:
             print(f"  DAMAGED: {st['damaged']}")
     print(f"  started {a.get('started')}" + (f", finished {a['finished']}" if a.get("finished") else "")
-          + f", runs: {len(a.get('runs', []))}")
+          + f", runs: {_runs(a)}")
     line = _lock_line(st)
     if line:
         print(line)
@@ -293,13 +332,14 @@ def _show(args) -> int:
           f"parameters {_parameters(a.get('parameters'), args.full)}")
     print(f"  blocks {a['blocks_done']}/{a['blocks_total']}; started {a.get('started')}; "
           f"finished {a.get('finished') or '-'}")
-    if a.get("model_specification"):
-        print("  model specification: " + a["model_specification"].splitlines()[0][:100] + " ...")
-    if a.get("summary_keys"):
-        print("  summary: " + ", ".join(f"{k} = {a[k]}" for k in a["summary_keys"]))
+    spec = _text(a, "model_specification")
+    if spec:
+        print("  model specification: " + (spec.splitlines() or [""])[0][:100] + " ...")
+    if _summary_line(a):
+        print(_summary_line(a))
     _print_dataset(ds, args.store)
     if args.source:
-        print("\n# study source\n" + a.get("study_source", ""))
+        print("\n# study source\n" + (_text(a, "study_source") or ""))
     return 0
 
 
@@ -316,8 +356,8 @@ def _show_pipeline(args, st) -> int:
     print(f"  started {a.get('started')}; finished {a.get('finished') or '-'}; stages:")
     for name, s in st["stages"].items():
         print(_stage_line(name, s))
-    if a.get("ended"):
-        print(f"  ended before stage {a['ended']['stage']}: {a['ended']['reason']}")
+    if _ended_line(a):
+        print(_ended_line(a))
     for name, s in st["stages"].items():
         if (args.stage and name not in args.stage) or not s["started"]:
             continue
@@ -326,11 +366,11 @@ def _show_pipeline(args, st) -> int:
         print(f"\nstage {name} (hash {str(sa.get('stage_hash'))[:12]}): {sa.get('title')}")
         print(f"  streams keyed by {sa.get('stream_key')} + {sa.get('seed_axes')}, "
               f"parameters {_parameters(sa.get('parameters'), args.full)}")
-        if sa.get("summary_keys"):
-            print("  summary: " + ", ".join(f"{k} = {sa[k]}" for k in sa["summary_keys"]))
+        if _summary_line(sa):
+            print(_summary_line(sa))
         _print_dataset(ds, args.store, name)
     if args.source:
-        print("\n# pipeline source\n" + a.get("study_source", ""))
+        print("\n# pipeline source\n" + (_text(a, "study_source") or ""))
     return 0
 
 

@@ -16,7 +16,9 @@ machine of the same name) cannot be asked: it proves it is alive by a heartbeat,
 file every ``tubeid.runner.lock-heartbeat`` (default 10 s); its lock is stale when the file's
 modification time is older than ``tubeid.runner.lock-stale-after`` (default 60 s), measured on
 the file server's clock (against a probe file created beside it), so clock skew between hosts
-does not count.
+does not count. Both settings are checked before anything is created (a duration > 0, the heartbeat
+shorter than ``lock-stale-after``); a bad one is refused naming the setting and its environment
+variable. A lock file that cannot be read (not UTF-8, not JSON) is reported as unreadable, never taken over.
 
 **Taking over a stale lock** must not let two racing runners both win. The lock instance with
 token T may be removed only by the one process that creates ``.tubeid-lock.break-T`` exclusively
@@ -48,7 +50,7 @@ import time
 
 from tubeid.errors import SpecificationError
 
-__all__ = ["StoreLock", "LOCK_NAME", "read_lock", "describe_holder", "holder_state", "LockLost"]
+__all__ = ["StoreLock", "LOCK_NAME", "read_lock", "describe_holder", "holder_state", "LockLost", "lock_settings"]
 
 LOCK_NAME = ".tubeid-lock"
 _MAX_BREAK_DEPTH = 3
@@ -59,11 +61,36 @@ class LockLost(RuntimeError):
 
 
 def _seconds(key: str, default: float) -> float:
+    """The duration configured at ``tubeid.<key>`` in seconds: finite and > 0, else refused naming the
+    setting and its environment variable (``runner.lock-heartbeat``: ``tubeid.runner.lock-heartbeat
+    (TUBEID_RUNNER__LOCK_HEARTBEAT)``)."""
+    import math
+
     from dask.utils import parse_timedelta
 
     from tubeid import config  # dask's configuration: imported only where a lock is taken or judged
 
-    return float(parse_timedelta(config.get(key, default), default="s"))
+    value = config.get(key, default)
+    try:
+        seconds = None if isinstance(value, bool) else float(parse_timedelta(value, default="s"))
+    except (KeyError, ValueError, TypeError, AttributeError, OverflowError):  # dask's errors for what it cannot parse
+        seconds = None
+    if seconds is None or not math.isfinite(seconds) or seconds <= 0:
+        section, _, name = key.partition(".")
+        raise SpecificationError(f"tubeid.{key} (TUBEID_{section.upper()}__{name.upper().replace('-', '_')})", value,
+                                 "must be a duration > 0, e.g. 10s (a bare number is seconds)")
+    return seconds
+
+
+def lock_settings() -> tuple[float, float]:
+    """``(heartbeat, stale_after)`` in seconds, checked (:func:`_seconds`, and the heartbeat shorter than
+    ``lock-stale-after``, else other hosts would take a live run's lock over)."""
+    heartbeat, stale_after = _seconds("runner.lock-heartbeat", 10), _seconds("runner.lock-stale-after", 60)
+    if heartbeat >= stale_after:
+        raise SpecificationError("tubeid.runner.lock-heartbeat (TUBEID_RUNNER__LOCK_HEARTBEAT)", f"{heartbeat:g} s",
+                                 f"must be shorter than tubeid.runner.lock-stale-after = {stale_after:g} s (a lock "
+                                 "without heartbeat for that long is taken over by another runner)")
+    return heartbeat, stale_after
 
 
 def _boot_id() -> str:
@@ -108,14 +135,14 @@ def _me() -> dict:
 def read_lock(path: pathlib.Path) -> dict | None:
     """The record of the lock file at ``path``: a dict, ``None`` if there is none, ``{}`` if unreadable."""
     try:
-        text = path.read_text()
+        data = path.read_bytes()
     except FileNotFoundError:
         return None
     except OSError:
         return {}
     try:
-        rec = json.loads(text)
-    except ValueError:
+        rec = json.loads(data.decode("utf-8"))
+    except ValueError:  # not UTF-8 (UnicodeDecodeError is a ValueError) or not JSON: damaged
         return {}
     return rec if isinstance(rec, dict) and "token" in rec else {}
 
@@ -236,9 +263,12 @@ class StoreLock:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.lost: dict | None = None
+        self._period = 10.0  # the heartbeat, set (checked) by acquire
 
     def acquire(self) -> "StoreLock":
-        """Take the lock or raise ``SpecificationError`` naming its holder."""
+        """Take the lock or raise ``SpecificationError`` naming its holder (or a bad lock setting, before
+        anything is created)."""
+        self._period, _ = lock_settings()
         if not self.store.exists():
             try:
                 self.store.mkdir(parents=True)
@@ -275,8 +305,7 @@ class StoreLock:
         raise SpecificationError("store", str(self.store), "could not take its lock (too many concurrent runners)")
 
     def _start_heartbeat(self) -> None:
-        period = _seconds("runner.lock-heartbeat", 10)
-        self._thread = threading.Thread(target=self._beat, args=(period,), name="tubeid-lock-heartbeat", daemon=True)
+        self._thread = threading.Thread(target=self._beat, args=(self._period,), name="tubeid-lock-heartbeat", daemon=True)
         self._thread.start()
 
     def _beat(self, period: float) -> None:

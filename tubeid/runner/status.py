@@ -18,7 +18,7 @@ import pathlib
 
 import numpy as np
 
-from tubeid.errors import SpecificationError
+from tubeid.errors import SpecificationError, shown
 from tubeid.runner.study import RESERVED
 
 __all__ = ["store_status", "pipeline_status", "FLAG", "BOOKKEEPING", "FORMAT", "PIPELINE_FORMAT", "LEGACY_FORMATS",
@@ -50,6 +50,15 @@ def _attrs(path, group=None) -> dict:
     from tubeid.runner.store import read_attrs  # anything unusual: zarr reads it (or says why not)
 
     return read_attrs(path, group)
+
+
+def _stage_names(attrs: dict, path) -> list[str]:
+    """A pipeline store's ``stages`` attribute, refused in one line if it is not a list of names (damaged)."""
+    stages = attrs.get("stages", [])
+    if not isinstance(stages, list) or not all(isinstance(n, str) and n for n in stages):
+        raise SpecificationError("store", str(path), f"has a damaged attribute stages = {shown(stages)} (not a list "
+                                 "of stage names): it cannot be read as a pipeline store")
+    return stages
 
 
 def _flags_direct(path, group=None) -> tuple[np.ndarray, list[tuple[int, ...]]] | None:
@@ -135,7 +144,7 @@ def store_status(path: str | os.PathLike, group: str | None = None) -> dict:
     if group is not None:
         if root.get("format") != PIPELINE_FORMAT:
             raise SpecificationError("group", group, f"{path} is a single-study store (it has no stages)")
-        if group not in root.get("stages", []):
+        if group not in _stage_names(root, path):
             raise SpecificationError("group", group, f"is not a stage of {path} (stages: {root.get('stages')})")
         if not (p / group / "zarr.json").exists():
             raise SpecificationError("group", group, f"stage not started yet in {path}")
@@ -183,9 +192,13 @@ def pipeline_status(path: str | os.PathLike) -> dict:
 
     p = pathlib.Path(path)
     attrs = _attrs(p)
+    names = _stage_names(attrs, path)
     status = attrs.get("stage_status", {})
+    if not isinstance(status, dict):
+        raise SpecificationError("store", str(path), f"has a damaged attribute stage_status = {shown(status)} (not "
+                                 "a mapping of stage names to states)")
     stages = {}
-    for name in attrs.get("stages", []):
+    for name in names:
         if status.get(name) == NOT_NEEDED:
             stages[name] = {"started": False, "done": 0, "total": 0, "complete": True, "needed": False}
         elif (p / name / "zarr.json").exists():

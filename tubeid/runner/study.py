@@ -34,7 +34,7 @@ from tubeid.errors import Described, SpecificationError
 from tubeid.seeds import rng_for
 
 __all__ = ["Study", "Output", "Parameter", "Warmup", "pointwise", "load_study", "load_definition", "study_hash", "Block",
-           "RngFactory", "check_name", "COORDINATE_DEFAULTS", "RESERVED"]
+           "RngFactory", "check_name", "COORDINATE_DEFAULTS", "RESERVED", "StudyRaised", "read_source"]
 
 _PLAIN = (bool, int, float, str, type(None))
 
@@ -170,6 +170,29 @@ class Parameter:
             if (lo is not None and value < lo) or (hi is not None and value > hi):
                 raise SpecificationError(field, value, f"must lie in [{lo}, {hi}]")
         return value
+
+    def check_with(self, name: str, value: Any, values: Mapping[str, Any]) -> None:
+        """Rules that involve other parameters, checked once every parameter has its value.
+
+        Nothing by default; a subclass overrides it for an admissible set that depends on another
+        parameter (e.g. δ below the δ_max of the model named by another parameter). Called by
+        :meth:`Parameterised.check_parameters`, i.e. whenever a study file is loaded (``tubeid run``,
+        before any store is touched or any task runs) and by ``with_parameters``.
+
+        Parameters
+        ----------
+        name : str
+            The parameter's name (for the message: ``parameters.NAME``).
+        value : object
+            Its value, as :meth:`check` made it.
+        values : mapping of str to object
+            Every parameter's value (each as its own :meth:`check` made it).
+
+        Raises
+        ------
+        SpecificationError
+            Naming ``parameters.NAME``, the value and the rule.
+        """
 
 
 @dataclasses.dataclass(frozen=True)
@@ -337,13 +360,21 @@ class Parameterised:
         return {name: p.value for name, p in self.parameters.items()}
 
     def with_parameters(self, overrides: Mapping[str, Any]):
-        """A copy with some parameter values replaced (unknown names and inadmissible values refused)."""
+        """A copy with some parameter values replaced (unknown names and inadmissible values refused,
+        also those inadmissible together: :meth:`check_parameters`)."""
         params = dict(self.parameters)
         for name, value in overrides.items():
             if name not in params:
                 raise SpecificationError(f"parameters.{name}", value, f"unknown parameter (known: {sorted(params)})")
             params[name] = dataclasses.replace(params[name], value=params[name].check(name, value))
-        return dataclasses.replace(self, parameters=params)
+        return dataclasses.replace(self, parameters=params).check_parameters()
+
+    def check_parameters(self):
+        """Check the rules between parameters (each :class:`Parameter`'s ``check_with``); returns ``self``."""
+        values = self.values
+        for name, p in self.parameters.items():
+            p.check_with(name, values[name], values)
+        return self
 
 
 @dataclasses.dataclass(frozen=True)
@@ -778,7 +809,7 @@ def load_definition(path: str | pathlib.Path | None = None, *, source: str | Non
         p = pathlib.Path(path)
         if not p.is_file():
             raise SpecificationError("study", str(path), "no such study file")
-        source = p.read_text()
+        source = read_source(p)
     overrides = dict(overrides or {})
     key = study_hash(source, overrides)
     if key not in _CACHE:
@@ -793,12 +824,127 @@ def load_definition(path: str | pathlib.Path | None = None, *, source: str | Non
             import cloudpickle
 
             cloudpickle.register_pickle_by_value(module)
-        exec(code, module.__dict__)
+        try:
+            exec(code, module.__dict__)
+        except SpecificationError:  # a definition tubeid refused (e.g. Study(axes={})): one line, as any refusal
+            sys.modules.pop(module.__name__, None)
+            raise
+        except Exception as exc:  # a bug in the study's own code
+            sys.modules.pop(module.__name__, None)
+            raise StudyRaised(module.__file__, exc) from exc
         study = getattr(module, "study", None)
         if not isinstance(study, (Study, Pipeline)):
             raise SpecificationError("study", str(path), "must define a module-level `study = Study(...)` or `Pipeline(...)`")
-        _CACHE[key] = study.with_parameters(overrides) if overrides else study
+        _CACHE[key] = study.with_parameters(overrides) if overrides else study.check_parameters()
     return _CACHE[key], source, key
+
+
+def read_source(path: str | pathlib.Path) -> str:
+    """The text of a Python file, decoded as Python decodes a source file.
+
+    UTF-8 unless a coding line (PEP 263) names another encoding; a UTF-8 byte-order mark is dropped;
+    line endings read as ``\\n`` (universal newlines, as ``Path.read_text``, so the text, and the study
+    hash, of a UTF-8 file are those it always had). A file that cannot be decoded is refused naming it.
+    """
+    import io
+    import tokenize
+
+    p = pathlib.Path(path)
+    try:
+        data = p.read_bytes()
+    except OSError as exc:
+        raise SpecificationError("study", str(path), f"cannot be read ({exc.strerror or exc})") from None
+    try:
+        encoding, _ = tokenize.detect_encoding(io.BytesIO(data).readline)
+    except SyntaxError as exc:  # an unknown or inconsistent coding line, or no coding line and not UTF-8
+        encoding, why = None, exc.msg if isinstance(exc.msg, str) else str(exc)
+    if encoding is not None:
+        try:
+            return io.TextIOWrapper(io.BytesIO(data), encoding=encoding).read()
+        except (UnicodeDecodeError, LookupError) as exc:
+            why = " ".join(str(exc).split())
+    try:
+        data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        if encoding in (None, "utf-8", "utf-8-sig"):  # no coding line: say where it is not UTF-8
+            why = f"byte {data[exc.start]:#04x} at position {exc.start} is not UTF-8"
+    raise SpecificationError("study", str(path), f"cannot be decoded ({why}): a study file is UTF-8 unless a coding "
+                             "line on its first or second line names another encoding (PEP 263, e.g. "
+                             "`# -*- coding: latin-1 -*-`)")
+
+
+def _library_dirs() -> tuple[str, ...]:
+    """Directories whose frames are not a study's own: tubeid's package, the standard library, site-packages."""
+    import os
+    import sysconfig
+
+    import tubeid
+
+    dirs = {os.path.dirname(os.path.abspath(tubeid.__file__))}
+    paths = sysconfig.get_paths()
+    dirs.update(paths[k] for k in ("stdlib", "platstdlib", "purelib", "platlib") if paths.get(k))
+    return tuple(os.path.join(os.path.abspath(d), "") for d in dirs)
+
+
+def _users_traceback(exc: BaseException, study_file: str) -> str:
+    """``exc``'s traceback (chained exceptions included) with only the study's own frames: the study file's
+    and those of the user's other modules, never tubeid's, the standard library's or site-packages'."""
+    import os
+    import traceback
+
+    library = _library_dirs()
+
+    def own(frame) -> bool:
+        name = frame.filename
+        if name == study_file:
+            return True
+        if name.startswith("<"):  # <frozen importlib...>, <string>
+            return False
+        return not os.path.abspath(name).startswith(library)
+
+    te = traceback.TracebackException(type(exc), exc, exc.__traceback__)
+    seen = set()
+    todo = [te]
+    while todo:
+        t = todo.pop()
+        if id(t) in seen:
+            continue
+        seen.add(id(t))
+        t.stack = traceback.StackSummary.from_list([f for f in t.stack if own(f)])
+        todo += [c for c in (t.__cause__, t.__context__) if c is not None]
+    return "".join(te.format())
+
+
+class StudyRaised(RuntimeError):
+    """A study file raised while being executed: a bug in its own code (a refusal, ``SpecificationError``,
+    passes unchanged). The message is one line, ``study = 'r.py': raised RuntimeError: boom while being
+    executed``; ``user_traceback`` is the exception's traceback reduced to the study's own frames (what
+    ``tubeid`` prints before that line, as it does for a failing task); the exception is ``__cause__``.
+
+    Parameters
+    ----------
+    study_file : str
+        The study file as it was named.
+    cause : BaseException or str
+        The exception (or its ``"Type: message"`` text).
+    user_traceback : str, optional
+        The traceback text (default: computed from ``cause``).
+    """
+
+    def __init__(self, study_file: str, cause, user_traceback: str | None = None) -> None:
+        from tubeid.errors import shown
+
+        if isinstance(cause, BaseException):
+            if user_traceback is None:
+                user_traceback = _users_traceback(cause, study_file)
+            cause = f"{type(cause).__name__}: {cause}" if str(cause) else type(cause).__name__
+        self.study_file, self.cause, self.user_traceback = study_file, cause, user_traceback or ""
+        text = " ".join(str(cause).split())
+        text = text if len(text) <= 480 else f"{text[:400]}…{text[-60:]}"
+        super().__init__(f"study = {shown(study_file)}: raised {text} while being executed")
+
+    def __reduce__(self):
+        return type(self), (self.study_file, self.cause, self.user_traceback)
 
 
 def load_study(path: str | pathlib.Path | None = None, *, source: str | None = None,
