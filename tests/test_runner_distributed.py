@@ -4,6 +4,7 @@ SIGKILLed mid-study. Every run must end with a store byte-identical (chunk files
 metadata) to an uninterrupted 2-worker local run; no process may be left behind.
 """
 
+import contextlib
 import json
 import os
 import pathlib
@@ -100,12 +101,12 @@ def reference(study, tmp_path_factory):
     return store_digest(store)
 
 
-@pytest.fixture(scope="module")
-def scheduler(tmp_path_factory):
-    """`dask scheduler` and two `dask worker` processes on 127.0.0.1, each in its own session."""
+@contextlib.contextmanager
+def _cluster(d, workers=2, threads=1, worker_env=None):
+    """`dask scheduler` and ``workers`` `dask worker` processes of ``threads`` threads on 127.0.0.1,
+    each in its own session; yields the scheduler's address, stops them all after."""
     from distributed import Client
 
-    d = tmp_path_factory.mktemp("cluster")
     sfile = d / "scheduler.json"
     procs = []
     log = open(d / "cluster.log", "w")
@@ -119,13 +120,13 @@ def scheduler(tmp_path_factory):
             time.sleep(0.05)
         time.sleep(0.05)
         address = json.loads(sfile.read_text())["address"]
-        for i in range(2):
-            procs.append(subprocess.Popen([sys.executable, "-m", "dask", "worker", address, "--nthreads", "1",
+        for i in range(workers):
+            procs.append(subprocess.Popen([sys.executable, "-m", "dask", "worker", address, "--nthreads", str(threads),
                                            "--nworkers", "1", "--host", "127.0.0.1", "--no-dashboard",
                                            "--name", f"w{i}"],
-                                          stdout=log, stderr=log, start_new_session=True, env=_env(**PACE)))
+                                          stdout=log, stderr=log, start_new_session=True, env=worker_env or _env()))
         with Client(address, timeout="30s") as client:
-            client.wait_for_workers(2, timeout=60)
+            client.wait_for_workers(workers, timeout=60)
         yield address
     finally:
         for p in reversed(procs):
@@ -133,6 +134,13 @@ def scheduler(tmp_path_factory):
         log.close()
         left = [pid for p in procs for pid in _session_alive(p.pid)]
         assert not left, f"processes left behind: {left}"
+
+
+@pytest.fixture(scope="module")
+def scheduler(tmp_path_factory):
+    """`dask scheduler` and two `dask worker` processes on 127.0.0.1, each in its own session."""
+    with _cluster(tmp_path_factory.mktemp("cluster"), worker_env=_env(**PACE)) as address:
+        yield address
 
 
 def test_one_and_two_local_workers_give_identical_stores(study, reference, tmp_path):
@@ -256,6 +264,77 @@ def test_ctrl_c_stops_cleanly_and_resumes(study, reference, tmp_path):
     assert 2 <= flags(store).sum() < flags(store).size
     _run([study, "--store", store, "--workers", 2])
     assert store_digest(store) == reference
+
+
+# one block, held by the task (when `gate` names a directory) until `<gate>/open` exists: a task of a
+# killed run still running on the cluster, finishing when the test says so
+GATED = '''
+import pathlib
+import time
+import numpy as np
+from tubeid.runner.study import Output, Study
+
+def task(block, rng, *, scale, gate):
+    if gate:
+        (pathlib.Path(gate) / "started").touch()
+        while not (pathlib.Path(gate) / "open").exists():
+            time.sleep(0.02)
+    return {"y": scale * np.array([rng(realisation=r).standard_normal() for r in block["realisation"]])}
+
+study = Study(name="gated", seed=5, axes={"realisation": range(4)}, chunks={"realisation": 4}, seed_axes=("realisation",),
+              task=task, outputs={"y": Output()}, parameters={"scale": 1.0, "gate": ""})
+'''
+
+
+def _poll(condition, what, timeout=90.0):
+    t0 = time.monotonic()
+    while not condition():
+        assert time.monotonic() - t0 < timeout, f"waited in vain for {what}"
+        time.sleep(0.05)
+
+
+def test_a_task_left_running_by_a_killed_run_never_writes_into_the_next_runs_store(tmp_path):
+    """A runner SIGKILLed on an external cluster leaves its running task behind (cancelling does not stop a
+    running task); an --overwrite run with other --set values completes meanwhile; then the orphan's
+    block is done: its write is refused (the store holds another study hash), so the store stays the
+    new run's, exactly, instead of holding the earlier definition's values under valid checksums."""
+    from distributed import Client
+
+    from tubeid.runner.execute import run
+
+    study = tmp_path / "gated.py"
+    study.write_text(GATED)
+    gate = tmp_path / "gate"
+    gate.mkdir()
+    store = tmp_path / "s.zarr"
+    run(study, tmp_path / "ref.zarr", workers=0, quiet=True, overrides={"scale": 2.0})
+    reference = store_digest(tmp_path / "ref.zarr")
+    # one worker of 2 threads: the orphan holds one, the next run's block runs on the other
+    with _cluster(tmp_path, workers=1, threads=2) as address, Client(address, timeout="30s") as client:
+        first = subprocess.Popen(RUNNER + [str(study), "--store", str(store), "--scheduler", address, "--set",
+                                           f"gate={gate}", "--no-progress"], env=_env(), stdout=subprocess.DEVNULL,
+                                 stderr=subprocess.DEVNULL, start_new_session=True)
+        try:
+            _poll(lambda: (gate / "started").exists() or first.poll() is not None, "the first run's block to start")
+            assert first.poll() is None, "the first run ended before its block started"
+            os.killpg(first.pid, signal.SIGKILL)
+            first.wait(10)
+            second = _run([study, "--store", store, "--scheduler", address, "--overwrite", "--set", "scale=2.0"])
+            assert "error" not in second.stderr.lower() and store_digest(store) == reference
+        finally:
+            (gate / "open").touch()  # the orphan finishes its block now
+            if first.poll() is None:
+                os.killpg(first.pid, signal.SIGKILL)
+                first.wait(10)
+
+        def idle():
+            return sum(client.run(lambda dask_worker: len(dask_worker.state.executing)).values()) == 0
+
+        _poll(idle, "the orphaned task to end")
+    assert store_digest(store) == reference  # not the first definition's values
+    status = subprocess.run([sys.executable, "-m", "tubeid.runner.cli", "status", "--verify", str(store)], env=_env(),
+                            capture_output=True, text=True, timeout=60)
+    assert status.returncode == 0, status.stdout + status.stderr
 
 
 def test_pipeline_on_an_external_scheduler_gives_the_in_process_result(scheduler, tmp_path):

@@ -37,7 +37,7 @@ from tubeid.runner.pipeline import End, Pipeline, stage_hash
 from tubeid.runner.status import NOT_NEEDED
 from tubeid.runner.store import (append_history, block_flags, check_blocks, check_stage, check_store, history_line,
                                  init_pipeline_store, init_stage, init_store, now, prepare_path, read_attrs, remove_store,
-                                 remove_temporaries, _forget_nodes, _read_manifest, _remove_nodes,
+                                 remove_temporaries, restore_consolidated, _forget_nodes, _read_manifest, _remove_nodes,
                                  set_flags, tubeid_version, update_attrs, write_block)
 from tubeid.runner.study import Study, _plain, load_definition, load_study
 
@@ -138,13 +138,15 @@ class PipelineReport:
 
 
 def run_block(store: str, source: str, overrides: dict, index: tuple[int, ...]) -> dict:
-    """Worker side: compute one block from the study source and write it (data, then flag)."""
-    study, _, _ = load_study(source=source, overrides=overrides)
+    """Worker side: compute one block from the study source and write it (data, then flag), only into
+    a store that still holds this study (its hash): a task an earlier run left running on a cluster
+    never writes into the store that replaced it (``StaleWrite``)."""
+    study, _, key = load_study(source=source, overrides=overrides)
     block = study.block(index)
     t0 = time.perf_counter()
     outputs = study.compute_block(block)
     t1 = time.perf_counter()
-    write_block(store, study, block, outputs)
+    write_block(store, study, block, outputs, expected_hash=key)
     t2 = time.perf_counter()
     return {"index": tuple(index), "compute": t1 - t0, "write": t2 - t1, "pid": os.getpid()}
 
@@ -254,7 +256,8 @@ def run_stage_block(store: str, source: str, overrides: dict, name: str, expecte
 
     ``payload`` (:func:`stage_payload`): the stage as the runner built it; without it (or if it does
     not unpickle to the runner's stage) the stage is rebuilt here from the store and must get
-    ``expected_hash``."""
+    ``expected_hash``. The block is written only into a stage group that still holds
+    ``expected_hash`` (``StaleWrite``: a task an earlier run left running on a cluster)."""
     ck = (store, expected_hash)
     if ck not in _STAGES:
         pipeline, _, key = load_definition(source=source, overrides=overrides)
@@ -273,7 +276,7 @@ def run_stage_block(store: str, source: str, overrides: dict, name: str, expecte
     t0 = time.perf_counter()
     outputs = study.compute_block(block)
     t1 = time.perf_counter()
-    write_block(store, study, block, outputs, group=name)
+    write_block(store, study, block, outputs, group=name, expected_hash=expected_hash)
     t2 = time.perf_counter()
     return {"index": tuple(index), "compute": t1 - t0, "write": t2 - t1, "pid": os.getpid()}
 
@@ -844,6 +847,8 @@ def _run_study(ctx: _Run) -> RunReport:
             report.skipped = study.n_blocks
             if not read_attrs(path).get("finished"):  # every block written, but stopped before the finalisation
                 update_attrs(path, finished=now(), **_summary(study, path))
+            else:  # stopped between the final attributes and their consolidation: consolidated again
+                restore_consolidated(path)
             checked = f"{study.n_blocks} blocks, verified" if ctx.verify else f"{study.n_blocks} blocks, not verified"
             _log(f"tubeid: {path} is complete ({checked}): nothing to do", quiet)
             return report
@@ -902,13 +907,14 @@ def _run_pipeline(ctx: _Run) -> PipelineReport:
 
     pipeline, path, quiet = ctx.study, ctx.path, ctx.quiet
     report = PipelineReport(store=path)
-    if ctx.state == "resume" and pipeline_status(path)["complete"]:
+    if ctx.state == "resume" and (st := pipeline_status(path))["complete"]:
         t0 = time.perf_counter()
+        # a run stopped before its last consolidation: consolidated first (the stages are read next)
+        restore_consolidated(path, [n for n, s in st["stages"].items() if s["started"]])
         if not ctx.verify or _verify_complete_pipeline(ctx, report):
             report.prepare = time.perf_counter() - t0
             checked = "verified" if ctx.verify else "not verified"
-            if not read_attrs(path).get("finished"):  # every stage done, but stopped before the finalisation
-                update_attrs(path, finished=now(), add_history="complete (found so on a resume)")
+            _record_complete_pipeline(path)
             _log(f"tubeid: {path} is complete ({len(pipeline.stages)} stages, {checked}): nothing to do", quiet)
             return report
         report.stages.clear()
@@ -941,6 +947,29 @@ def _run_pipeline(ctx: _Run) -> PipelineReport:
            if len(report.stages) < len(pipeline.stages) else f"{len(pipeline.stages)} stages")
     _log(f"tubeid: done: {report.computed} blocks computed, {report.skipped} already done ({ran}); store {path}", quiet)
     return report
+
+
+def _record_complete_pipeline(path) -> None:
+    """A pipeline store found complete on a resume: record at the root what an interrupted run did not
+    (``finished``, every needed stage's ``stage_status`` "complete": a run stopped between finishing
+    a stage and recording it left "running"), in one write; else consolidate again the metadata a
+    run stopped before its last consolidation left without."""
+    from tubeid.runner.store import pipeline_status
+
+    st = pipeline_status(path)
+    attrs = st["attrs"]
+    status = dict(attrs.get("stage_status") or {})
+    stale = [n for n, s in st["stages"].items() if s.get("needed", True) and status.get(n) != "complete"]
+    changes = {}
+    if stale:
+        status.update({n: "complete" for n in stale})
+        changes["stage_status"] = status
+    if not attrs.get("finished"):  # every stage done, but stopped before the finalisation
+        changes["finished"] = now()
+    started = [n for n, s in st["stages"].items() if s["started"]]
+    restore_consolidated(path, started)  # the groups' first: the root's consolidation below nests them
+    if changes:
+        update_attrs(path, add_history="complete (found so on a resume)", **changes)
 
 
 def _stage_state(path, name, state):
@@ -987,6 +1016,11 @@ def _run_stage(ctx: _Run, name: str, client) -> RunReport | None:
         attrs = read_attrs(path, name)
         if block_flags(path, name).all() and attrs.get("finished"):
             report.skipped = study.n_blocks
+            # a run stopped after the stage's final attributes may not have consolidated them, nor
+            # recorded the stage complete at the root: both are done now
+            restore_consolidated(path, [name])
+            if dict(read_attrs(path).get("stage_status") or {}).get(name) != "complete":
+                _stage_state(path, name, "complete")
             report.prepare = time.perf_counter() - t0
             _log(f"tubeid: stage {name}: complete ({study.n_blocks} blocks)", quiet)
             return report

@@ -25,12 +25,21 @@ What tubeid wrote is listed in the manifest ``<store>/.tubeid-manifest.json`` (e
 array it created, before creating it); ``--overwrite`` removes only those nodes' metadata and
 chunk files (and tubeid's own ``.tubeid-*`` files), never anything else put in the store. The
 lock of the runner writing the store is ``<store>/.tubeid-lock`` (:mod:`tubeid.runner.lock`).
+
+Every attribute update of a group is one write of its ``zarr.json`` (``finished`` never lands
+without the summary). A store or stage group gets its provenance last, once its arrays and flags
+exist: a group the manifest lists without it, in which no block was written, is tubeid's own
+creation interrupted (:func:`creation_interrupted`), which a run removes and makes again. A block is
+written only into a store (stage group) that holds the study (stage) hash it was computed for,
+checked before its data and again before its flag (:class:`StaleWrite`: a task an earlier, killed
+run left running on a cluster). A store path that is a symbolic link is refused.
 """
 
 from __future__ import annotations
 
 import contextlib
 import datetime
+import errno
 import functools
 import json
 import os
@@ -51,7 +60,8 @@ if TYPE_CHECKING:  # imported where used: `tubeid status` needs no xarray
 
 __all__ = ["init_store", "init_pipeline_store", "init_stage", "check_store", "check_stage", "check_blocks", "block_flags",
            "read_flags", "write_block", "update_attrs", "read_attrs", "open_results", "open_pipeline", "store_status",
-           "pipeline_status", "is_pipeline", "prepare_path", "remove_store", "FLAG", "BOOKKEEPING", "MANIFEST_NAME",
+           "pipeline_status", "is_pipeline", "prepare_path", "remove_store", "StaleWrite", "creation_interrupted",
+           "restore_consolidated", "FLAG", "BOOKKEEPING", "MANIFEST_NAME",
            "REFERENCES", "now", "history_line"]
 
 STAGE_FORMAT = "tubeid-pipeline-stage/2"
@@ -97,14 +107,44 @@ def _quiet():
         yield
 
 
+#: Errors of the file system itself (full, over quota, read-only, no permission, a file too large,
+#: I/O): reported as what they are, never blamed on something in the store.
+_SYSTEM_ERRNOS = frozenset(getattr(errno, name) for name in ("ENOSPC", "EDQUOT", "EFBIG", "EROFS", "EACCES", "EPERM",
+                                                                "EIO", "EMFILE", "ENFILE", "ENOMEM", "ESTALE")
+                           if hasattr(errno, name))
+
+
+def _system_error(exc: BaseException) -> OSError | None:
+    """The file system's own error behind ``exc`` (itself, or its cause or context), if it is one."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        if isinstance(exc, OSError) and exc.errno in _SYSTEM_ERRNOS:
+            return exc
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
+def cannot_write(path, exc: OSError) -> SpecificationError:
+    """``cannot write <file>: <strerror>``: a write the file system refused (the store stays resumable)."""
+    where = exc.filename or path
+    return SpecificationError("store", str(path), f"cannot write {where}: {exc.strerror or os.strerror(exc.errno)} "
+                              "(the store is left as it is: rerun once that is fixed, and it resumes)")
+
+
 @contextlib.contextmanager
 def _zarr_writes(path):
-    """Turn a zarr failure while tubeid writes metadata into a clear refusal (never a library traceback)."""
+    """Turn a zarr failure while tubeid writes metadata into a clear refusal (never a library traceback):
+    the file system's own error (a full disk, a quota, a read-only mount, permissions) as what it is,
+    anything else as something in the store that confuses zarr."""
     try:
         yield
     except SpecificationError:
         raise
     except Exception as exc:
+        system = _system_error(exc)
+        if system is not None:
+            raise cannot_write(path, system) from exc
         raise SpecificationError(
             "store", str(path),
             f"cannot be written by zarr ({type(exc).__name__}: {str(exc)[:200]}): something in it that tubeid did "
@@ -138,8 +178,14 @@ def _flag_dims(study):
 
 
 def prepare_path(path) -> pathlib.Path:
-    """Refuse up front a store path that cannot be written (missing rights, a file in the way)."""
+    """Refuse up front a store path that cannot be written (missing rights, a file in the way) or that is
+    a symbolic link (also a dangling one): tubeid would create, write and with ``--overwrite`` replace
+    what it points to, somewhere else than the path given. Links among its parent directories are
+    followed as usual."""
     p = pathlib.Path(path)
+    if p.is_symlink():
+        raise SpecificationError("store", str(p), f"is a symbolic link (to {os.readlink(p)}): tubeid does not write "
+                                 "through a link; give the directory it points to, or another path")
     if p.exists() and not p.is_dir():
         raise SpecificationError("store", str(p), "exists and is not a directory (Zarr store)")
     target = p if p.exists() else p.parent
@@ -159,12 +205,79 @@ def _own_file(name: str) -> bool:
     return name.startswith(".tubeid-")
 
 
+def _group_meta(d: pathlib.Path) -> dict | None:
+    """The ``zarr.json`` of the group directory ``d`` as JSON, or None if it is missing or not a group's."""
+    try:
+        meta = json.loads((d / "zarr.json").read_bytes())
+    except (OSError, ValueError):
+        return None
+    return meta if isinstance(meta, dict) and meta.get("node_type") == "group" else None
+
+
+def _holds_results(p: pathlib.Path, nodes: dict, group: str | None) -> bool:
+    """Whether any array the manifest lists under ``group`` (None: the whole store) has a chunk file
+    other than a coordinate's (``dimension_names`` = its own name, written while the store is
+    created): a flag (every finished block writes one) or a block's data."""
+    for node, kind in nodes.items():
+        if kind != "array" or not isinstance(node, str) or (group and not node.startswith(group + "/")):
+            continue
+        d = p / node
+        c = d / "c"
+        if not c.is_dir() and not c.is_symlink():
+            continue
+        try:
+            meta = json.loads((d / "zarr.json").read_bytes())
+            coordinate = meta.get("dimension_names") == [node.rsplit("/", 1)[-1]]
+        except (OSError, ValueError, AttributeError):
+            coordinate = False
+        if not coordinate and (c.is_symlink() or any(f.is_file() or f.is_symlink() for f in c.rglob("*"))):
+            return True
+    return False
+
+
+def creation_interrupted(path, group: str | None = None) -> bool:
+    """Whether the root of the store ``path`` (or its ``group``) is tubeid's own creation stopped before
+    its attributes were written: the manifest lists the group (recorded before creating it), its
+    ``zarr.json`` is missing (zarr's temporary ``zarr.<hex>.partial`` perhaps beside it) or is a group
+    without tubeid's attributes (which :func:`_write_empty` writes last, in one write), and no block
+    was ever written in it (no flag or data chunk). Such a group holds no result: a run removes what
+    the manifest lists of it and creates it again. A group the manifest does not list, or that holds
+    results (a store whose metadata was damaged or deleted), is never taken for one."""
+    p = pathlib.Path(path)
+    d = p / group if group else p
+    try:
+        nodes = _read_manifest(p)
+    except SpecificationError:  # unreadable: nothing is provably tubeid's
+        return False
+    if nodes.get(group or "") != "group" or not d.is_dir() or d.is_symlink():
+        return False
+    f = d / "zarr.json"
+    if f.exists() or f.is_symlink():
+        meta = _group_meta(d) if f.is_file() and not f.is_symlink() else None
+        attrs = meta.get("attributes", {}) if meta else None
+        if not isinstance(attrs, dict) or "format" in attrs:
+            return False
+    return not _holds_results(p, nodes, group)
+
+
 def check_store(path, study_hash: str) -> str:
-    """``"new"`` if there is no store at ``path``; ``"resume"`` if it holds this study; else refuse."""
+    """``"new"`` if there is no store at ``path`` (or only tubeid's own creation of it, interrupted:
+    :func:`creation_interrupted`, made again by the run); ``"resume"`` if it holds this study; else refuse."""
     p = pathlib.Path(path)
     if not p.exists() or (p.is_dir() and not (p / "zarr.json").exists() and all(_own_file(c.name) for c in p.iterdir())):
         return "new"
+    if p.is_dir() and creation_interrupted(p):
+        return "new"
     if not (p / "zarr.json").exists():
+        try:
+            ours = _read_manifest(p).get("") == "group"
+        except SpecificationError:  # an unreadable manifest: nothing is provably tubeid's
+            ours = False
+        if ours:  # tubeid made it, and blocks were written in it (else: an interrupted creation, made again)
+            raise SpecificationError("store", str(p), "exists and is not a tubeid study store any more: its root "
+                                     "metadata (zarr.json) is missing, yet it holds blocks tubeid wrote (an --overwrite "
+                                     "that was interrupted, or damage), of a study it cannot name; rerun with "
+                                     "--overwrite (which removes only what tubeid wrote) or choose another path")
         raise SpecificationError("store", str(p), "exists and is not a tubeid study store (it holds files tubeid did not "
                                  "write); choose another path")
     try:
@@ -211,13 +324,24 @@ def _record_nodes(p: pathlib.Path, nodes: dict) -> None:
 
 
 def _write_manifest(p: pathlib.Path, entries: dict) -> None:
+    """Write the manifest (atomic replace); a write the file system refuses (full, read-only) is
+    reported as such, the manifest left as it was."""
     doc = {"tubeid_manifest": 1, "nodes": dict(sorted(entries.items()))}
-    fd, tmp = tempfile.mkstemp(prefix=".tubeid-tmp-", dir=p)
-    with os.fdopen(fd, "w") as fh:
-        json.dump(doc, fh, indent=1)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, p / MANIFEST_NAME)
+    tmp = None
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=".tubeid-tmp-", dir=p)
+        with os.fdopen(fd, "w") as fh:
+            json.dump(doc, fh, indent=1)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, p / MANIFEST_NAME)
+    except OSError as exc:
+        if tmp is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+        if _system_error(exc) is None:
+            raise
+        raise cannot_write(p, exc) from exc
 
 
 def _forget_nodes(p: pathlib.Path, nodes) -> None:
@@ -376,9 +500,20 @@ def remove_store(path, *, keep_lock: bool = True, dry_run: bool = False) -> list
 
 
 def _fresh_root(path, fmt: str, definition, *, source: str, study_hash: str, study_file: str, overrides) -> tuple[pathlib.Path, dict]:
-    """The provenance shared by study and pipeline roots (the caller removed any earlier store)."""
+    """The provenance shared by study and pipeline roots (the caller removed any earlier store; what an
+    interrupted creation of it left, :func:`creation_interrupted`, is removed here: the nodes the
+    manifest lists, nothing else)."""
     p = pathlib.Path(path)
-    p.mkdir(parents=True, exist_ok=True)
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        if _system_error(exc) is None:
+            raise
+        raise cannot_write(p, exc) from exc
+    left = _read_manifest(p)
+    if left:
+        _remove_nodes(p, left)
+        _forget_nodes(p, left)
     t = now()
     cmd = f"tubeid run {study_file}" + "".join(f" --set {k}={v!r}" for k, v in sorted(dict(overrides or {}).items()))
     return p, {
@@ -440,7 +575,7 @@ def _write_empty(study, p, attrs, group=None, root: bool = True) -> None:
         if values.dtype.kind == "U":  # variable-length strings (fixed-width UTF-32 has no Zarr v3 spec)
             values = values.astype(object)
         coords[dim] = (dim, values, study.coordinate_attrs(dim))
-    ds = xr.Dataset(data_vars, coords=coords, attrs=attrs)
+    ds = xr.Dataset(data_vars, coords=coords)  # the group's attributes come last (below)
     root = pathlib.Path(p)
     nodes = {group or "": "group", _node(group, BOOKKEEPING): "group", _node(group, f"{BOOKKEEPING}/{FLAG}"): "array"}
     nodes.update({_node(group, n): "array" for n in [*data_vars, *coords]})
@@ -453,6 +588,9 @@ def _write_empty(study, p, attrs, group=None, root: bool = True) -> None:
                         compressors=None,  # FLAG_CODECS: 8 raw bytes per block, read without zarr by `tubeid status`
                         dimension_names=_flag_dims(study),
                         attributes={"long_name": "block completion flag: 0 = not written, else the block's checksum"})
+        # the provenance (the store's identity) last, in one write: a group without it is a creation
+        # that was interrupted (creation_interrupted), never a store that lacks its bookkeeping
+        g.update_attributes(attrs)
     _consolidate(p, group, root=root)
 
 
@@ -461,7 +599,7 @@ def init_pipeline_store(pipeline, path, *, source: str, study_hash: str, study_f
     p, attrs = _fresh_root(path, PIPELINE_FORMAT, pipeline, source=source, study_hash=study_hash, study_file=study_file, overrides=overrides)
     attrs.update(stages=pipeline.stage_names, stage_status={n: "pending" for n in pipeline.stage_names})
     _record_nodes(p, {"": "group"})
-    with _quiet():
+    with _quiet(), _zarr_writes(p):
         zarr.open_group(str(p), mode="a", zarr_format=3, attributes=attrs)
     _consolidate(p)
 
@@ -503,7 +641,9 @@ def init_stage(study, path, name: str, *, pipeline_name: str, pipeline_hash: str
 
 
 def check_stage(path, name: str, stage_hash: str) -> str:
-    """``"new"`` if stage ``name`` has no readable group yet; ``"resume"`` if it holds this stage; else refuse."""
+    """``"new"`` if stage ``name`` has no readable group yet, or only tubeid's own creation of it,
+    interrupted (:func:`creation_interrupted`: :func:`init_stage` makes it again); ``"resume"`` if it
+    holds this stage; else refuse."""
     p = pathlib.Path(path) / name
     if not (p / "zarr.json").exists():
         return "new"
@@ -511,6 +651,13 @@ def check_stage(path, name: str, stage_hash: str) -> str:
         attrs = read_attrs(path, name)
     except Exception:  # its group metadata is damaged: the stage is rebuilt
         return "new"
+    if "format" not in attrs and "stage_hash" not in attrs:
+        if creation_interrupted(path, name):
+            return "new"
+        raise SpecificationError("store", f"{path} (stage {name})", f"holds a group {name!r} without stage provenance "
+                                 "(its attributes were lost, or tubeid did not write it): tubeid cannot tell which "
+                                 "stage it holds and leaves it in place; use --new-store, or --overwrite (which "
+                                 "removes only what tubeid wrote)")
     if attrs.get("stage_hash") != stage_hash:
         raise SpecificationError(
             "store", f"{path} (stage {name})",
@@ -528,8 +675,29 @@ def update_attrs(path, group=None, *, add_history: str = "", root: bool = True, 
     if add_history:
         old = g.attrs.get("history", "")
         attrs["history"] = (old + "\n" if old else "") + history_line(add_history)
-    g.attrs.update(attrs)
+    with _quiet(), _zarr_writes(path):
+        # one write of the group's zarr.json (``g.attrs.update`` writes it once per key): a kill never
+        # leaves ``finished`` without the summary written with it
+        g.update_attributes(attrs)
     _consolidate(path, group, root=root)
+
+
+def restore_consolidated(path, groups=()) -> bool:
+    """Consolidate again the metadata of each group in ``groups`` and of the root whose ``zarr.json``
+    has none (a run killed between writing a group's attributes and consolidating it: a complete
+    store would otherwise stay without it); True if any was. The caller holds the lock."""
+    p = pathlib.Path(path)
+
+    def lacking(d):
+        return (_group_meta(d) or {}).get("consolidated_metadata") is None
+
+    missing = [g for g in groups if g and lacking(p / g)]
+    for g in missing:
+        _consolidate(p, g, root=False)
+    if missing or lacking(p):
+        _consolidate(p)
+        return True
+    return False
 
 
 def append_history(path, group=None, what: str = "") -> None:
@@ -567,8 +735,17 @@ def read_flags(path, group=None) -> tuple[np.ndarray, list[tuple[int, ...]]]:
 
 
 def block_flags(path, group=None) -> np.ndarray:
-    """The completion flags (uint8 array over the block grid: 1 = written and checksummed)."""
-    return (read_flags(path, group)[0] != 0).astype(np.uint8)
+    """The completion flags (uint8 array over the block grid: 1 = written and checksummed); a store
+    (or stage) whose flag array is missing is refused in one line (a run that verifies rebuilds it)."""
+    try:
+        flags = read_flags(path, group)[0]
+    except KeyError:
+        where = f"{path}" + (f" (stage {group})" if group else "")
+        raise SpecificationError("store", where, f"has no block flags ({_node(group, f'{BOOKKEEPING}/{FLAG}')} is "
+                                 "missing: the store was damaged, or an earlier tubeid was stopped while creating it); "
+                                 "`tubeid run` without --no-verify rebuilds them (the blocks it cannot prove are "
+                                 "recomputed)") from None
+    return (flags != 0).astype(np.uint8)
 
 
 def set_flags(path, indices, value: int = 0, group=None) -> None:
@@ -610,22 +787,53 @@ def check_blocks(path, study, group=None) -> None:
         _check_blocks(path, study, stored, group)
 
 
-def write_block(path, study, block, outputs, group=None) -> None:
+class StaleWrite(RuntimeError):
+    """A block write refused: the store (or stage) no longer holds the study the block was computed for.
+
+    Raised on a worker by a task an earlier run left running (a runner killed or interrupted on an
+    external cluster: cancelling does not stop a running task) after that store was replaced; the
+    task fails, the store is not touched."""
+
+
+def _holds(path, group, expected_hash: str) -> None:
+    """Refuse (:class:`StaleWrite`) unless the root (study hash) or ``group`` (stage hash) of ``path``
+    holds ``expected_hash`` now: read from its own ``zarr.json`` at each call, no cache."""
+    d = pathlib.Path(path) / group if group else pathlib.Path(path)
+    key = "stage_hash" if group else "study_hash"
+    meta = _group_meta(d)
+    attrs = meta.get("attributes") if meta else None
+    found = attrs.get(key) if isinstance(attrs, dict) else None
+    if found != expected_hash:
+        where = f"{path}" + (f" (stage {group})" if group else "")
+        held = f"hash {str(found)[:12]}" if found else "no study"
+        raise StaleWrite(f"{where} no longer holds the study this block was computed for ({held} there, "
+                         f"{str(expected_hash)[:12]} here): a task left running by an earlier run whose store was "
+                         "replaced since; its write is refused, the store is not touched")
+
+
+def write_block(path, study, block, outputs, group=None, *, expected_hash: str | None = None) -> None:
     """Write one block's outputs into their own region (whole chunks), then its flag (their checksum).
 
     Written with zarr directly into the arrays xarray created (same bytes as an xarray region
     write: no scale/offset encodings are used), which costs a few ms per block instead of ~10.
     The block layout is checked against the store's first (a worker with another default chunk
-    size would otherwise write the wrong region).
+    size would otherwise write the wrong region). ``expected_hash``: the study hash (root) or stage
+    hash (``group``) the block was computed for; checked right before the data are written and again
+    before the flag (:class:`StaleWrite` if the store holds another study by then).
     """
     from tubeid.runner.integrity import block_checksum
 
     g = _group(path, group, mode="r+")
     _check_blocks(path, study, g[BOOKKEEPING].attrs.get("chunks", []), group)
+    if expected_hash is not None:
+        _holds(path, group, expected_hash)
     region = tuple(block.slices.values())
     for name, arr in outputs.items():
         g[name][region] = arr
-    g[f"{BOOKKEEPING}/{FLAG}"][tuple(block.index)] = block_checksum(outputs, block.index)
+    checksum = block_checksum(outputs, block.index)
+    if expected_hash is not None:
+        _holds(path, group, expected_hash)
+    g[f"{BOOKKEEPING}/{FLAG}"][tuple(block.index)] = checksum
 
 
 def open_results(path: str | os.PathLike, group: str | None = None, *, flags: bool = False,

@@ -151,18 +151,35 @@ def write_pipeline(directory, name="pipeline.py", *, curve=8, around=8, work=2) 
 VOLATILE = {"started", "finished", "runs", "study_file", "history"}
 
 
+def _structure(meta):
+    """Group metadata without any group's attributes (its own, and those nested in its consolidated
+    metadata: compared as ``attrs`` entries, and they may name the store's directory), so that two
+    stores in different directories compare equal; arrays' metadata is kept whole."""
+    if isinstance(meta, dict):
+        return {k: _structure(v) for k, v in meta.items() if not (k == "attributes" and meta.get("node_type") == "group")}
+    if isinstance(meta, list):
+        return [_structure(v) for v in meta]
+    return meta
+
+
 def store_digest(path) -> dict:
-    """Byte digest of every file of a store except group metadata (root and pipeline stages), plus
-    the non-volatile attributes of every group (``attrs`` for the root, ``attrs:<stage>`` for stages)."""
+    """Byte digest of every file of a store except group metadata (root and pipeline stages), plus for
+    each group its non-volatile attributes (``attrs`` for the root, ``attrs:<group>`` for the others)
+    and its metadata without the groups' attributes (``meta``, ``meta:<group>``: the consolidated
+    metadata of the nodes below it, which a run stopped before consolidating would lack)."""
     root = pathlib.Path(path)
     out = {}
     groups = []
     for f in sorted(root.rglob("*")):
         if not f.is_file():
             continue
-        if f.name == "zarr.json" and json.loads(f.read_text()).get("node_type") == "group":
-            groups.append(f.parent)
-            continue
+        if f.name == "zarr.json":
+            meta = json.loads(f.read_text())
+            if meta.get("node_type") == "group":
+                groups.append(f.parent)
+                label = "meta" if f.parent == root else f"meta:{f.parent.relative_to(root)}"
+                out[label] = json.dumps(_structure(meta), sort_keys=True)
+                continue
         out[str(f.relative_to(root))] = hashlib.sha256(f.read_bytes()).hexdigest()
     for g in groups:
         attrs = dict(zarr.open_group(str(root), mode="r", path=str(g.relative_to(root)) or None).attrs) if g != root \

@@ -1,0 +1,380 @@
+"""The store is never left wrong by a kill, a full disk, a link or a task an earlier run left running.
+
+Each interruption is a SIGKILL at one point of the runner (a subprocess whose one function is patched
+to kill it there, as `kill -9` would), then the same command again: the store must end byte-identical
+(:func:`tubeid.runner.testing.store_digest`: chunk files, non-volatile attributes and the consolidated
+metadata) to an uninterrupted run. Blocks run in the runner's process (``--workers 0``, the same
+``run_block`` the workers run); an orphaned task of a killed run on an external cluster is in
+``test_runner_distributed.py``.
+"""
+
+import errno
+import json
+import os
+import pathlib
+import resource
+import shutil
+import signal
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from tubeid.errors import SpecificationError
+from tubeid.runner import integrity
+from tubeid.runner.cli import main as cli
+from tubeid.runner.execute import run, run_block, run_stage_block, stage_study
+from tubeid.runner.store import StaleWrite, read_attrs, store_status
+from tubeid.runner.study import load_definition
+from tubeid.runner.testing import clear_flag, flags, store_digest, write_pipeline, write_study
+
+# a single study whose `summarize` adds an attribute (2 deltas x 4 realisations in blocks of 2: 4 blocks)
+SUMMARY_STUDY = '''
+import numpy as np
+from tubeid.runner.study import Output, Study
+
+def task(block, rng):
+    r, d = block["realisation"], block["delta"]
+    return {"x": np.array([[dv + rng(realisation=real).standard_normal() for real in r] for dv in d])}
+
+study = Study(name="summed", seed=3, axes={"delta": [0.1, 0.2], "realisation": range(4)},
+              chunks={"delta": 1, "realisation": 2}, seed_axes=("realisation",), task=task,
+              outputs={"x": Output(units="m")}, summarize=lambda ds: {"xmean": float(ds.x.mean())})
+'''
+
+KILLER = '''
+import os, signal, sys
+
+def die(why):
+    os.write(2, f"SIGKILL {why}\\n".encode())
+    os.kill(os.getpid(), signal.SIGKILL)
+
+PATCH
+
+from tubeid.runner.cli import main
+sys.exit(main(sys.argv[1:]))
+'''
+
+
+def _env():
+    env = dict(os.environ, PYTHONUNBUFFERED="1", PYTHONWARNINGS="ignore")
+    for k in ("DASK_SCHEDULER_ADDRESS", "TUBEID_TEST_FAIL_AT", "TUBEID_TEST_FAIL_STAGE", "TUBEID_TEST_BLOCK_SECONDS"):
+        env.pop(k, None)
+    return env
+
+
+def _killed(tmp_path, patch: str, args, preexec=None) -> str:
+    """Run ``tubeid run ARGS --workers 0`` in a subprocess with ``patch`` applied first; it must die by
+    SIGKILL at the patched point. Returns its stderr."""
+    script = tmp_path / "killer.py"
+    script.write_text(KILLER.replace("PATCH", textwrap.dedent(patch)))
+    proc = subprocess.run([sys.executable, str(script), "run", *map(str, args), "--workers", "0", "--no-progress"],
+                          env=_env(), capture_output=True, text=True, timeout=120, preexec_fn=preexec)
+    assert proc.returncode == -signal.SIGKILL and "SIGKILL" in proc.stderr, proc.stderr
+    return proc.stderr
+
+
+def _cli(args, capsys) -> tuple[int, str]:
+    rc = cli(["run", *map(str, args), "--workers", "0", "--no-progress"])
+    return rc, capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def defs(tmp_path_factory):
+    d = tmp_path_factory.mktemp("defs")
+    (d / "summed.py").write_text(SUMMARY_STUDY)
+    return {"study": write_study(d, realisations=4, chunk=2, work=2), "summed": d / "summed.py",
+            "pipeline": write_pipeline(d, curve=4, around=4, work=0)}
+
+
+@pytest.fixture(scope="module")
+def refs(defs, tmp_path_factory):
+    """Uninterrupted runs of each definition: their store digests."""
+    d = tmp_path_factory.mktemp("refs")
+    out = {}
+    for name, path in defs.items():
+        run(path, d / f"{name}.zarr", workers=0, quiet=True)
+        out[name] = store_digest(d / f"{name}.zarr")
+    return out
+
+
+def _same(store, ref):
+    got = store_digest(store)
+    assert [k for k in sorted(set(got) | set(ref)) if got.get(k) != ref.get(k)] == []
+
+
+# -- 1. a task an earlier run left running never writes into the store that replaced it ----------------------
+def test_a_block_of_another_study_definition_is_refused_and_the_store_untouched(defs, tmp_path):
+    """What an orphaned task of a killed run does when its block is done: run_block with the earlier
+    definition (other --set values) against the store an --overwrite run made since."""
+    store = tmp_path / "s.zarr"
+    run(defs["study"], store, workers=0, quiet=True, overrides={"work": 3})
+    before = store_digest(store)
+    source = defs["study"].read_text()
+    with pytest.raises(StaleWrite, match="no longer holds the study this block was computed for"):
+        run_block(str(store), source, {"work": 2}, (1, 0))
+    assert store_digest(store) == before and integrity.verify(store).ok
+    # the store's own study still writes (the same bytes: idempotent)
+    run_block(str(store), source, {"work": 3}, (1, 0))
+    assert store_digest(store) == before
+
+
+def test_a_store_replaced_between_a_blocks_data_and_its_flag_gets_no_flag(defs, tmp_path, monkeypatch):
+    """The study hash is checked again right before the flag: a store replaced while the block wrote
+    its data never gets the flag that would vouch for them."""
+    store = tmp_path / "s.zarr"
+    run(defs["study"], store, workers=0, quiet=True)
+    clear_flag(store, (0, 1))
+    checksum = integrity.block_checksum
+
+    def replaced_meanwhile(outputs, index):  # another study's store is there once the block's data are in
+        meta = json.loads((store / "zarr.json").read_text())
+        meta["attributes"]["study_hash"] = "0" * 64
+        (store / "zarr.json").write_text(json.dumps(meta))
+        return checksum(outputs, index)
+
+    monkeypatch.setattr(integrity, "block_checksum", replaced_meanwhile)
+    with pytest.raises(StaleWrite):
+        run_block(str(store), defs["study"].read_text(), {}, (0, 1))
+    assert not flags(store)[0, 1]
+
+
+def test_a_stage_block_of_another_pipeline_definition_is_refused(defs, tmp_path):
+    store = tmp_path / "p.zarr"
+    run(defs["pipeline"], store, workers=0, quiet=True, overrides={"work": 1})
+    before = store_digest(store)
+    pipeline, source, key = load_definition(defs["pipeline"])  # the earlier definition: work = 0
+    _, shash = stage_study(pipeline, key, store, "curve")
+    with pytest.raises(StaleWrite, match=r"\(stage curve\) no longer holds"):
+        run_stage_block(str(store), source, {}, "curve", shash, (0, 1))
+    assert store_digest(store) == before
+
+
+# -- 2. finalisation: `finished` never lands without the summary ---------------------------------------------
+AFTER_FINISHED = '''
+import zarr
+orig = zarr.Group.update_attributes
+def update_attributes(self, new_attributes):
+    out = orig(self, new_attributes)
+    if self.path == GROUP and new_attributes.get("finished"):
+        die(f"after the first write of finished in group {self.path!r}")
+    return out
+zarr.Group.update_attributes = update_attributes
+'''
+
+
+@pytest.mark.parametrize("name, group", [("summed", ""), ("pipeline", "curve")])
+def test_a_kill_in_the_finalisation_leaves_the_summary_with_finished(defs, refs, tmp_path, name, group):
+    """Killed right after the first attribute write that sets `finished` (store root or stage group): the
+    summary was written with it, so the resume (the next stage reads it) ends identical."""
+    store = tmp_path / "s.zarr"
+    _killed(tmp_path, AFTER_FINISHED.replace("GROUP", repr(group)), [defs[name], "--store", store])
+    attrs = read_attrs(store, group or None)
+    assert attrs.get("finished") and attrs.get("summary_keys")
+    run(defs[name], store, workers=0, quiet=True)
+    _same(store, refs[name])
+
+
+# -- 3, 7. a kill while the store or a stage group is created ------------------------------------------------
+AT_CREATION = '''
+import zarr
+orig = zarr.Group.update_attributes
+def update_attributes(self, new_attributes):
+    if self.path == GROUP and "format" in new_attributes and "format" not in self.attrs:
+        die(f"while creating group {self.path!r}")
+    return orig(self, new_attributes)
+zarr.Group.update_attributes = update_attributes
+'''
+
+# the first metadata write of the root: zarr's temporary zarr.<hex>.partial is there, zarr.json not yet
+AT_FIRST_RENAME = '''
+import pathlib
+orig = pathlib.Path.replace
+def replace(self, target):
+    target = pathlib.Path(target)
+    if self.name.startswith("zarr.") and self.name.endswith(".partial") and self.parent.name.endswith(".zarr") \\
+            and not target.exists():
+        die(f"before renaming {self.name}")
+    return orig(self, target)
+pathlib.Path.replace = replace
+'''
+
+
+# the stage's (or store's) arrays are there, its flag array not yet
+AT_FLAGS = '''
+import zarr
+orig = zarr.Group.create_array
+def create_array(self, name, **kw):
+    if name == "block_done" and self.path == (GROUP + "/_tubeid").lstrip("/"):
+        die(f"before creating the flags of group {GROUP!r}")
+    return orig(self, name, **kw)
+zarr.Group.create_array = create_array
+'''
+
+
+@pytest.mark.parametrize("name, point, group, verify", [
+    ("study", AT_FLAGS, "", False), ("pipeline", AT_FLAGS, "around", False),
+    ("study", AT_CREATION, "", True), ("study", AT_CREATION, "", False), ("study", AT_FIRST_RENAME, "", False),
+    ("pipeline", AT_FIRST_RENAME, "", True), ("pipeline", AT_CREATION, "curve", False),
+    ("pipeline", AT_CREATION, "around", True)])
+def test_a_kill_while_creating_the_store_or_a_stage_is_resumed(defs, refs, tmp_path, name, point, group, verify):
+    """The group's zarr.json (or only zarr's temporary file) is there without tubeid's attributes: the
+    rerun recognises its own interrupted creation (the manifest lists the group, no block was written)
+    and makes it again, also with --no-verify."""
+    store = tmp_path / "s.zarr"
+    _killed(tmp_path, point.replace("GROUP", repr(group)), [defs[name], "--store", store])
+    run(defs[name], store, workers=0, quiet=True, verify_blocks=verify)
+    _same(store, refs[name])
+
+
+@pytest.mark.parametrize("loss, says", [("attributes", "is not a tubeid study store"),
+                                        ("zarr.json", "its root metadata \\(zarr.json\\) is missing, yet it holds blocks")])
+def test_a_store_whose_root_metadata_was_lost_is_not_taken_for_an_interrupted_creation(defs, tmp_path, loss, says):
+    """Finished blocks (flags) in it: the root's provenance is gone, not yet to be written (damage, or an
+    --overwrite stopped while removing the store); refused, nothing deleted."""
+    store = tmp_path / "s.zarr"
+    run(defs["study"], store, workers=0, quiet=True)
+    if loss == "zarr.json":
+        (store / "zarr.json").unlink()
+    else:
+        meta = json.loads((store / "zarr.json").read_text())
+        meta["attributes"] = {}
+        (store / "zarr.json").write_text(json.dumps(meta))
+    before = {f: f.read_bytes() for f in store.rglob("*") if f.is_file()}
+    with pytest.raises(SpecificationError, match=says):
+        run(defs["study"], store, workers=0, quiet=True)
+    assert {f: f.read_bytes() for f in store.rglob("*") if f.is_file()} == before
+
+
+def test_a_users_group_in_place_of_a_stage_is_not_taken_for_tubeids(defs, tmp_path):
+    import zarr
+
+    store = tmp_path / "p.zarr"
+    run(defs["pipeline"], store, workers=0, quiet=True)
+    shutil.rmtree(store / "final")
+    manifest = json.loads((store / ".tubeid-manifest.json").read_text())
+    manifest["nodes"] = {n: k for n, k in manifest["nodes"].items() if n != "final" and not n.startswith("final/")}
+    (store / ".tubeid-manifest.json").write_text(json.dumps(manifest))
+    zarr.open_group(str(store / "final"), mode="w", zarr_format=3).create_array("mine", shape=(2,), dtype="f8")[:] = 1.0
+    before = {f: f.read_bytes() for f in (store / "final").rglob("*") if f.is_file()}
+    with pytest.raises(SpecificationError, match="without stage provenance"):
+        run(defs["pipeline"], store, workers=0, quiet=True)
+    assert {f: f.read_bytes() for f in (store / "final").rglob("*") if f.is_file()} == before
+
+
+def test_no_verify_on_a_store_without_its_flags_is_one_line(defs, tmp_path, capsys):
+    """The flag array missing (damage; or an earlier tubeid, which wrote the attributes first, killed while
+    creating it): --no-verify refuses in one line (no KeyError traceback); a verifying run repairs it."""
+    store = tmp_path / "s.zarr"
+    run(defs["study"], store, workers=0, quiet=True)
+    shutil.rmtree(store / "_tubeid")
+    rc, err = _cli([defs["study"], "--store", store, "--no-verify"], capsys)
+    assert rc == 2 and len(err.strip().splitlines()) == 1 and "has no block flags" in err and "Traceback" not in err
+    assert run(defs["study"], store, workers=0, quiet=True).computed == 4
+
+
+# -- 4. a store path that is a symbolic link -------------------------------------------------------------------
+@pytest.mark.parametrize("target", ["directory", "dangling"])
+@pytest.mark.parametrize("extra", [[], ["--overwrite"]])
+def test_a_store_path_that_is_a_symbolic_link_is_refused(defs, refs, tmp_path, capsys, target, extra):
+    real = tmp_path / "real.zarr"
+    if target == "directory":
+        run(defs["study"], real, workers=0, quiet=True)
+    link = tmp_path / "link.zarr"
+    link.symlink_to(real)
+    before = {f: f.read_bytes() for f in tmp_path.rglob("*") if f.is_file()}
+    rc, err = _cli([defs["study"], "--store", link, "--set", "work=3", *extra], capsys)
+    assert rc == 2 and len(err.strip().splitlines()) == 1 and f"{link}" in err and "symbolic link" in err
+    assert {f: f.read_bytes() for f in tmp_path.rglob("*") if f.is_file()} == before
+    assert real.exists() == (target == "directory") and link.is_symlink()
+
+
+# -- 5. a kill between finishing a stage and recording it at the root -------------------------------------------
+BEFORE_STAGE_STATE = '''
+import tubeid.runner.execute as ex
+orig = ex._stage_state
+def _stage_state(path, name, state):
+    if name == STAGE and state == "complete":
+        die(f"before recording stage {name} complete at the root")
+    return orig(path, name, state)
+ex._stage_state = _stage_state
+'''
+
+
+@pytest.mark.parametrize("stage", ["curve", "final"])
+def test_a_stage_finished_but_not_recorded_at_the_root_is_recorded_by_the_resume(defs, refs, tmp_path, stage):
+    """A middle stage (the resume goes on with the next) and the last one (the resume finds the pipeline
+    complete): the root's stage_status ends "complete", as in an uninterrupted run."""
+    store = tmp_path / "p.zarr"
+    _killed(tmp_path, BEFORE_STAGE_STATE.replace("STAGE", repr(stage)), [defs["pipeline"], "--store", store])
+    assert read_attrs(store)["stage_status"][stage] == "running" and store_status(store, stage)["complete"]
+    run(defs["pipeline"], store, workers=0, quiet=True)
+    assert set(read_attrs(store)["stage_status"].values()) == {"complete"}
+    _same(store, refs["pipeline"])
+
+
+# -- 6. a kill before the last consolidation of the metadata ----------------------------------------------------
+BEFORE_CONSOLIDATION = '''
+import json, pathlib
+import zarr
+orig = zarr.consolidate_metadata
+def consolidate_metadata(store, *a, **kw):
+    attrs = json.loads((pathlib.Path(str(store)) / "zarr.json").read_text()).get("attributes", {})
+    last = attrs.get("history", "").splitlines()[-1].split(": ", 1)[-1]  # "<time> tubeid <version>: <what>"
+    if not kw.get("path") and attrs.get("finished") and last.startswith("complete"):
+        die("before consolidating the root metadata")
+    return orig(store, *a, **kw)
+zarr.consolidate_metadata = consolidate_metadata
+'''
+
+
+@pytest.mark.parametrize("name", ["summed", "pipeline"])
+def test_a_kill_before_the_last_consolidation_is_consolidated_by_the_resume(defs, refs, tmp_path, name):
+    store = tmp_path / "s.zarr"
+    _killed(tmp_path, BEFORE_CONSOLIDATION, [defs[name], "--store", store])
+    assert "consolidated_metadata" not in json.loads((store / "zarr.json").read_text())
+    run(defs[name], store, workers=0, quiet=True)
+    assert json.loads((store / "zarr.json").read_text()).get("consolidated_metadata")
+    _same(store, refs[name])
+
+
+# -- 8. a full disk (or quota, read-only file system, permissions) while the store is created ------------------
+@pytest.mark.parametrize("code", ["ENOSPC", "EDQUOT", "EFBIG", "EROFS", "EACCES"])
+def test_a_write_the_file_system_refuses_is_named_as_such_and_the_store_resumes(defs, refs, tmp_path, monkeypatch, code):
+    from zarr.storage import _local
+
+    store = tmp_path / "s.zarr"
+    number = getattr(errno, code)
+    put = _local._put
+
+    def refusing(path, value, *a, **kw):  # the root's attributes (its provenance) do not fit
+        if pathlib.Path(path) == store / "zarr.json" and b"study_hash" in bytes(value.as_buffer_like()):
+            raise OSError(number, os.strerror(number))
+        return put(path, value, *a, **kw)
+
+    monkeypatch.setattr(_local, "_put", refusing)
+    with pytest.raises(SpecificationError) as exc:
+        run(defs["study"], store, workers=0, quiet=True)
+    assert f"cannot write {store}: {os.strerror(number)}" in str(exc.value) and "did not write" not in str(exc.value)
+    monkeypatch.setattr(_local, "_put", put)
+    run(defs["study"], store, workers=0, quiet=True)
+    _same(store, refs["study"])
+
+
+def _small_files():
+    """In the child: files may not grow beyond 2 KiB (the root's provenance is larger): EFBIG, signal ignored."""
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (2048, 2048))
+
+
+def test_a_real_file_size_limit_is_one_line_and_the_store_resumes(defs, refs, tmp_path):
+    store = tmp_path / "s.zarr"
+    proc = subprocess.run([sys.executable, "-m", "tubeid.runner.cli", "run", str(defs["study"]), "--store", str(store),
+                           "--workers", "0", "--no-progress"], env=_env(), capture_output=True, text=True, timeout=120,
+                          preexec_fn=_small_files)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().splitlines() == [proc.stderr.strip()] and os.strerror(errno.EFBIG) in proc.stderr
+    assert "cannot write" in proc.stderr and "did not write" not in proc.stderr
+    run(defs["study"], store, workers=0, quiet=True)
+    _same(store, refs["study"])
