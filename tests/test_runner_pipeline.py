@@ -613,8 +613,13 @@ study = Pipeline(name="shipped", seed=5, stages=[first, second], parameters={{"k
 
 @pytest.mark.distributed
 @pytest.mark.timeout(180)
-@pytest.mark.parametrize("task, calls", [("_values", "once"), ("lambda block, rng, *, scale: _values(block, rng, scale=scale)",
-                                                                 "per process")])
+@pytest.mark.parametrize("task, calls", [
+    ("_values", "once"),
+    ("lambda block, rng, *, scale: _values(block, rng, scale=scale)", "per process"),
+    # a task whose pickling raises something else than a PicklingError (as a netCDF4 Dataset does)
+    ("type('NoPickle', (), {'__reduce__': lambda self: (_ for _ in ()).throw(NotImplementedError('no')), "
+     "'__call__': lambda self, block, rng, *, scale: _values(block, rng, scale=scale)})()", "per process"),
+])
 def test_the_workers_get_the_runners_stage_instead_of_building_it_again(tmp_path, task, calls):
     """The runner builds a stage once and sends it with its blocks: the stage function (which may
     be an identification from earlier results) runs in the runner only. A stage that cannot be

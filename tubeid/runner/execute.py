@@ -5,7 +5,7 @@ checked before any task is submitted (for a pipeline stage built from earlier re
 that stage's tasks). Tasks are idempotent (a block always writes the same bytes to the same
 chunks, its flag last), so a rescheduled task after a worker death, a concurrent duplicate or a
 resumed run cannot change the result. A pipeline runs its stages in order on the same cluster; the
-runner builds each stage once and sends it to the workers with its blocks (``stage_payload``); a
+runner builds each stage once and sends it to every worker once (``stage_payload``); a
 stage that cannot be sent that way (e.g. a task that is a lambda) is rebuilt by each worker from the
 pipeline source and the earlier stages' stored results (once per process), which checks that it gets
 the stage hash the client computed. As soon as the cluster runs,
@@ -231,7 +231,7 @@ def stage_payload(study) -> tuple[bytes, str] | None:
 
     try:
         return pickle.dumps(study, protocol=pickle.HIGHEST_PROTOCOL), study.fingerprint()
-    except (pickle.PicklingError, AttributeError, TypeError, ValueError):
+    except Exception:  # PicklingError, a lambda's AttributeError, RecursionError, a __reduce__ that raises...
         return None
 
 
@@ -1035,8 +1035,7 @@ def _run_stage(ctx: _Run, name: str, client) -> RunReport | None:
     report.skipped = study.n_blocks - len(todo)
     _log(f"tubeid: stage {name}: {len(todo)} of {study.n_blocks} blocks to compute", quiet)
     report.prepare = time.perf_counter() - t0
-    fn = functools.partial(run_stage_block, str(path), ctx.source, ctx.overrides, name, shash,
-                           payload=stage_payload(study) if todo and client is not None and not study.in_process else None)
+    fn = functools.partial(run_stage_block, str(path), ctx.source, ctx.overrides, name, shash)
     if todo:
         report.warmup = _warm_up(client, study.warmup, quiet)
     if client is None or study.in_process:
@@ -1044,8 +1043,17 @@ def _run_stage(ctx: _Run, name: str, client) -> RunReport | None:
                   label=functools.partial(_block_label, study, stage=name))
     else:
         report.workers = len(client.scheduler_info(n_workers=-1)["workers"])
-        _run_dask(client, fn, f"tubeid-{shash[:10]}-{name}", todo, report, ctx.progress, desc=name, lock=ctx.lock,
-                  label=functools.partial(_block_label, study, stage=name))
+        payload = stage_payload(study) if todo else None
+        # sent once to every worker, not with every block (a stage with large axes is megabytes)
+        sent = client.scatter([payload], broadcast=True, hash=False)[0] if payload is not None else None
+        try:
+            _run_dask(client, fn, f"tubeid-{shash[:10]}-{name}", todo, report, ctx.progress, desc=name, lock=ctx.lock,
+                      label=functools.partial(_block_label, study, stage=name),
+                      kwargs={"payload": sent} if sent is not None else None)
+        finally:
+            if sent is not None:
+                with contextlib.suppress(Exception):  # a client already gone: nothing left to release
+                    sent.release()
     t0 = time.perf_counter()
     if not block_flags(path, name).all():
         raise RuntimeError(f"{path}: stage {name} ended with unfinished blocks")  # should not happen
@@ -1115,12 +1123,14 @@ def _describe_cluster(client, where, report, quiet):
     _log(f"tubeid: running on {where}" + (f"; dashboard {link}" if link else ""), quiet)
 
 
-def _run_dask(client, fn, prefix, todo, report, progress, desc=None, lock=None, label=lambda index: f"block {index}"):
-    """Submit ``fn(index)`` for every block index (task key ``<prefix>-block-<index>``) and wait for all."""
+def _run_dask(client, fn, prefix, todo, report, progress, desc=None, lock=None, label=lambda index: f"block {index}",
+              kwargs=None):
+    """Submit ``fn(index, **kwargs)`` for every block index (task key ``<prefix>-block-<index>``) and wait
+    for all (a future in ``kwargs`` reaches ``fn`` as its value)."""
     from distributed import as_completed
 
     t1 = time.perf_counter()
-    futures = [client.submit(fn, index, pure=False, key=f"{prefix}-block-{'-'.join(map(str, index))}")
+    futures = [client.submit(fn, index, pure=False, key=f"{prefix}-block-{'-'.join(map(str, index))}", **(kwargs or {}))
                for index in todo]
     index_of = {fut.key: index for fut, index in zip(futures, todo)}
     try:
