@@ -30,6 +30,17 @@ study = Study(name="exits", seed=1, axes={{"realisation": range(4)}}, chunks={{"
 '''
 
 
+def _run_logging_study(tmp_path, workers: int) -> int:
+    """`tubeid run` of STUDY (each process that loads it writes 40 buffered bytes to log.<pid>); its pid."""
+    (tmp_path / "exits.py").write_text(STUDY.format(path=str(tmp_path / "log")))
+    proc = subprocess.Popen([sys.executable, "-m", "tubeid", "run", str(tmp_path / "exits.py"), "--store",
+                             str(tmp_path / "s.zarr"), "--workers", str(workers), "--no-progress"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    _, err = proc.communicate(timeout=110)
+    assert proc.returncode == 0, err
+    return proc.pid
+
+
 @pytest.mark.distributed
 @pytest.mark.timeout(180)
 def test_what_a_study_leaves_open_in_a_worker_is_still_flushed_at_exit(tmp_path):
@@ -38,15 +49,9 @@ def test_what_a_study_leaves_open_in_a_worker_is_still_flushed_at_exit(tmp_path)
     buffered file of 40 bytes reaches the disk in every worker that loaded the study). (The runner
     process itself does not finalise such a cycle at exit after an embedded cluster, before and after
     the freeze: Python does not promise it; a file the study closes, or one not in a cycle, is written.)"""
-    log = tmp_path / "log"
-    (tmp_path / "exits.py").write_text(STUDY.format(path=str(log)))
-    proc = subprocess.Popen([sys.executable, "-m", "tubeid", "run", str(tmp_path / "exits.py"), "--store",
-                             str(tmp_path / "s.zarr"), "--workers", "2", "--no-progress"], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True)
-    _, err = proc.communicate(timeout=170)
-    assert proc.returncode == 0, err
-    workers = [f for f in tmp_path.glob("log.*") if f.suffix != f".{proc.pid}"]
-    assert len(workers) >= 1 and (tmp_path / f"log.{proc.pid}").exists(), sorted(tmp_path.glob("log.*"))
+    pid = _run_logging_study(tmp_path, workers=2)
+    workers = [f for f in tmp_path.glob("log.*") if f.suffix != f".{pid}"]
+    assert len(workers) >= 1 and (tmp_path / f"log.{pid}").exists(), sorted(tmp_path.glob("log.*"))
     assert [f.stat().st_size for f in workers] == [40] * len(workers), [(f.name, f.stat().st_size) for f in workers]
 
 
@@ -102,11 +107,5 @@ def test_what_a_study_leaves_open_in_the_runner_is_still_flushed_at_exit(tmp_pat
     imports (``gc.freeze`` before the study is loaded, as the workers do) was tried and fails this:
     the frozen modules of tubeid's runner come to hold the study, and frozen objects are never
     collected."""
-    log = tmp_path / "log"
-    (tmp_path / "exits.py").write_text(STUDY.format(path=str(log)))
-    proc = subprocess.Popen([sys.executable, "-m", "tubeid", "run", str(tmp_path / "exits.py"), "--store",
-                             str(tmp_path / "s.zarr"), "--workers", "0", "--no-progress"], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True)
-    _, err = proc.communicate(timeout=110)
-    assert proc.returncode == 0, err
-    assert (tmp_path / f"log.{proc.pid}").stat().st_size == 40
+    pid = _run_logging_study(tmp_path, workers=0)
+    assert (tmp_path / f"log.{pid}").stat().st_size == 40
