@@ -712,3 +712,16 @@ def test_a_failing_task_on_workers_names_its_block(tmp_path):
     (tmp_path / "fail-here").touch()
     with pytest.raises(BlockFailed, match=r"block \(1,\) \(r = 2 … 3\) failed: ZeroDivisionError"):
         run(path, tmp_path / "failing.zarr", workers=2, quiet=True, overrides={"marker": str(tmp_path / "fail-here")})
+
+
+def test_a_setting_is_named_with_the_variable_that_sets_it():
+    """Refusals name a setting with its environment variable: that variable must set that setting."""
+    import re
+
+    from tubeid import config
+
+    for key in ("runner.workers", "runner.lock-heartbeat", "runner.threads-per-worker", "io.max-bytes"):
+        name = config.setting_name(key)
+        variable = re.fullmatch(rf"tubeid\.{re.escape(key)} \((TUBEID_[A-Z_]+)\)", name).group(1)
+        section, _, leaf = key.partition(".")
+        assert config.collect_env({variable: "7"}) == {"tubeid": {section: {leaf: 7}}}

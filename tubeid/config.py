@@ -17,7 +17,7 @@ from typing import Any
 import dask.config
 import yaml
 
-__all__ = ["get", "refresh", "collect_env", "DEFAULTS_PATH"]
+__all__ = ["get", "refresh", "collect_env", "setting_name", "DEFAULTS_PATH"]
 
 DEFAULTS_PATH = pathlib.Path(__file__).with_name("tubeid.yaml")
 _PREFIX = "TUBEID_"
@@ -78,6 +78,12 @@ def get(key: str, default: Any = None) -> Any:
         The configured value.
     """
     return dask.config.get("tubeid." + key, default=default)
+
+
+def setting_name(key: str) -> str:
+    """How a refusal names the setting ``tubeid.<key>``: with the environment variable that sets it,
+    ``"tubeid.runner.workers (TUBEID_RUNNER__WORKERS)"`` (the inverse of :func:`collect_env`'s rule)."""
+    return f"tubeid.{key} ({_PREFIX}{key.upper().replace('.', '__').replace('-', '_')})"
 
 
 refresh()

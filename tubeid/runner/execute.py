@@ -437,7 +437,7 @@ def _embedded_settings(workers: int | None) -> tuple[int, int, str, str]:
     from tubeid._validation import integer
 
     def named(key):
-        return f"tubeid.runner.{key} (TUBEID_RUNNER__{key.upper().replace('-', '_')})"
+        return config.setting_name(f"runner.{key}")
 
     n = workers
     if not n:

@@ -76,8 +76,7 @@ def _seconds(key: str, default: float) -> float:
     except (KeyError, ValueError, TypeError, AttributeError, OverflowError):  # dask's errors for what it cannot parse
         seconds = None
     if seconds is None or not math.isfinite(seconds) or seconds <= 0:
-        section, _, name = key.partition(".")
-        raise SpecificationError(f"tubeid.{key} (TUBEID_{section.upper()}__{name.upper().replace('-', '_')})", value,
+        raise SpecificationError(config.setting_name(key), value,
                                  "must be a duration > 0, e.g. 10s (a bare number is seconds)")
     return seconds
 
@@ -87,7 +86,9 @@ def lock_settings() -> tuple[float, float]:
     ``lock-stale-after``, else other hosts would take a live run's lock over)."""
     heartbeat, stale_after = _seconds("runner.lock-heartbeat", 10), _seconds("runner.lock-stale-after", 60)
     if heartbeat >= stale_after:
-        raise SpecificationError("tubeid.runner.lock-heartbeat (TUBEID_RUNNER__LOCK_HEARTBEAT)", f"{heartbeat:g} s",
+        from tubeid import config
+
+        raise SpecificationError(config.setting_name("runner.lock-heartbeat"), f"{heartbeat:g} s",
                                  f"must be shorter than tubeid.runner.lock-stale-after = {stale_after:g} s (a lock "
                                  "without heartbeat for that long is taken over by another runner)")
     return heartbeat, stale_after
