@@ -32,8 +32,12 @@ __all__ = ["distance", "cubic_min", "hermite_flag", "cubic_first_root", "segment
 
 _PIECES = 8  # exact rescan of a segment on this many pieces
 
+# The scalar helpers below are inlined by LLVM (``forceinline``: the same instructions, so the same
+# values) into the main loop, which calls them per pre-checked sub-step and per crossing search;
+# ``evaluate`` stays a call (inlined at its several call sites it made the kernel slower).
 
-@numba.njit(cache=True)
+
+@numba.njit(cache=True, forceinline=True)
 def distance(code, side, g, u, ud, udd):
     """Distance to a boundary (>= 0 inside the current regime) and its two time derivatives.
 
@@ -49,7 +53,7 @@ def distance(code, side, g, u, ud, udd):
     return -g - u, -ud, -udd
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, forceinline=True)
 def cubic_min(d0, dd0, d1, dd1, sigma):
     """Interior minimum (s in (0, 1), value) of the cubic Hermite interpolant of (d, d') given at
     both ends of a segment of length sigma; s = -1 if none."""
@@ -81,7 +85,7 @@ def cubic_min(d0, dd0, d1, dd1, sigma):
     return best_s, best_v
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, forceinline=True)
 def hermite_flag(d0, dd0, d1, dd1, sigma, margin):
     """True if the distance may come within ``margin`` of the boundary (or cross it) in the segment."""
     if d1 < 0:
@@ -93,7 +97,7 @@ def hermite_flag(d0, dd0, d1, dd1, sigma, margin):
     return s >= 0 and v < margin
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, forceinline=True)
 def cubic_first_root(d0, dd0, d1, dd1, sigma, smax):
     """First s in (0, smax] where the cubic Hermite interpolant becomes negative (-1 if none): a
     Newton guess. If the cubic is monotone on [0, smax] and changes sign, its only root is refined
