@@ -113,6 +113,57 @@ def test_racers_for_a_stale_lock_have_exactly_one_winner(tmp_path, breaker):
         assert not list(store.glob(f"{LOCK_NAME}.break-*")), "break files left behind"
 
 
+KILLED_TAKING_THE_LOCK = """
+import os, sys
+from tubeid.runner import lock
+os.link = lambda *a: os._exit(9)  # killed between writing its private file and linking it to the lock name
+lock.StoreLock(sys.argv[1]).acquire()
+"""
+
+
+def test_a_runner_killed_while_taking_the_lock_leaves_nothing_after_the_next_run(tmp_path):
+    """A real process killed between its private file and the link: the next holder removes the file,
+    and only the files it can prove are such leftovers of a dead process (name, complete record, token)."""
+    store = tmp_path / "s.zarr"
+    store.mkdir()
+    killed = subprocess.run([sys.executable, "-c", KILLED_TAKING_THE_LOCK, str(store)], capture_output=True, text=True)
+    assert killed.returncode == 9, killed.stderr
+    left = [f.name for f in store.iterdir()]
+    assert len(left) == 1 and left[0].startswith(f"{LOCK_NAME}.tmp-"), left
+    token = read_lock(store / left[0])["token"]
+    # look-alikes that prove nothing: a live process's private file, a token that is not the name's,
+    # an empty one (killed before its record was written), a user's file, a link to a dead record
+    _write_record(store, name=f"{LOCK_NAME}.tmp-{'a' * 24}", token="a" * 24)  # this process: alive
+    _write_record(store, name=f"{LOCK_NAME}.tmp-{'b' * 24}", token="c" * 24, pid=_dead_pid())
+    (store / f"{LOCK_NAME}.tmp-{'d' * 24}").write_bytes(b"")
+    _write_record(store, name=f"{LOCK_NAME}.tmp-notes", token="notes", pid=_dead_pid())
+    _write_record(tmp_path, name="elsewhere", token="e" * 24, pid=_dead_pid())
+    (store / f"{LOCK_NAME}.tmp-{'e' * 24}").symlink_to(tmp_path / "elsewhere")
+    kept = sorted(f.name for f in store.iterdir() if f.name != left[0])
+    logged = []
+    with StoreLock(store, log=logged.append):
+        assert sorted(f.name for f in store.iterdir() if f.name != LOCK_NAME) == kept
+    assert len(logged) == 1 and f"removed 1 file(s)" in logged[0] and token in logged[0]
+    assert (tmp_path / "elsewhere").exists()
+
+
+def test_a_break_file_of_a_dead_breaker_is_removed_unless_it_breaks_the_current_lock(tmp_path):
+    store = tmp_path / "s.zarr"
+    gone = _write_record(store, name=f"{LOCK_NAME}.break-{'1' * 24}", pid=_dead_pid())  # its lock is long gone
+    nested = f"{LOCK_NAME}.break-{'2' * 24}.break-{gone['token']}-1"
+    _write_record(store, name=nested, token=f"{'3' * 24}-1", pid=_dead_pid())
+    breaker_tmp = f"{LOCK_NAME}.break-{'4' * 24}.tmp-{'5' * 24}-0"
+    _write_record(store, name=breaker_tmp, token=f"{'5' * 24}-0", pid=_dead_pid())
+    live = _write_record(store, name=f"{LOCK_NAME}.break-{'6' * 24}")  # a live breaker (this process)
+    with StoreLock(store) as held:
+        names = sorted(f.name for f in store.iterdir())
+        assert names == sorted([LOCK_NAME, f"{LOCK_NAME}.break-{'6' * 24}"]), names
+        # a break file of the lock now held is someone's take-over in progress: never a leftover
+        _write_record(store, name=f"{LOCK_NAME}.break-{held.record['token']}", pid=_dead_pid())
+        assert lockmod.remove_leftovers(store, held.record["token"]) == []
+    assert live["pid"] == os.getpid()
+
+
 def test_a_lock_from_another_host_needs_a_stale_heartbeat(tmp_path):
     import dask.config
 

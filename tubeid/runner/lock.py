@@ -27,6 +27,13 @@ its break file and retries the normal exclusive create, which only one runner ca
 instance never comes back once removed, so the check-then-remove cannot remove a newer lock. A
 break file left by a breaker that died is itself broken the same way (its own token).
 
+**Leftovers of a killed runner.** A runner killed while taking the lock or breaking a stale one
+leaves its private file (``.tubeid-lock.tmp-<token>``) or its break file (``.tubeid-lock.break-T``,
+and their own ``.tmp-`` files). Whoever takes the lock next removes those it can prove are such
+leftovers: the name has that form, the file holds a complete lock record (for a private file, with
+the token its name carries) and that record's process is dead (judged as a lock holder is, above).
+An empty or unreadable one, one of a live process and a break file of the current lock are left.
+
 **What it relies on (shared file systems).** Atomic exclusive creation: ``link(2)`` is atomic on
 every NFS version and on Lustre, GPFS, CephFS and local file systems; ``O_EXCL`` is atomic on NFSv3
 and later (not NFSv2). No ``flock``/``fcntl`` locks are used (they depend on mount options such as
@@ -43,6 +50,7 @@ import datetime
 import json
 import os
 import pathlib
+import re
 import secrets
 import socket
 import threading
@@ -50,7 +58,8 @@ import time
 
 from tubeid.errors import SpecificationError
 
-__all__ = ["StoreLock", "LOCK_NAME", "read_lock", "describe_holder", "holder_state", "LockLost", "lock_settings"]
+__all__ = ["StoreLock", "LOCK_NAME", "read_lock", "describe_holder", "holder_state", "LockLost", "lock_settings",
+           "remove_leftovers"]
 
 LOCK_NAME = ".tubeid-lock"
 _MAX_BREAK_DEPTH = 3
@@ -244,6 +253,39 @@ def _break(path: pathlib.Path, rec: dict, me: dict, depth: int = 0) -> None:
             os.unlink(brk)
 
 
+_TOKEN = r"[0-9a-f]{24}(?:-\d+)?"  # a record's token (a breaker's: its own token and depth)
+#: a private file of an exclusive create (of the lock or of a break file): its token is the record's
+_LEFTOVER_TMP = re.compile(re.escape(LOCK_NAME) + rf"(?:\.break-{_TOKEN})*\.tmp-({_TOKEN})")
+#: a break file (of the lock instance T, or of another break file)
+_LEFTOVER_BREAK = re.compile(re.escape(LOCK_NAME) + rf"\.break-({_TOKEN})(?:\.break-{_TOKEN})*")
+
+
+def remove_leftovers(store: pathlib.Path, current_token: str) -> list[str]:
+    """Remove what runners killed while taking or breaking the lock of ``store`` left (see the module
+    docstring), by the holder of the lock with token ``current_token``; returns the names removed."""
+    removed = []
+    try:
+        entries = list(os.scandir(store))
+    except OSError:
+        return removed
+    for entry in entries:
+        name = entry.name
+        tmp, brk = _LEFTOVER_TMP.fullmatch(name), _LEFTOVER_BREAK.fullmatch(name)
+        if not (tmp or brk) or not entry.is_file(follow_symlinks=False):
+            continue
+        if brk and brk.group(1) == current_token:  # someone is breaking this very lock: not a leftover
+            continue
+        path = pathlib.Path(entry.path)
+        rec = read_lock(path)
+        if not rec or (tmp and rec.get("token") != tmp.group(1)) or rec.get("token") == current_token:
+            continue
+        if holder_state(rec, path)[0] == "dead":
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(path)
+                removed.append(name)
+    return sorted(removed)
+
+
 class StoreLock:
     """The lock of one store directory (see the module docstring). Use as a context manager.
 
@@ -282,6 +324,10 @@ class StoreLock:
             if _create_exclusive(self.path, me):
                 self.record = me
                 self._start_heartbeat()
+                left = remove_leftovers(self.store, me["token"])
+                if left:
+                    self.log(f"tubeid: removed {len(left)} file(s) that runners killed while taking this store's "
+                             f"lock left: {', '.join(left)}")
                 return self
             rec = read_lock(self.path)
             if rec is None:
