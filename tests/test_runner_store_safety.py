@@ -228,6 +228,38 @@ def test_a_kill_while_creating_the_store_or_a_stage_is_resumed(defs, refs, tmp_p
     _same(store, refs[name])
 
 
+@pytest.mark.parametrize("name, point", [("study", AT_CREATION), ("study", AT_FIRST_RENAME), ("pipeline", AT_FIRST_RENAME)])
+def test_status_of_a_store_whose_creation_was_killed_says_so(defs, tmp_path, capsys, name, point):
+    """``tubeid status`` on a run's creation killed before its root was written: what it is and what to do
+    (one line), not "not a tubeid store"; while its run holds the lock: in progress."""
+    from tubeid.runner.lock import StoreLock
+
+    store = tmp_path / "s.zarr"
+    _killed(tmp_path, point.replace("GROUP", repr("")), [defs[name], "--store", store])
+    with pytest.raises(SpecificationError, match="stopped before its first block .*`tubeid run` with the same study"):
+        store_status(store)
+    assert cli(["status", str(store)]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "stopped before its first block" in err
+    with StoreLock(store):  # a run that has just taken the lock and is creating the store
+        with pytest.raises(SpecificationError, match=f"being created by a run in progress .*pid {os.getpid()}"):
+            store_status(store)
+    run(defs[name], store, workers=0, quiet=True)  # and a run makes it again
+    assert store_status(store)["complete"] if name == "study" else store_status(store)["stages"]
+
+
+def test_status_of_a_directory_of_other_files_is_still_not_a_store(tmp_path):
+    d = tmp_path / "mine"
+    d.mkdir()
+    (d / "notes.txt").write_text("x")
+    with pytest.raises(SpecificationError, match="is not a readable tubeid study store"):
+        store_status(d)
+    (d / ".tubeid-lock-notes").write_text("x")  # and a look-alike of tubeid's own files
+    (d / "notes.txt").unlink()
+    with pytest.raises(SpecificationError, match="holds only the start"):
+        store_status(d)
+
+
 @pytest.mark.parametrize("loss, says", [("attributes", "is not a tubeid study store"),
                                         ("zarr.json", "its root metadata \\(zarr.json\\) is missing, yet it holds blocks")])
 def test_a_store_whose_root_metadata_was_lost_is_not_taken_for_an_interrupted_creation(defs, tmp_path, loss, says):

@@ -135,6 +135,7 @@ def store_status(path: str | os.PathLike, group: str | None = None) -> dict:
     try:
         root = _attrs(p)
     except Exception as exc:
+        _refuse_if_being_created(p)
         raise SpecificationError("store", str(path), f"is not a readable tubeid study store ({type(exc).__name__}: {exc})") from exc
     if root.get("format") in LEGACY_FORMATS:
         raise SpecificationError("store", str(path), f"was written by an older tubeid (layout {root.get('format')}): "
@@ -149,6 +150,7 @@ def store_status(path: str | os.PathLike, group: str | None = None) -> dict:
         if not (p / group / "zarr.json").exists():
             raise SpecificationError("group", group, f"stage not started yet in {path}")
     elif root.get("format") != FORMAT:
+        _refuse_if_being_created(p)
         raise SpecificationError("store", str(path), "is not a tubeid study store")
     try:
         attrs = _attrs(p, group) if group else root
@@ -169,6 +171,25 @@ def store_status(path: str | os.PathLike, group: str | None = None) -> dict:
     complete = done == total and bool(attrs.get("finished")) and not damaged
     return {"done": done, "total": total, "complete": complete, "attrs": attrs, "lock": read_lock(p / LOCK_NAME),
             "unreadable_flags": bad, "damaged": damaged}
+
+
+def _refuse_if_being_created(p: pathlib.Path) -> None:
+    """Say so when the store ``p`` is a run's creation that has not written its root yet: in progress
+    (its lock's holder alive), or stopped before its first block (``creation_interrupted``, or only
+    tubeid's own files); return otherwise."""
+    from tubeid.runner.lock import LOCK_NAME, describe_holder, holder_state, read_lock
+    from tubeid.runner.store import _own_file, creation_interrupted
+
+    entries = list(p.iterdir())
+    own_only = bool(entries) and not (p / "zarr.json").exists() and all(_own_file(c.name) for c in entries)
+    if not (own_only or creation_interrupted(p)):
+        return
+    rec = read_lock(p / LOCK_NAME)
+    if rec and holder_state(rec, p / LOCK_NAME)[0] == "alive":
+        raise SpecificationError("store", str(p), f"is being created by a run in progress ({describe_holder(rec)}); "
+                                 "it has no block yet")
+    raise SpecificationError("store", str(p), "holds only the start of a run that stopped before its first block (no "
+                             "result): `tubeid run` with the same study makes it again")
 
 
 def pipeline_status(path: str | os.PathLike) -> dict:
