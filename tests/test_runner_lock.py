@@ -137,6 +137,7 @@ def test_a_runner_killed_while_taking_the_lock_leaves_nothing_after_the_next_run
     _write_record(store, name=f"{LOCK_NAME}.tmp-{'b' * 24}", token="c" * 24, pid=_dead_pid())
     (store / f"{LOCK_NAME}.tmp-{'d' * 24}").write_bytes(b"")
     _write_record(store, name=f"{LOCK_NAME}.tmp-notes", token="notes", pid=_dead_pid())
+    _write_record(store, name=f"{LOCK_NAME}.tmp-{'f' * 24}.bak", token="f" * 24, pid=_dead_pid())  # a user's copy
     _write_record(tmp_path, name="elsewhere", token="e" * 24, pid=_dead_pid())
     (store / f"{LOCK_NAME}.tmp-{'e' * 24}").symlink_to(tmp_path / "elsewhere")
     kept = sorted(f.name for f in store.iterdir() if f.name != left[0])
@@ -148,20 +149,55 @@ def test_a_runner_killed_while_taking_the_lock_leaves_nothing_after_the_next_run
 
 
 def test_a_break_file_of_a_dead_breaker_is_removed_unless_it_breaks_the_current_lock(tmp_path):
+    """A breaker's record carries its depth ("<token>-<depth>", depth = the name's breaks - 1); dead ones
+    are removed (on another host: by a stale heartbeat), live ones and any break of the current lock kept."""
     store = tmp_path / "s.zarr"
-    gone = _write_record(store, name=f"{LOCK_NAME}.break-{'1' * 24}", pid=_dead_pid())  # its lock is long gone
-    nested = f"{LOCK_NAME}.break-{'2' * 24}.break-{gone['token']}-1"
+    gone = _write_record(store, name=f"{LOCK_NAME}.break-{'1' * 24}", token=f"{'7' * 24}-0", pid=_dead_pid())
+    nested = f"{LOCK_NAME}.break-{'2' * 24}.break-{gone['token']}"
     _write_record(store, name=nested, token=f"{'3' * 24}-1", pid=_dead_pid())
     breaker_tmp = f"{LOCK_NAME}.break-{'4' * 24}.tmp-{'5' * 24}-0"
     _write_record(store, name=breaker_tmp, token=f"{'5' * 24}-0", pid=_dead_pid())
-    live = _write_record(store, name=f"{LOCK_NAME}.break-{'6' * 24}")  # a live breaker (this process)
+    stale = _write_record(store, name=f"{LOCK_NAME}.break-{'8' * 24}", token=f"{'8' * 24}-0", host="other-host", pid=1)
+    old = time.time() - 90
+    os.utime(store / f"{LOCK_NAME}.break-{'8' * 24}", (old, old))
+    keep = [_write_record(store, name=f"{LOCK_NAME}.break-{'6' * 24}", token=f"{'6' * 24}-0"),  # this process: alive
+            _write_record(store, name=f"{LOCK_NAME}.break-{'9' * 24}", token=f"{'9' * 24}-0", host="other-host", pid=1),
+            _write_record(store, name=f"{LOCK_NAME}.break-{'a' * 24}", token="b" * 24, pid=_dead_pid())]  # no depth
+    assert stale["host"] == "other-host" and keep[0]["pid"] == os.getpid()
     with StoreLock(store) as held:
         names = sorted(f.name for f in store.iterdir())
-        assert names == sorted([LOCK_NAME, f"{LOCK_NAME}.break-{'6' * 24}"]), names
-        # a break file of the lock now held is someone's take-over in progress: never a leftover
-        _write_record(store, name=f"{LOCK_NAME}.break-{held.record['token']}", pid=_dead_pid())
+        assert names == sorted([LOCK_NAME] + [f"{LOCK_NAME}.break-{c * 24}" for c in "69a"]), names
+        # a break of the lock now held, or of its break file, is someone's take-over in progress: never a leftover
+        mine = f"{LOCK_NAME}.break-{held.record['token']}"
+        _write_record(store, name=mine, token=f"{'c' * 24}-0", pid=_dead_pid())
+        _write_record(store, name=f"{mine}.break-{'c' * 24}-0", token=f"{'d' * 24}-1", pid=_dead_pid())
         assert lockmod.remove_leftovers(store, held.record["token"]) == []
-    assert live["pid"] == os.getpid()
+
+
+def test_the_sweep_never_costs_the_run(tmp_path):
+    """A leftover that cannot be removed (a sticky shared directory, another user's file) or a damaged
+    record: left in place, the lock taken and released as usual."""
+    store = tmp_path / "s.zarr"
+    _write_record(store, name=f"{LOCK_NAME}.tmp-{'1' * 24}", token="1" * 24, pid=None)  # damaged: no PID
+    _write_record(store, name=f"{LOCK_NAME}.tmp-{'2' * 24}", token="2" * 24, pid=_dead_pid(), pid_start="x")
+    (store / f"{LOCK_NAME}.tmp-{'3' * 24}").mkdir()  # a directory of that name
+    real = os.unlink
+
+    def refused(path, *a, **k):
+        if str(path).endswith("2" * 24):
+            raise PermissionError(1, "Operation not permitted", str(path))
+        return real(path, *a, **k)
+
+    os.unlink = refused
+    try:
+        with StoreLock(store) as held:
+            assert read_lock(store / LOCK_NAME)["token"] == held.record["token"]
+    finally:
+        os.unlink = real
+    assert not (store / LOCK_NAME).exists()  # released
+    assert sorted(f.name for f in store.iterdir()) == [f"{LOCK_NAME}.tmp-{c * 24}" for c in "123"]
+    with StoreLock(store):  # and, removable now, the dead one goes
+        assert not (store / f"{LOCK_NAME}.tmp-{'2' * 24}").exists()
 
 
 def test_a_lock_from_another_host_needs_a_stale_heartbeat(tmp_path):

@@ -30,9 +30,11 @@ break file left by a breaker that died is itself broken the same way (its own to
 **Leftovers of a killed runner.** A runner killed while taking the lock or breaking a stale one
 leaves its private file (``.tubeid-lock.tmp-<token>``) or its break file (``.tubeid-lock.break-T``,
 and their own ``.tmp-`` files). Whoever takes the lock next removes those it can prove are such
-leftovers: the name has that form, the file holds a complete lock record (for a private file, with
-the token its name carries) and that record's process is dead (judged as a lock holder is, above).
-An empty or unreadable one, one of a live process and a break file of the current lock are left.
+leftovers: the name has that form, the file holds a complete lock record that matches it (a private
+file's record has the token its name carries; a break file's is its breaker's, ``<token>-<depth>``
+with the depth its name's breaks give) and that record's process is dead (judged as a lock holder
+is, above). An empty or unreadable one, one of a live process and a break of the current lock are
+left; a sweep that cannot read, judge or remove a file leaves it and never stops the run.
 
 **What it relies on (shared file systems).** Atomic exclusive creation: ``link(2)`` is atomic on
 every NFS version and on Lustre, GPFS, CephFS and local file systems; ``O_EXCL`` is atomic on NFSv3
@@ -143,7 +145,8 @@ def _me() -> dict:
 
 
 def read_lock(path: pathlib.Path) -> dict | None:
-    """The record of the lock file at ``path``: a dict, ``None`` if there is none, ``{}`` if unreadable."""
+    """The record of the lock file at ``path``: a dict, ``None`` if there is none, ``{}`` if unreadable
+    (not UTF-8 JSON, or without a string ``token`` and an integer ``pid``)."""
     try:
         data = path.read_bytes()
     except FileNotFoundError:
@@ -154,7 +157,9 @@ def read_lock(path: pathlib.Path) -> dict | None:
         rec = json.loads(data.decode("utf-8"))
     except ValueError:  # not UTF-8 (UnicodeDecodeError is a ValueError) or not JSON: damaged
         return {}
-    return rec if isinstance(rec, dict) and "token" in rec else {}
+    ok = (isinstance(rec, dict) and isinstance(rec.get("token"), str)
+          and isinstance(rec.get("pid"), int) and not isinstance(rec.get("pid"), bool))
+    return rec if ok else {}  # a record without its token and PID is damaged: judged as unreadable
 
 
 def _server_age(path: pathlib.Path, token: str) -> float | None:
@@ -184,6 +189,8 @@ def holder_state(rec: dict, path: pathlib.Path) -> tuple[str, str]:
     same_host = rec.get("host") == me["host"] and rec.get("pid_ns") == me["pid_ns"] and rec.get("boot") == me["boot"]
     if same_host:
         start, recorded = _process_start(int(rec.get("pid", -1))), rec.get("pid_start")
+        if not isinstance(recorded, (int, float)) or isinstance(recorded, bool):
+            recorded = None  # not recorded (or damaged): the PID alone decides
         if start is None:
             return "dead", f"process {rec.get('pid')} no longer exists"
         if recorded not in (None, -1.0) and start != -1.0 and abs(start - recorded) > 0.05:
@@ -260,29 +267,44 @@ _LEFTOVER_TMP = re.compile(re.escape(LOCK_NAME) + rf"(?:\.break-{_TOKEN})*\.tmp-
 _LEFTOVER_BREAK = re.compile(re.escape(LOCK_NAME) + rf"\.break-({_TOKEN})(?:\.break-{_TOKEN})*")
 
 
+def _is_leftover(entry: os.DirEntry, current_token: str) -> bool:
+    """Whether the directory entry is provably a leftover (see the module docstring); False when
+    anything about it cannot be read or judged."""
+    name = entry.name
+    tmp, brk = _LEFTOVER_TMP.fullmatch(name), _LEFTOVER_BREAK.fullmatch(name)
+    if not (tmp or brk) or not entry.is_file(follow_symlinks=False):
+        return False
+    if brk and brk.group(1) == current_token:  # someone is breaking this very lock (at any depth): not a leftover
+        return False
+    path = pathlib.Path(entry.path)
+    rec = read_lock(path)
+    if not rec or rec.get("token") == current_token:
+        return False
+    token = str(rec.get("token"))
+    if tmp and token != tmp.group(1):
+        return False
+    # a break file's record is its breaker's: token "<24 hex>-<depth>", depth = its number of breaks - 1
+    if brk and token != f"{token[:24]}-{name.count('.break-') - 1}":
+        return False
+    return holder_state(rec, path)[0] == "dead"
+
+
 def remove_leftovers(store: pathlib.Path, current_token: str) -> list[str]:
     """Remove what runners killed while taking or breaking the lock of ``store`` left (see the module
-    docstring), by the holder of the lock with token ``current_token``; returns the names removed."""
+    docstring), by the holder of the lock with token ``current_token``; returns the names removed.
+    Never raises: an entry that cannot be read, judged or removed is left in place."""
     removed = []
     try:
         entries = list(os.scandir(store))
     except OSError:
         return removed
     for entry in entries:
-        name = entry.name
-        tmp, brk = _LEFTOVER_TMP.fullmatch(name), _LEFTOVER_BREAK.fullmatch(name)
-        if not (tmp or brk) or not entry.is_file(follow_symlinks=False):
+        try:
+            if _is_leftover(entry, current_token):
+                os.unlink(entry.path)
+                removed.append(entry.name)
+        except (OSError, ValueError, TypeError, RecursionError):  # unreadable, a damaged record, not ours to remove
             continue
-        if brk and brk.group(1) == current_token:  # someone is breaking this very lock: not a leftover
-            continue
-        path = pathlib.Path(entry.path)
-        rec = read_lock(path)
-        if not rec or (tmp and rec.get("token") != tmp.group(1)) or rec.get("token") == current_token:
-            continue
-        if holder_state(rec, path)[0] == "dead":
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(path)
-                removed.append(name)
     return sorted(removed)
 
 
@@ -324,7 +346,7 @@ class StoreLock:
             if _create_exclusive(self.path, me):
                 self.record = me
                 self._start_heartbeat()
-                left = remove_leftovers(self.store, me["token"])
+                left = remove_leftovers(self.store, me["token"])  # never raises
                 if left:
                     self.log(f"tubeid: removed {len(left)} file(s) that runners killed while taking this store's "
                              f"lock left: {', '.join(left)}")
