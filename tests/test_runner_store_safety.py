@@ -260,6 +260,31 @@ def test_status_of_a_directory_of_other_files_is_still_not_a_store(tmp_path):
         store_status(d)
 
 
+def test_status_of_a_creation_says_what_tubeid_run_would_say(tmp_path, monkeypatch):
+    """Only a damaged manifest, or an empty lock file (a run killed between its O_EXCL create and its
+    write): named as such, as `tubeid run` refuses them; a directory that cannot be listed keeps the
+    plain message (no traceback)."""
+    d = tmp_path / "s.zarr"
+    d.mkdir()
+    (d / ".tubeid-manifest.json").write_text("garbage{")
+    with pytest.raises(SpecificationError, match="unreadable manifest"):
+        store_status(d)
+    (d / ".tubeid-manifest.json").unlink()
+    (d / ".tubeid-lock").write_bytes(b"")
+    with pytest.raises(SpecificationError, match="unreadable lock file .*if no tubeid run is using this store, remove it"):
+        store_status(d)
+    real = pathlib.Path.iterdir
+
+    def unlistable(self):
+        if self == d:
+            raise PermissionError(13, "Permission denied", str(self))
+        return real(self)
+
+    monkeypatch.setattr(pathlib.Path, "iterdir", unlistable)
+    with pytest.raises(SpecificationError, match="is not a readable tubeid study store"):
+        store_status(d)
+
+
 @pytest.mark.parametrize("loss, says", [("attributes", "is not a tubeid study store"),
                                         ("zarr.json", "its root metadata \\(zarr.json\\) is missing, yet it holds blocks")])
 def test_a_store_whose_root_metadata_was_lost_is_not_taken_for_an_interrupted_creation(defs, tmp_path, loss, says):

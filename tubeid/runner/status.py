@@ -176,15 +176,24 @@ def store_status(path: str | os.PathLike, group: str | None = None) -> dict:
 def _refuse_if_being_created(p: pathlib.Path) -> None:
     """Say so when the store ``p`` is a run's creation that has not written its root yet: in progress
     (its lock's holder alive), or stopped before its first block (``creation_interrupted``, or only
-    tubeid's own files); return otherwise."""
+    tubeid's own files, all readable); a manifest or lock file that cannot be read is named as such.
+    Return otherwise (also when the directory cannot be listed: the caller's message stands)."""
     from tubeid.runner.lock import LOCK_NAME, describe_holder, holder_state, read_lock
-    from tubeid.runner.store import _own_file, creation_interrupted
+    from tubeid.runner.store import _own_file, _read_manifest, creation_interrupted
 
-    entries = list(p.iterdir())
-    own_only = bool(entries) and not (p / "zarr.json").exists() and all(_own_file(c.name) for c in entries)
-    if not (own_only or creation_interrupted(p)):
+    try:
+        entries = list(p.iterdir())
+        own_only = bool(entries) and not (p / "zarr.json").exists() and all(_own_file(c.name) for c in entries)
+        if not (own_only or creation_interrupted(p)):
+            return
+    except OSError:
         return
+    _read_manifest(p)  # an unreadable one is refused by `tubeid run` too: say that instead
     rec = read_lock(p / LOCK_NAME)
+    if rec == {}:
+        raise SpecificationError("store", str(p), f"has no results yet and an unreadable lock file {p / LOCK_NAME} (a "
+                                 "run writing it now, or one killed while writing it): if no tubeid run is using this "
+                                 "store, remove it")
     if rec and holder_state(rec, p / LOCK_NAME)[0] == "alive":
         raise SpecificationError("store", str(p), f"is being created by a run in progress ({describe_holder(rec)}); "
                                  "it has no block yet")
