@@ -12,8 +12,8 @@ event-free path alone). The samples that fall in numba-compiled code are attribu
 lines through the DWARF line table of its object code, read from the numba cache file.
 
 numba attributes every line it inlines into ``run_exact`` to ``_fastpath.py``: a line number may
-belong to ``_fastpath.py``, ``_modal.py`` or ``_events.py``, so each reported line shows the
-function enclosing that number in each of the three (the instructions around it tell which one).
+belong to ``_fastpath.py``, ``_modal.py`` or ``_events.py``, so each reported line shows that line
+(its enclosing function and text) in each of the three that has it (the instructions tell which).
 Percentages are of the samples in numba-compiled code. The debug build's code differs a little from
 the normal build's: it keeps numba's ``min``, ``max`` and ``int`` as calls (``builtins.ol_min`` ...),
 which the normal build inlines; the split, not the total, is the point.
@@ -95,17 +95,13 @@ def kernel_object(cache: pathlib.Path) -> bytes:
                 yield from walk(x)
 
     for f in cache.rglob("_fastpath.run_exact-*.nbc"):
-        data = io.BytesIO(f.read_bytes())
-        objs = []
-        unpickler = pickle.Unpickler(data)
+        unpickler = pickle.Unpickler(io.BytesIO(f.read_bytes()))  # numba's cache: pickles one after another
         try:
             while True:
-                objs.append(unpickler.load())
+                for elf in walk(unpickler.load()):
+                    return elf
         except EOFError:
             pass
-        for o in objs:
-            for elf in walk(o):
-                return elf
     raise SystemExit(f"kernel_profile: no compiled run_exact found in {cache}")
 
 

@@ -144,7 +144,7 @@ def test_a_runner_killed_while_taking_the_lock_leaves_nothing_after_the_next_run
     logged = []
     with StoreLock(store, log=logged.append):
         assert sorted(f.name for f in store.iterdir() if f.name != LOCK_NAME) == kept
-    assert len(logged) == 1 and f"removed 1 file(s)" in logged[0] and token in logged[0]
+    assert len(logged) == 1 and "removed 1 file(s)" in logged[0] and token in logged[0]
     assert (tmp_path / "elsewhere").exists()
 
 
