@@ -1,12 +1,13 @@
 """Where the exact solver's compiled main loop spends its time, line by line (a sampling profile).
 
-    python benchmarks/kernel_profile.py [--calls 30] [--open] [--top 25]
+    python benchmarks/kernel_profile.py [--calls 30] [--open] [--top 25] [--model paper-reference]
 
 Needs Linux ``perf`` (its software event ``cpu-clock``: it works in virtual machines without hardware
 counters) and binutils' ``objdump``. A child process runs under ``perf record``: it compiles the
 kernels with ``NUMBA_DEBUGINFO=1`` into an empty numba cache (a temporary directory; about 25 s), then
 calls ``simulate`` ``--calls`` times on realisation 0 of the bench model (``paper-simplified``,
-δ = 0.45, δ_F = 0.04, 220 s, the load sampled at 2 ms; ``--open``: the gap opened, so the
+δ = 0.45, δ_F = 0.04, 220 s, the load sampled at 2 ms; ``--model paper-reference``: the mean
+reference model, N = 50, under the mean coherent load drawn from that realisation's load stream; ``--open``: the gap opened, so the
 event-free path alone). The samples that fall in numba-compiled code are attributed to its functions
 (``run_exact``, and those that stay calls, e.g. ``evaluate``), and those in ``run_exact`` to source
 lines through the DWARF line table of its object code, read from the numba cache file.
@@ -39,17 +40,38 @@ HERE = pathlib.Path(__file__).resolve().parent
 SOLVER = HERE.parent / "tubeid" / "dynamics" / "solver"
 FILES = ("_fastpath.py", "_modal.py", "_events.py")
 KERNEL = "_ZN6tubeid8dynamics6solver9_fastpath9run_exact"
+MODELS = ("paper-simplified", "paper-reference")
 
 
-def child(out: pathlib.Path, calls: int, opened: bool) -> None:
-    """Run the workload; write the compiled functions' addresses to ``out`` once compiled."""
+def workload(model: str) -> tuple:
+    """(M, D, K, B, C, F, stops as (b, gap, stiffness)) of the profiled realisation: realisation 0 of
+    the bench (``paper-simplified``, δ = 0.45, δ_F = 0.04) or the mean ``paper-reference`` under the
+    mean 7-point coherent load (the paper study's experiment) drawn from that realisation's load stream."""
     sys.path.insert(0, str(HERE))
     from solver_against_ref import realisation
 
+    if model == "paper-simplified":
+        return realisation(0, 220.0)[0]
+    from tubeid.dynamics.response import _load_points, realisation_streams
+    from tubeid.mechanics.library import builtin_spec
+    from tubeid.mechanics.reduction import reduce
+    from tubeid.uncertainty.loads import coherent_forces
+    from tubeid.uncertainty.processes import gaussian_loads
+
+    reduced = reduce(builtin_spec(model))
+    load = coherent_forces()
+    M, D, K = reduced.mean_matrices
+    F = gaussian_loads(load, 220.0, 2e-3, [realisation_streams(1, 0)[2]])[0]
+    stops = [(tuple(b), s.gap, s.stiffness) for b, s in zip(reduced.stop_vectors(), reduced.spec.stops)]
+    return M, D, K, reduced.load_matrix(_load_points(load)), reduced.sensor_matrix(), F, stops
+
+
+def child(out: pathlib.Path, calls: int, opened: bool, model: str = "paper-simplified") -> None:
+    """Run the workload; write the compiled functions' addresses to ``out`` once compiled."""
     from tubeid.dynamics.solver import Stop, simulate
     from tubeid.dynamics.solver._fastpath import run_exact
 
-    (M, D, K, B, C, F, stops), _ = realisation(0, 220.0)
+    M, D, K, B, C, F, stops = workload(model)
     stops = [Stop(b=b, gap=1e9 if opened else g, stiffness=k) for b, g, k in stops]
 
     def once():
@@ -122,17 +144,19 @@ def main() -> None:
     p.add_argument("--calls", type=int, default=30)
     p.add_argument("--open", action="store_true", help="the gap opened: the event-free path alone")
     p.add_argument("--top", type=int, default=25)
+    p.add_argument("--model", choices=MODELS, default=MODELS[0],
+                   help="the bench's random simplified model (default) or the mean reference model")
     p.add_argument("--child", help=argparse.SUPPRESS)
     a = p.parse_args()
     if a.child:
-        return child(pathlib.Path(a.child), a.calls, a.open)
+        return child(pathlib.Path(a.child), a.calls, a.open, a.model)
     for tool in ("perf", "objdump", "nm"):
         if shutil.which(tool) is None:
             raise SystemExit(f"kernel_profile: needs `{tool}` on PATH")
     with tempfile.TemporaryDirectory(prefix="tubeid-kprof-") as tmp:
         tmp = pathlib.Path(tmp)
         env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp / "cache"), NUMBA_DEBUGINFO="1")
-        cmd = [sys.executable, __file__, "--child", str(tmp / "funcs.json"), "--calls", str(a.calls)]
+        cmd = [sys.executable, __file__, "--child", str(tmp / "funcs.json"), "--calls", str(a.calls), "--model", a.model]
         cmd += ["--open"] if a.open else []
         subprocess.run(["perf", "record", "-q", "-e", "cpu-clock", "-F", "10000", "-o", str(tmp / "perf.data"), *cmd],
                        env=env, check=True)
@@ -171,8 +195,8 @@ def main() -> None:
     total = sum(by_func.values())
     if not total:
         raise SystemExit("kernel_profile: no sample fell in numba-compiled code")
-    print(f"{total} samples in numba-compiled code ({len(ips)} in all); {'gap opened' if a.open else 'stop active'}, "
-          f"{a.calls} calls of simulate")
+    print(f"{total} samples in numba-compiled code ({len(ips)} in all); {a.model}, "
+          f"{'gap opened' if a.open else 'stop active'}, {a.calls} calls of simulate")
     for name, c in by_func.most_common():
         print(f"  {100 * c / total:5.1f} %  {name}")
     where = {f: enclosing_functions(SOLVER / f) for f in FILES}

@@ -1,0 +1,74 @@
+"""benchmarks/kernel_profile.py: its pure parts (name demangling, the enclosing function of a line,
+the kernel's object code from a numba cache file) and its workloads. The profile itself needs Linux
+``perf`` and compiles the kernels with debug information (about a minute): run by hand."""
+
+from __future__ import annotations
+
+import importlib.util
+import pathlib
+import pickle
+
+import numpy as np
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def kp():
+    spec = importlib.util.spec_from_file_location("kernel_profile", ROOT / "benchmarks" / "kernel_profile.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_short_names_the_module_and_function_of_a_numba_symbol(kp):
+    assert kp.short("_ZN6tubeid8dynamics6solver7_events8evaluateB4v104B38c8tJTC_2fWQAlbW1yBEEAAA") \
+        == "_events.evaluate"
+    assert kp.short("cfunc._ZN6tubeid8dynamics6solver9_fastpath9run_exactB3v12E") == "cfunc._fastpath.run_exact"
+    # numba's "<locals>.impl" of an overload is dropped: the overload's own name is kept
+    assert kp.short("_ZN5numba4core8builtins6ol_min12_3clocals_3e4implB2v5E") == "builtins.ol_min"
+
+
+def test_enclosing_functions_gives_the_innermost_function_of_each_line(kp, tmp_path):
+    src = tmp_path / "m.py"
+    src.write_text("x = 1\n"            # 1
+                   "def outer():\n"     # 2
+                   "    a = 1\n"        # 3
+                   "    def inner():\n"  # 4
+                   "        return a\n"  # 5
+                   "    return inner\n")  # 6
+    where = kp.enclosing_functions(src)
+    assert 1 not in where
+    assert [where[k] for k in (2, 3, 4, 5, 6)] == ["outer", "outer", "inner", "inner", "outer"]
+
+
+def test_kernel_object_is_read_from_the_cache_files_pickles(kp, tmp_path):
+    elf = b"\x7fELF" + bytes(range(40))
+    cache = tmp_path / "cache" / "sub"
+    cache.mkdir(parents=True)
+    with open(cache / "_fastpath.run_exact-25.py311.1.nbc", "wb") as f:  # an index pickle, then the data
+        pickle.dump({"stamp": 1}, f)
+        pickle.dump(("library", [b"not an object", {"obj": elf}]), f)
+    (cache / "_events.evaluate-100.py311.1.nbc").write_bytes(pickle.dumps(b"\x7fELF other kernel"))
+    assert kp.kernel_object(tmp_path / "cache") == elf
+    (cache / "_fastpath.run_exact-25.py311.1.nbc").write_bytes(pickle.dumps({"no": b"object"}))
+    with pytest.raises(SystemExit, match="no compiled run_exact"):
+        kp.kernel_object(tmp_path / "cache")
+
+
+def test_the_workloads_are_the_bench_realisation_and_the_mean_reference_model(kp):
+    from tubeid.mechanics.library import builtin_spec
+    from tubeid.mechanics.reduction import reduce
+
+    assert kp.MODELS == ("paper-simplified", "paper-reference")
+    M, D, K, B, C, F, stops = kp.workload("paper-reference")
+    Mr, Dr, Kr = reduce(builtin_spec("paper-reference")).mean_matrices
+    assert M.shape == (50, 50) and np.array_equal(M, Mr) and np.array_equal(K, Kr) and np.array_equal(D, Dr)
+    assert F.shape == (110001, 7) and B.shape == (50, 7) and C.shape[1] == 50
+    assert [(g, k) for _b, g, k in stops] == [(s.gap, s.stiffness) for s in builtin_spec("paper-reference").stops]
+    Ms, _, Ks, _, _, Fs, _ = kp.workload("paper-simplified")
+    assert Ms.shape == (16, 16)
+    # the reference's load is the mean spectrum drawn from the same stream: not the bench's randomised one
+    assert not np.array_equal(F, Fs)
+    assert np.std(F) == pytest.approx(np.std(Fs), rel=0.2)
