@@ -1,6 +1,7 @@
 """Where the exact solver's compiled main loop spends its time, line by line (a sampling profile).
 
     python benchmarks/kernel_profile.py [--calls 30] [--open] [--top 25] [--model paper-reference]
+    python benchmarks/kernel_profile.py --split [--calls 30] [--model paper-reference]
 
 Needs Linux ``perf`` (its software event ``cpu-clock``: it works in virtual machines without hardware
 counters) and binutils' ``objdump``. A child process runs under ``perf record``: it compiles the
@@ -18,6 +19,9 @@ belong to ``_fastpath.py``, ``_modal.py`` or ``_events.py``, so each reported li
 Percentages are of the samples in numba-compiled code. The debug build's code differs a little from
 the normal build's: it keeps numba's ``min``, ``max`` and ``int`` as calls (``builtins.ol_min`` ...),
 which the normal build inlines; the split, not the total, is the point.
+
+``--split`` profiles nothing: it times the normal build (``split``) with the stop active and with
+the gap opened, and prints the events' cost per switch as JSON (seconds, a few per model).
 """
 
 from __future__ import annotations
@@ -64,6 +68,33 @@ def workload(model: str) -> tuple:
     F = gaussian_loads(load, 220.0, 2e-3, [realisation_streams(1, 0)[2]])[0]
     stops = [(tuple(b), s.gap, s.stiffness) for b, s in zip(reduced.stop_vectors(), reduced.spec.stops)]
     return M, D, K, reduced.load_matrix(_load_points(load)), reduced.sensor_matrix(), F, stops
+
+
+def split(model: str, calls: int) -> dict:
+    """The normal build's wall time per ``simulate`` call (minimum over ``calls``) with the stop
+    active and with the gap opened (same step: the stop's stiffness still sets f_max), the switches
+    of the realisation in both (none with the gap opened), and the events' cost per switch:
+    (active - opened) / switches."""
+    import time
+
+    from tubeid.dynamics.solver import Stop, simulate
+    from tubeid.dynamics.solver._simulate import simulate_with_diagnostics
+
+    M, D, K, B, C, F, stops = workload(model)
+    out = {"model": model, "n_dof": M.shape[0]}
+    for name, opened in (("seconds_stop_active", False), ("seconds_gap_opened", True)):
+        st = [Stop(b=b, gap=1e9 if opened else g, stiffness=k) for b, g, k in stops]
+        simulate(M, D, K, st, B, C, F, 2e-3, output_dt=3e-3, discard=2.0)  # compile or load the kernels
+        best = float("inf")
+        for _ in range(calls):
+            t0 = time.perf_counter()
+            simulate(M, D, K, st, B, C, F, 2e-3, output_dt=3e-3, discard=2.0)
+            best = min(best, time.perf_counter() - t0)
+        out[name] = best
+        diag = simulate_with_diagnostics(M, D, K, st, B, C, F, 2e-3, output_dt=3e-3, discard=2.0)[1][0]
+        out["switches_gap_opened" if opened else "switches"] = diag["switches"]
+    out["microseconds_per_switch"] = 1e6 * (out["seconds_stop_active"] - out["seconds_gap_opened"]) / out["switches"]
+    return out
 
 
 def child(out: pathlib.Path, calls: int, opened: bool, model: str = "paper-simplified") -> None:
@@ -146,10 +177,15 @@ def main() -> None:
     p.add_argument("--top", type=int, default=25)
     p.add_argument("--model", choices=MODELS, default=MODELS[0],
                    help="the bench's random simplified model (default) or the mean reference model")
+    p.add_argument("--split", action="store_true",
+                   help="no profile: time per call (stop active, gap opened) and the events' cost per switch")
     p.add_argument("--child", help=argparse.SUPPRESS)
     a = p.parse_args()
     if a.child:
         return child(pathlib.Path(a.child), a.calls, a.open, a.model)
+    if a.split:
+        print(json.dumps(split(a.model, a.calls), indent=2))
+        return
     for tool in ("perf", "objdump", "nm"):
         if shutil.which(tool) is None:
             raise SystemExit(f"kernel_profile: needs `{tool}` on PATH")

@@ -72,3 +72,12 @@ def test_the_workloads_are_the_bench_realisation_and_the_mean_reference_model(kp
     # the reference's load is the mean spectrum drawn from the same stream: not the bench's randomised one
     assert not np.array_equal(F, Fs)
     assert np.std(F) == pytest.approx(np.std(Fs), rel=0.2)
+
+
+def test_split_times_both_paths_and_divides_the_difference_by_the_switches(kp):
+    out = kp.split("paper-reference", calls=1)
+    assert out["model"] == "paper-reference" and out["n_dof"] == 50
+    assert out["switches"] > 1000 and out["switches_gap_opened"] == 0  # 220 s: tens of thousands of contacts
+    assert 0 < out["seconds_gap_opened"] < out["seconds_stop_active"]
+    per = (out["seconds_stop_active"] - out["seconds_gap_opened"]) / out["switches"]
+    assert out["microseconds_per_switch"] == pytest.approx(1e6 * per, rel=1e-12, abs=0)
