@@ -1,7 +1,7 @@
 """Where the exact solver's compiled main loop spends its time, line by line (a sampling profile).
 
     python benchmarks/kernel_profile.py [--calls 30] [--open] [--top 25] [--model paper-reference]
-    python benchmarks/kernel_profile.py --split [--calls 30] [--model paper-reference]
+    python benchmarks/kernel_profile.py --split [--calls 30] [--model paper-reference] [--dt SECONDS]
 
 Needs Linux ``perf`` (its software event ``cpu-clock``: it works in virtual machines without hardware
 counters) and binutils' ``objdump``. A child process runs under ``perf record``: it compiles the
@@ -70,29 +70,30 @@ def workload(model: str) -> tuple:
     return M, D, K, reduced.load_matrix(_load_points(load)), reduced.sensor_matrix(), F, stops
 
 
-def split(model: str, calls: int) -> dict:
+def split(model: str, calls: int, dt: float | None = None) -> dict:
     """The normal build's wall time per ``simulate`` call (minimum over ``calls``) with the stop
     active and with the gap opened (same step: the stop's stiffness still sets f_max), the switches
     of the realisation in both (none with the gap opened), and the events' cost per switch:
-    (active - opened) / switches."""
+    (active - opened) / switches. ``dt``: the integration step (default: the solver's rule)."""
     import time
 
     from tubeid.dynamics.solver import Stop, simulate
     from tubeid.dynamics.solver._simulate import simulate_with_diagnostics
 
     M, D, K, B, C, F, stops = workload(model)
-    out = {"model": model, "n_dof": M.shape[0]}
+    out = {"model": model, "n_dof": M.shape[0], "dt": dt}
     for name, opened in (("seconds_stop_active", False), ("seconds_gap_opened", True)):
         st = [Stop(b=b, gap=1e9 if opened else g, stiffness=k) for b, g, k in stops]
-        simulate(M, D, K, st, B, C, F, 2e-3, output_dt=3e-3, discard=2.0)  # compile or load the kernels
+        simulate(M, D, K, st, B, C, F, 2e-3, output_dt=3e-3, discard=2.0, dt=dt)  # compile or load the kernels
         best = float("inf")
         for _ in range(calls):
             t0 = time.perf_counter()
-            simulate(M, D, K, st, B, C, F, 2e-3, output_dt=3e-3, discard=2.0)
+            simulate(M, D, K, st, B, C, F, 2e-3, output_dt=3e-3, discard=2.0, dt=dt)
             best = min(best, time.perf_counter() - t0)
         out[name] = best
-        diag = simulate_with_diagnostics(M, D, K, st, B, C, F, 2e-3, output_dt=3e-3, discard=2.0)[1][0]
+        diag = simulate_with_diagnostics(M, D, K, st, B, C, F, 2e-3, output_dt=3e-3, discard=2.0, dt=dt)[1][0]
         out["switches_gap_opened" if opened else "switches"] = diag["switches"]
+        out["steps"] = diag["steps"]
     out["microseconds_per_switch"] = 1e6 * (out["seconds_stop_active"] - out["seconds_gap_opened"]) / out["switches"]
     return out
 
@@ -179,12 +180,13 @@ def main() -> None:
                    help="the bench's random simplified model (default) or the mean reference model")
     p.add_argument("--split", action="store_true",
                    help="no profile: time per call (stop active, gap opened) and the events' cost per switch")
+    p.add_argument("--dt", type=float, default=None, help="with --split: the integration step [s] (default: the solver's)")
     p.add_argument("--child", help=argparse.SUPPRESS)
     a = p.parse_args()
     if a.child:
         return child(pathlib.Path(a.child), a.calls, a.open, a.model)
     if a.split:
-        print(json.dumps(split(a.model, a.calls), indent=2))
+        print(json.dumps(split(a.model, a.calls, a.dt), indent=2))
         return
     for tool in ("perf", "objdump", "nm"):
         if shutil.which(tool) is None:

@@ -81,3 +81,10 @@ def test_split_times_both_paths_and_divides_the_difference_by_the_switches(kp):
     assert 0 < out["seconds_gap_opened"] < out["seconds_stop_active"]
     per = (out["seconds_stop_active"] - out["seconds_gap_opened"]) / out["switches"]
     assert out["microseconds_per_switch"] == pytest.approx(1e6 * per, rel=1e-12, abs=0)
+
+
+def test_split_uses_the_given_step(kp):
+    default = kp.split("paper-simplified", calls=1)
+    coarse = kp.split("paper-simplified", calls=1, dt=2e-3 / 6)
+    assert default["dt"] is None and default["steps"] == 880_000  # 220 s at the rule's 0.25 ms
+    assert coarse["dt"] == 2e-3 / 6 and coarse["steps"] == 660_000
