@@ -8,8 +8,8 @@ counters) and binutils' ``objdump``. A child process runs under ``perf record``:
 kernels with ``NUMBA_DEBUGINFO=1`` into an empty numba cache (a temporary directory; about 25 s), then
 calls ``simulate`` ``--calls`` times on realisation 0 of the bench model (``paper-simplified``,
 δ = 0.45, δ_F = 0.04, 220 s, the load sampled at 2 ms; ``--model paper-reference``: the mean
-reference model, N = 50, under the mean coherent load drawn from that realisation's load stream; ``--open``: the gap opened, so the
-event-free path alone). The samples that fall in numba-compiled code are attributed to its functions
+reference model, N = 50, under the mean coherent load drawn from that realisation's load stream;
+``--open``: the gap opened, so the event-free path alone). The samples that fall in numba-compiled code are attributed to its functions
 (``run_exact``, and those that stay calls, e.g. ``evaluate``), and those in ``run_exact`` to source
 lines through the DWARF line table of its object code, read from the numba cache file.
 
@@ -21,7 +21,8 @@ the normal build's: it keeps numba's ``min``, ``max`` and ``int`` as calls (``bu
 which the normal build inlines; the split, not the total, is the point.
 
 ``--split`` profiles nothing: it times the normal build (``split``) with the stop active and with
-the gap opened, and prints the events' cost per switch as JSON (seconds, a few per model).
+the gap opened, and prints the events' cost per switch as JSON (a few seconds per model);
+``--dt`` sets its integration step.
 """
 
 from __future__ import annotations
@@ -183,6 +184,8 @@ def main() -> None:
     p.add_argument("--dt", type=float, default=None, help="with --split: the integration step [s] (default: the solver's)")
     p.add_argument("--child", help=argparse.SUPPRESS)
     a = p.parse_args()
+    if a.dt is not None and not a.split:
+        p.error("--dt applies to --split only (the profile runs the solver's own step)")
     if a.child:
         return child(pathlib.Path(a.child), a.calls, a.open, a.model)
     if a.split:
