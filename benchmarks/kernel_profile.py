@@ -9,9 +9,10 @@ kernels with ``NUMBA_DEBUGINFO=1`` into an empty numba cache (a temporary direct
 calls ``simulate`` ``--calls`` times on realisation 0 of the bench model (``paper-simplified``,
 δ = 0.45, δ_F = 0.04, 220 s, the load sampled at 2 ms; ``--model paper-reference``: the mean
 reference model, N = 50, under the mean coherent load drawn from that realisation's load stream;
-``--open``: the gap opened, so the event-free path alone). The samples that fall in numba-compiled code are attributed to its functions
-(``run_exact``, and those that stay calls, e.g. ``evaluate``), and those in ``run_exact`` to source
-lines through the DWARF line table of its object code, read from the numba cache file.
+``--open``: the gap opened, so the event-free path alone). The samples that fall in numba-compiled
+code are attributed to its functions (``run_exact``, and those that stay calls, e.g. ``evaluate``),
+and those in ``run_exact`` to source lines through the DWARF line table of its object code, read
+from the numba cache file.
 
 numba attributes every line it inlines into ``run_exact`` to ``_fastpath.py``: a line number may
 belong to ``_fastpath.py``, ``_modal.py`` or ``_events.py``, so each reported line shows that line
@@ -21,8 +22,8 @@ the normal build's: it keeps numba's ``min``, ``max`` and ``int`` as calls (``bu
 which the normal build inlines; the split, not the total, is the point.
 
 ``--split`` profiles nothing: it times the normal build (``split``) with the stop active and with
-the gap opened, and prints the events' cost per switch as JSON (a few seconds per model);
-``--dt`` sets its integration step.
+the gap opened, and prints the events' cost per switch and the realisation's counters as JSON (a
+few seconds per model); ``--dt`` sets its integration step.
 """
 
 from __future__ import annotations
@@ -72,31 +73,42 @@ def workload(model: str) -> tuple:
 
 
 def split(model: str, calls: int, dt: float | None = None) -> dict:
-    """The normal build's wall time per ``simulate`` call (minimum over ``calls``) with the stop
-    active and with the gap opened (same step: the stop's stiffness still sets f_max), the switches
-    of the realisation in both (none with the gap opened), and the events' cost per switch:
-    (active - opened) / switches. ``dt``: the integration step (default: the solver's rule)."""
+    """The normal build's wall time per ``simulate`` call with the stop active and with the gap
+    opened (minimum over ``calls`` of each, the two alternated call by call so that both see the
+    same phases of the machine; the same step: the stop's stiffness still sets f_max), the
+    realisation's counters with the stop active (switches, flagged sub-steps, exact evaluations,
+    sub-steps) and with the gap opened (switches: none), and the events' cost per switch:
+    (active - opened) / switches. ``dt``: the integration step (default: the solver's rule).
+
+    A call's time holds everything ``simulate`` does (the checks, f_max's eigenvalues, the kernel,
+    the labelled result) except the regime tables: the first call builds them into the process's
+    cache and the timed calls reuse them (``tubeid bench transient`` empties that cache and so
+    counts the build)."""
     import time
 
     from tubeid.dynamics.solver import Stop, simulate
     from tubeid.dynamics.solver._simulate import simulate_with_diagnostics
 
     M, D, K, B, C, F, stops = workload(model)
-    out = {"model": model, "n_dof": M.shape[0], "dt": dt}
-    for name, opened in (("seconds_stop_active", False), ("seconds_gap_opened", True)):
-        st = [Stop(b=b, gap=1e9 if opened else g, stiffness=k) for b, g, k in stops]
-        simulate(M, D, K, st, B, C, F, 2e-3, output_dt=3e-3, discard=2.0, dt=dt)  # compile or load the kernels
-        best = float("inf")
-        for _ in range(calls):
+    kw = dict(output_dt=3e-3, discard=2.0, dt=dt)
+    systems = {"active": [Stop(b=b, gap=g, stiffness=k) for b, g, k in stops],
+               "opened": [Stop(b=b, gap=1e9, stiffness=k) for b, g, k in stops]}
+    best = {}
+    for name, st in systems.items():
+        simulate(M, D, K, st, B, C, F, 2e-3, **kw)  # compile or load the kernels, build the tables
+        best[name] = float("inf")
+    for _ in range(calls):
+        for name, st in systems.items():
             t0 = time.perf_counter()
-            simulate(M, D, K, st, B, C, F, 2e-3, output_dt=3e-3, discard=2.0, dt=dt)
-            best = min(best, time.perf_counter() - t0)
-        out[name] = best
-        diag = simulate_with_diagnostics(M, D, K, st, B, C, F, 2e-3, output_dt=3e-3, discard=2.0, dt=dt)[1][0]
-        out["switches_gap_opened" if opened else "switches"] = diag["switches"]
-        out["steps"] = diag["steps"]
-    out["microseconds_per_switch"] = 1e6 * (out["seconds_stop_active"] - out["seconds_gap_opened"]) / out["switches"]
-    return out
+            simulate(M, D, K, st, B, C, F, 2e-3, **kw)
+            best[name] = min(best[name], time.perf_counter() - t0)
+    active = simulate_with_diagnostics(M, D, K, systems["active"], B, C, F, 2e-3, **kw)[1][0]
+    opened = simulate_with_diagnostics(M, D, K, systems["opened"], B, C, F, 2e-3, **kw)[1][0]
+    return {"model": model, "n_dof": M.shape[0], "dt": dt, "calls": calls,
+            "seconds_stop_active": best["active"], "seconds_gap_opened": best["opened"],
+            "steps": active["steps"], "switches": active["switches"], "flagged_steps": active["flagged_steps"],
+            "evaluations": active["evaluations"], "switches_gap_opened": opened["switches"],
+            "microseconds_per_switch": 1e6 * (best["active"] - best["opened"]) / active["switches"]}
 
 
 def child(out: pathlib.Path, calls: int, opened: bool, model: str = "paper-simplified") -> None:
@@ -181,11 +193,14 @@ def main() -> None:
                    help="the bench's random simplified model (default) or the mean reference model")
     p.add_argument("--split", action="store_true",
                    help="no profile: time per call (stop active, gap opened) and the events' cost per switch")
-    p.add_argument("--dt", type=float, default=None, help="with --split: the integration step [s] (default: the solver's)")
+    p.add_argument("--dt", type=float, default=None,
+                   help="with --split: the integration step [s] (default: the solver's)")
     p.add_argument("--child", help=argparse.SUPPRESS)
     a = p.parse_args()
     if a.dt is not None and not a.split:
         p.error("--dt applies to --split only (the profile runs the solver's own step)")
+    if a.split and a.open:
+        p.error("--split times both the stop active and the gap opened; --open applies to the profile")
     if a.child:
         return child(pathlib.Path(a.child), a.calls, a.open, a.model)
     if a.split:
@@ -197,7 +212,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="tubeid-kprof-") as tmp:
         tmp = pathlib.Path(tmp)
         env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp / "cache"), NUMBA_DEBUGINFO="1")
-        cmd = [sys.executable, __file__, "--child", str(tmp / "funcs.json"), "--calls", str(a.calls), "--model", a.model]
+        cmd = [sys.executable, __file__, "--child", str(tmp / "funcs.json"), "--calls", str(a.calls),
+               "--model", a.model]
         cmd += ["--open"] if a.open else []
         subprocess.run(["perf", "record", "-q", "-e", "cpu-clock", "-F", "10000", "-o", str(tmp / "perf.data"), *cmd],
                        env=env, check=True)
