@@ -6,9 +6,9 @@ minute): a slow test, skipped where perf or binutils are missing."""
 from __future__ import annotations
 
 import importlib.util
-import shutil
 import pathlib
 import pickle
+import shutil
 
 import numpy as np
 import pytest
