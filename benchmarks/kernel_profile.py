@@ -53,10 +53,11 @@ def workload(model: str) -> tuple:
     """(M, D, K, B, C, F, stops as (b, gap, stiffness)) of the profiled realisation: realisation 0 of
     the bench (``paper-simplified``, δ = 0.45, δ_F = 0.04) or the mean ``paper-reference`` under the
     mean 7-point coherent load (the paper study's experiment) drawn from that realisation's load stream."""
-    sys.path.insert(0, str(HERE))
-    from solver_against_ref import realisation
-
     if model == "paper-simplified":
+        if str(HERE) not in sys.path:
+            sys.path.insert(0, str(HERE))
+        from solver_against_ref import realisation
+
         return realisation(0, 220.0)[0]
     from tubeid.dynamics.response import _load_points, realisation_streams
     from tubeid.mechanics.library import builtin_spec
@@ -197,6 +198,8 @@ def main() -> None:
                    help="with --split: the integration step [s] (default: the solver's)")
     p.add_argument("--child", help=argparse.SUPPRESS)
     a = p.parse_args()
+    if a.calls < 1:
+        p.error(f"--calls must be at least 1, not {a.calls}")
     if a.dt is not None and not a.split:
         p.error("--dt applies to --split only (the profile runs the solver's own step)")
     if a.split and a.open:

@@ -113,7 +113,8 @@ def test_split_uses_the_given_step_in_every_call(kp, monkeypatch):
 
 
 @pytest.mark.parametrize("argv, message", [(["--dt", "1e-4"], "--dt applies to --split only"),
-                                           (["--split", "--open"], "--open applies to the profile")])
+                                           (["--split", "--open"], "--open applies to the profile"),
+                                           (["--split", "--calls", "0"], "--calls must be at least 1, not 0")])
 def test_options_that_do_not_combine_are_refused(argv, message):
     import subprocess
     import sys
