@@ -254,9 +254,15 @@ def test_status_of_a_directory_of_other_files_is_still_not_a_store(tmp_path):
     (d / "notes.txt").write_text("x")
     with pytest.raises(SpecificationError, match="is not a readable tubeid study store"):
         store_status(d)
-    # only files under tubeid's own prefix: `tubeid run` takes such a directory for a new store, status says so
+    # a user's file merely named like tubeid's is the user's: still not a store
     (d / ".tubeid-lock-notes").write_text("x")
     (d / "notes.txt").unlink()
+    with pytest.raises(SpecificationError, match="is not a readable tubeid study store"):
+        store_status(d)
+    # only tubeid's own files, by their exact names (a killed lock take's private file): `tubeid run` takes
+    # such a directory for a new store, status says so
+    (d / ".tubeid-lock-notes").unlink()
+    (d / f".tubeid-lock.tmp-{'ab' * 12}").write_text("x")
     with pytest.raises(SpecificationError, match="holds only the start"):
         store_status(d)
 
@@ -434,5 +440,151 @@ def test_a_real_file_size_limit_is_one_line_and_the_store_resumes(defs, refs, tm
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.strip().splitlines() == [proc.stderr.strip()] and os.strerror(errno.EFBIG) in proc.stderr
     assert "cannot write" in proc.stderr and "did not write" not in proc.stderr
+    run(defs["study"], store, workers=0, quiet=True)
+    _same(store, refs["study"])
+
+
+# -- 9. paths zarr would read as URLs, names zarr or the file system cannot take ---------------------------------
+@pytest.mark.parametrize("form", ["{other}::v2.zarr", "file://{other}"])
+def test_a_store_path_zarr_would_read_as_a_url_is_refused_and_nothing_is_touched(defs, tmp_path, capsys, form):
+    """zarr reads `prev.zarr::v2.zarr` as a chain of file systems opening prev.zarr: the run used to write
+    into that other store (its provenance wiped). Refused up front by every command taking a store."""
+    other = tmp_path / "prev.zarr"
+    run(defs["study"], other, workers=0, quiet=True)
+    before = {f: f.read_bytes() for f in tmp_path.rglob("*") if f.is_file()}
+    path = form.format(other=other)
+    rc, err = _cli([defs["study"], "--store", path], capsys)
+    assert rc == 2 and err.strip().splitlines() == [err.strip()] and "must be a local directory path" in err
+    for command in (["status", path], ["status", path, "--verify"], ["show", path]):
+        assert cli(command) == 2 and "must be a local directory path" in capsys.readouterr().err
+    with pytest.raises(SpecificationError, match="must be a local directory path"):
+        integrity.verify(path)
+    assert {f: f.read_bytes() for f in tmp_path.rglob("*") if f.is_file()} == before
+
+
+def test_a_store_name_longer_than_the_file_system_allows_is_one_line(defs, tmp_path, capsys):
+    path = tmp_path / ("x" * 300)
+    rc, err = _cli([defs["study"], "--store", path], capsys)
+    assert rc == 2 and err.strip().splitlines() == [err.strip()] and os.strerror(errno.ENAMETOOLONG) in err
+    assert cli(["status", str(path)]) == 2 and os.strerror(errno.ENAMETOOLONG) in capsys.readouterr().err
+
+
+# -- 10. --overwrite and files merely named like tubeid's; a kill after --overwrite emptied the store ---------------
+def test_overwrite_keeps_a_users_file_named_like_tubeids_own(defs, refs, tmp_path, capsys):
+    store = tmp_path / "s.zarr"
+    run(defs["study"], store, workers=0, quiet=True)
+    mine = {store / ".tubeid-notes.txt": b"mine", store / ".tubeid-tmp-notes": b"also mine"}
+    for f, data in mine.items():
+        f.write_bytes(data)
+    rc, err = _cli([defs["study"], "--store", store, "--overwrite"], capsys)
+    assert rc == 0 and "kept 2 file(s)" in err and ".tubeid-notes.txt" in err
+    assert all(f.read_bytes() == data for f, data in mine.items())
+    for f in mine:
+        f.unlink()
+    _same(store, refs["study"])
+    # a directory holding only such a file is the user's, not an empty store of tubeid's
+    d = tmp_path / "u"
+    d.mkdir()
+    (d / ".tubeid-settings.yaml").write_text("keep")
+    rc, err = _cli([defs["study"], "--store", d, "--overwrite"], capsys)
+    assert rc == 2 and "is not a tubeid store" in err and (d / ".tubeid-settings.yaml").read_text() == "keep"
+    rc, err = _cli([defs["study"], "--store", d], capsys)
+    assert rc == 2 and "did not write" in err and sorted(f.name for f in d.iterdir()) == [".tubeid-settings.yaml"]
+
+
+BEFORE_NEW_ROOT = '''
+import tubeid.runner.store as st
+def _fresh_root(*a, **kw):
+    die("after --overwrite removed the store, before the new one is created")
+st._fresh_root = _fresh_root
+'''
+
+
+@pytest.mark.parametrize("again", [[], ["--overwrite"]])
+def test_a_kill_after_overwrite_emptied_the_store_is_run_again(defs, refs, tmp_path, again):
+    """The old results are gone and the new store not yet begun: the manifest stays (emptied), so the
+    directory is still provably tubeid's and the next run, with or without --overwrite, makes the store;
+    the user's file in it is kept."""
+    store = tmp_path / "s.zarr"
+    run(defs["summed"], store, workers=0, quiet=True)
+    (store / "notes.txt").write_text("mine")
+    _killed(tmp_path, BEFORE_NEW_ROOT, [defs["study"], "--store", store, "--overwrite"])
+    assert json.loads((store / ".tubeid-manifest.json").read_text())["nodes"] == {}
+    run(defs["study"], store, workers=0, quiet=True, overwrite=bool(again))
+    assert (store / "notes.txt").read_text() == "mine"
+    (store / "notes.txt").unlink()
+    _same(store, refs["study"])
+
+
+def _as_layout_1(store: pathlib.Path) -> None:
+    """``store`` as an older tubeid (layout /1, before manifests) left it: no manifest, format /1; its
+    root's consolidated metadata (which layout /1 rewrote after every change) names its nodes."""
+    (store / ".tubeid-manifest.json").unlink()
+    meta = json.loads((store / "zarr.json").read_text())
+    meta["attributes"]["format"] = "tubeid-study-store/1"
+    assert set(meta["consolidated_metadata"]["metadata"]) >= {"x", "realisation"}
+    (store / "zarr.json").write_text(json.dumps(meta))
+
+
+def test_overwrite_of_an_older_layout_keeps_the_users_arrays_and_groups(defs, refs, tmp_path, capsys):
+    import zarr
+
+    store = tmp_path / "s.zarr"
+    run(defs["summed"], store, workers=0, quiet=True)
+    _as_layout_1(store)
+    root = zarr.open_group(str(store), mode="r+", use_consolidated=False)
+    root.create_array("my_analysis", shape=(3,), dtype="f8")[:] = [1.0, 2.0, 3.0]
+    root.create_group("my_notes").create_array("x", shape=(2,), dtype="i8")[:] = [7, 8]
+    mine = {f: f.read_bytes() for d in ("my_analysis", "my_notes") for f in (store / d).rglob("*") if f.is_file()}
+    rc, err = _cli([defs["study"], "--store", store, "--overwrite"], capsys)
+    assert rc == 0 and f"kept {len(mine)} file(s)" in err, err
+    assert {f: f.read_bytes() for f in mine} == mine
+    root = zarr.open_group(str(store), mode="r", use_consolidated=False)
+    assert root["my_analysis"][:].tolist() == [1.0, 2.0, 3.0] and root["my_notes/x"][:].tolist() == [7, 8]
+    # without consolidated metadata nothing of an older layout is provably tubeid's: refused, nothing deleted
+    other = tmp_path / "t.zarr"
+    run(defs["summed"], other, workers=0, quiet=True)
+    _as_layout_1(other)
+    meta = json.loads((other / "zarr.json").read_text())
+    del meta["consolidated_metadata"]
+    (other / "zarr.json").write_text(json.dumps(meta))
+    before = {f: f.read_bytes() for f in other.rglob("*") if f.is_file()}
+    rc, err = _cli([defs["study"], "--store", other, "--overwrite"], capsys)
+    assert rc == 2 and "no readable consolidated metadata" in err
+    assert {f: f.read_bytes() for f in other.rglob("*") if f.is_file()} == before
+
+
+# -- 11. --new-store diverts only from a store it cannot use -------------------------------------------------------
+def test_new_store_resumes_its_own_store_and_diverts_beside_dot(defs, tmp_path, monkeypatch):
+    store = tmp_path / "s.zarr"
+    first = run(defs["study"], store, workers=0, quiet=True, new_store=True)  # nothing there: used as given
+    assert first.store == store.resolve() and first.computed == 4
+    again = run(defs["study"], store, workers=0, quiet=True, new_store=True)  # this study's store: a resume
+    assert again.store == store.resolve() and again.computed == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.zarr"]
+    monkeypatch.chdir(store)  # "." holds this study: another definition goes beside it, not into "./.-<hash>"
+    other = run(defs["summed"], ".", workers=0, quiet=True, new_store=True)
+    assert other.store.parent == tmp_path.resolve() and other.store.name.startswith("s-")
+    assert read_attrs(other.store)["study_name"] == "summed"
+
+
+# -- 12. a full disk while a block is written ------------------------------------------------------------------------
+def test_a_full_disk_while_writing_a_block_is_one_line_naming_the_block_and_the_store_resumes(defs, refs, tmp_path,
+                                                                                            monkeypatch, capsys):
+    from zarr.storage import _local
+
+    store = tmp_path / "s.zarr"
+    put = _local._put
+
+    def full(path, value, *a, **kw):  # a data chunk of block (0, 1) does not fit
+        if pathlib.Path(path) == store / "x" / "c" / "0" / "1" / "0":
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return put(path, value, *a, **kw)
+
+    monkeypatch.setattr(_local, "_put", full)
+    rc, err = _cli([defs["study"], "--store", store], capsys)
+    assert rc == 2 and err.strip().splitlines()[-1].startswith("tubeid: error: store = ") and "Traceback" not in err
+    assert f"cannot write {store}" in err and os.strerror(errno.ENOSPC) in err and "block (0, 1)" in err, err
+    monkeypatch.setattr(_local, "_put", put)
     run(defs["study"], store, workers=0, quiet=True)
     _same(store, refs["study"])

@@ -69,6 +69,7 @@ from tubeid._outputs import OutputDir
 from tubeid._validation import integer, seed as _seed
 from tubeid.dynamics.spectra import confidence_band, j_s
 from tubeid.errors import SpecificationError
+from tubeid.runner._paths import local_path
 from tubeid.identification.likelihood import LR_THRESHOLD, likelihood_curve
 from tubeid.identification.loads import JS_UNITS, delta_f_likelihood
 from tubeid.identification.trial import DISTANCES, identify_r
@@ -160,6 +161,7 @@ class _Store:
         self._groups: dict = {}
         import zarr
 
+        local_path(path)  # never a URL zarr would read elsewhere
         if not os.path.isdir(path):
             raise SpecificationError("store", path, "is not a Zarr store (not a directory): give the store that "
                                      "`tubeid run studies/paper.py` wrote")
@@ -1002,7 +1004,7 @@ def make_report(store, out=None, *, n_bootstrap: int = 200, seed: int = 2008, se
         not write: before any output is written (``out`` is not created).
     """
     store = os.fspath(store)
-    if not os.path.exists(store):
+    if not os.path.exists(local_path(store)):
         raise SpecificationError("store", store, "no such Zarr store")
     n_bootstrap = integer("n_bootstrap", n_bootstrap, minimum=0)
     seed = _seed("seed", seed)

@@ -33,11 +33,12 @@ from tubeid import config
 from tubeid.errors import BlockFailed, SpecificationError
 from tubeid.runner.integrity import repair_structure, verify
 from tubeid.runner.lock import StoreLock
+from tubeid.runner._paths import local_path
 from tubeid.runner.pipeline import End, Pipeline, stage_hash
 from tubeid.runner.status import NOT_NEEDED
 from tubeid.runner.store import (append_history, block_flags, check_blocks, check_stage, check_store, history_line,
                                  init_pipeline_store, init_stage, init_store, now, prepare_path, read_attrs, remove_store,
-                                 remove_temporaries, restore_consolidated, _forget_nodes, _read_manifest, _remove_nodes,
+                                 remove_temporaries, restore_consolidated, _forget_nodes, _own_file, _read_manifest, _remove_nodes,
                                  set_flags, tubeid_version, update_attrs, write_block)
 from tubeid.runner.study import Study, _plain, load_definition, load_study
 
@@ -763,8 +764,9 @@ def run(study_path: str | os.PathLike, store: str | os.PathLike | None = None, *
     scheduler = scheduler_address(scheduler) if workers is None and client is None else scheduler
     if scheduler and workers is not None:
         raise SpecificationError("workers", workers, "give either --workers or --scheduler, not both")
-    path = pathlib.Path(store) if store is not None else default_store(study.name)
-    if new_store:
+    path = local_path(store if store is not None else default_store(study.name))
+    if new_store and _holds_another(path, key):
+        path = pathlib.Path(os.path.abspath(path))  # "." and ".." name no directory to write beside
         path = path.with_name(f"{path.name.removesuffix('.zarr')}-{key[:8]}.zarr")
     path = prepare_path(path).resolve()
     if not overwrite:
@@ -791,10 +793,21 @@ def run(study_path: str | os.PathLike, store: str | os.PathLike | None = None, *
         return report
     finally:
         lock.release()
-        if lock.created_store and path.is_dir() and all(f.name.startswith(".tubeid-") for f in path.iterdir()):
+        if lock.created_store and path.is_dir() and all(_own_file(f.name) for f in path.iterdir()):
             for f in path.iterdir():  # refused or failed before anything was written: leave no trace
                 f.unlink()
             path.rmdir()
+
+
+def _holds_another(path: pathlib.Path, key: str) -> bool:
+    """Whether ``--new-store`` diverts from ``path``: it exists and cannot take this study as it is (another
+    study definition, files tubeid did not write, an older layout), so ``<store>-<hash8>.zarr`` is written
+    beside it; a missing path or a store of this very study is used as given (a resume)."""
+    try:
+        check_store(path, key)
+    except SpecificationError:
+        return True
+    return False
 
 
 def _remove_temporaries(path, quiet) -> bool:
@@ -1090,10 +1103,11 @@ def _block_label(study, index, stage: str | None = None) -> str:
 
 
 def _failed(exc: Exception, label) -> BaseException:
-    """The exception to raise for a block whose task raised ``exc``: a refusal stays as it is (it names
-    its field and rule); anything else becomes :class:`~tubeid.errors.BlockFailed` naming the block."""
+    """The exception to raise for a block whose task raised ``exc``: a refusal stays a refusal (its field,
+    value and rule; a value the task checks, a full disk) with the block named after its rule; anything
+    else becomes :class:`~tubeid.errors.BlockFailed` naming the block."""
     if isinstance(exc, SpecificationError):
-        return exc
+        return SpecificationError(exc.field, exc.value, f"{exc.rule} (in {label})")
     return BlockFailed(label, f"{type(exc).__name__}: {exc}")
 
 

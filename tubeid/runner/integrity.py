@@ -23,6 +23,8 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from tubeid.runner._paths import local_path
+
 __all__ = ["block_checksum", "values_checksum", "verify", "repair_structure", "Verification", "CHECKSUM_RULE",
            "chunk_key"]
 
@@ -182,6 +184,7 @@ def verify(path: str | os.PathLike, group: str | None = None) -> Verification:
     """
     from tubeid.runner.store import BOOKKEEPING, FLAG, _node, read_flags
 
+    local_path(path)  # never a URL zarr would read elsewhere
     ver = Verification(group=group)
     attrs = _bookkeeping_attrs(path, group, ver)
     if attrs is None:

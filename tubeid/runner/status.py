@@ -19,6 +19,7 @@ import pathlib
 import numpy as np
 
 from tubeid.errors import SpecificationError, shown
+from tubeid.runner._paths import local_path
 from tubeid.runner.study import RESERVED
 
 __all__ = ["store_status", "pipeline_status", "FLAG", "BOOKKEEPING", "FORMAT", "PIPELINE_FORMAT", "LEGACY_FORMATS",
@@ -129,7 +130,7 @@ def store_status(path: str | os.PathLike, group: str | None = None) -> dict:
     """
     from tubeid.runner.lock import LOCK_NAME, read_lock
 
-    p = pathlib.Path(path)
+    p = local_path(path)
     if not p.is_dir():
         raise SpecificationError("store", str(path), "no such store")
     try:
@@ -220,7 +221,7 @@ def pipeline_status(path: str | os.PathLike) -> dict:
     """
     from tubeid.runner.lock import LOCK_NAME, read_lock
 
-    p = pathlib.Path(path)
+    p = local_path(path)
     attrs = _attrs(p)
     names = _stage_names(attrs, path)
     status = attrs.get("stage_status", {})

@@ -53,6 +53,7 @@ import numpy as np
 import zarr
 
 from tubeid.errors import SpecificationError
+from tubeid.runner._paths import local_path
 from tubeid.runner.status import BOOKKEEPING, FLAG, FORMAT, LEGACY_FORMATS, PIPELINE_FORMAT, pipeline_status, store_status
 
 if TYPE_CHECKING:  # imported where used: `tubeid status` needs no xarray
@@ -178,11 +179,11 @@ def _flag_dims(study):
 
 
 def prepare_path(path) -> pathlib.Path:
-    """Refuse up front a store path that cannot be written (missing rights, a file in the way) or that is
-    a symbolic link (also a dangling one): tubeid would create, write and with ``--overwrite`` replace
-    what it points to, somewhere else than the path given. Links among its parent directories are
-    followed as usual."""
-    p = pathlib.Path(path)
+    """Refuse up front a store path that cannot be written (missing rights, a file in the way), that zarr
+    would read as a URL (:func:`local_path`), or that is a symbolic link (also a dangling one): tubeid
+    would create, write and with ``--overwrite`` replace what it points to, somewhere else than the path
+    given. Links among its parent directories are followed as usual."""
+    p = local_path(path)
     if p.is_symlink():
         raise SpecificationError("store", str(p), f"is a symbolic link (to {os.readlink(p)}): tubeid does not write "
                                  "through a link; give the directory it points to, or another path")
@@ -200,9 +201,20 @@ def prepare_path(path) -> pathlib.Path:
     return p
 
 
+_TOKEN = r"[0-9a-f]{24}(?:-\d+)?"  # a lock record's token (a breaker's: its own token and depth)
+#: the exact names of tubeid's own files at the top of a store: the manifest, the lock and the files
+#: taking, breaking and ageing it leave (:mod:`tubeid.runner.lock`), and ``tempfile.mkstemp``'s
+#: ``.tubeid-tmp-`` / ``.tubeid-probe-`` + 8 characters. A user's file that merely starts with
+#: ``.tubeid-`` is not one of them.
+_OWN_NAME = re.compile(r"\.tubeid-(?:manifest\.json|(?:tmp|probe)-[a-z0-9_]{8}"
+                       rf"|lock(?:\.break-{_TOKEN})*(?:\.tmp-{_TOKEN}|\.probe-{_TOKEN}-[0-9a-f]{{8}})?)")
+#: those of them :func:`remove_store` removes itself (the lock's leftovers are the lock's to judge)
+_REMOVABLE_NAME = re.compile(r"\.tubeid-(?:tmp|probe)-[a-z0-9_]{8}")
+
+
 def _own_file(name: str) -> bool:
-    """tubeid's own files at the top of a store (manifest, lock and its temporary files)."""
-    return name.startswith(".tubeid-")
+    """tubeid's own files at the top of a store, by their exact names (:data:`_OWN_NAME`)."""
+    return bool(_OWN_NAME.fullmatch(name))
 
 
 def _group_meta(d: pathlib.Path) -> dict | None:
@@ -270,9 +282,12 @@ def check_store(path, study_hash: str) -> str:
         return "new"
     if not (p / "zarr.json").exists():
         try:
-            ours = _read_manifest(p).get("") == "group"
+            recorded = _read_manifest(p)
         except SpecificationError:  # an unreadable manifest: nothing is provably tubeid's
-            ours = False
+            recorded = None
+        if recorded == {} and (p / MANIFEST_NAME).is_file():  # emptied by an --overwrite killed before it wrote anew
+            return "new"
+        ours = bool(recorded) and recorded.get("") == "group"
         if ours:  # tubeid made it, and blocks were written in it (else: an interrupted creation, made again)
             raise SpecificationError("store", str(p), "exists and is not a tubeid study store any more: its root "
                                      "metadata (zarr.json) is missing, yet it holds blocks tubeid wrote (an --overwrite "
@@ -352,11 +367,24 @@ def _forget_nodes(p: pathlib.Path, nodes) -> None:
 
 
 def _legacy_nodes(p: pathlib.Path) -> dict:
-    """Nodes of a store written before manifests existed (layout /1): every group and array of its hierarchy."""
+    """Nodes of a store written before manifests existed (layout /1): the groups and arrays its root's
+    consolidated metadata lists (layout /1 consolidated the root after every change it made), never a
+    node added since (a user's array or group written into it is kept). Without readable consolidated
+    metadata nothing is provably tubeid's: refused."""
+    try:
+        meta = json.loads((p / "zarr.json").read_bytes())
+        listed = meta["consolidated_metadata"]["metadata"]
+        if not isinstance(listed, dict):
+            raise TypeError
+    except (OSError, ValueError, KeyError, TypeError):
+        raise SpecificationError("store", str(p), "was written by an older tubeid (layout /1) and has no readable "
+                                 "consolidated metadata naming what tubeid wrote: refusing to delete anything in it "
+                                 "(remove it yourself, or choose another --store)") from None
     nodes = {"": "group"}
-    with _quiet():
-        for name, node in zarr.open_group(str(p), mode="r", use_consolidated=False).members(max_depth=None):
-            nodes[name] = "array" if isinstance(node, zarr.Array) else "group"
+    for name, node in listed.items():
+        kind = node.get("node_type") if isinstance(node, dict) else None
+        if isinstance(name, str) and kind in ("group", "array"):
+            nodes[name] = kind
     return nodes
 
 
@@ -463,38 +491,42 @@ def remove_store(path, *, keep_lock: bool = True, dry_run: bool = False) -> list
     """Remove what tubeid wrote in the store ``path`` (its manifest's nodes and its own files).
 
     Anything else in the store (a user's file or array) is kept, with the directories holding it;
-    returns those files' paths (relative to the store). A directory that holds no tubeid store is
-    refused (``SpecificationError``), as is a store whose manifest is unreadable. ``dry_run``: only
-    the refusals, nothing removed.
+    returns those files' paths (relative to the store). The manifest itself is kept, emptied (one
+    atomic replace, after the nodes are gone): a run killed before it writes the new store leaves a
+    directory still provably tubeid's, which the next run (with or without ``--overwrite``) takes as
+    new. A directory that holds no tubeid store is refused (``SpecificationError``), as is a store
+    whose manifest is unreadable. ``dry_run``: only the refusals, nothing removed.
     """
     p = pathlib.Path(path)
     if not p.exists():
         return []
     if not p.is_dir():
         raise SpecificationError("store", str(p), "is a file, not a store directory")
-    if (p / "zarr.json").exists() or (p / MANIFEST_NAME).exists():
+    manifest = (p / MANIFEST_NAME).exists()
+    nodes = _read_manifest(p)  # {} without a manifest, or for a store an earlier --overwrite emptied
+    if nodes:
+        pass
+    elif (p / "zarr.json").exists():  # a Zarr hierarchy tubeid has no record of writing
         try:
             fmt = read_attrs(p).get("format")
         except Exception:
             fmt = None
-        nodes = _read_manifest(p)
-        if not nodes:
-            if fmt not in LEGACY_FORMATS:
-                raise SpecificationError("store", str(p), f"has no manifest ({MANIFEST_NAME}) of what tubeid wrote: "
-                                         "refusing to delete anything in it (remove it yourself, or choose another --store)")
-            nodes = _legacy_nodes(p)
-    elif all(_own_file(c.name) for c in p.iterdir()):
-        nodes = {}
-    else:
+        if fmt not in LEGACY_FORMATS:
+            raise SpecificationError("store", str(p), f"has no manifest ({MANIFEST_NAME}) of what tubeid wrote: "
+                                     "refusing to delete anything in it (remove it yourself, or choose another --store)")
+        nodes = _legacy_nodes(p)
+    elif not (manifest or all(_own_file(c.name) for c in p.iterdir())):
         raise SpecificationError("store", str(p), "exists and is not a tubeid store: refusing to delete it (choose another --store)")
     _check_nodes(p, nodes)
     if dry_run:
         return []
     _remove_nodes(p, nodes)
+    if (p / MANIFEST_NAME).exists():
+        _write_manifest(p, {})
     from tubeid.runner.lock import LOCK_NAME
 
     for f in p.iterdir():
-        if f.is_file() and _own_file(f.name) and not (keep_lock and f.name == LOCK_NAME):
+        if f.is_file() and not f.is_symlink() and (_REMOVABLE_NAME.fullmatch(f.name) or (not keep_lock and f.name == LOCK_NAME)):
             f.unlink()
     return sorted(f.relative_to(p).as_posix() for f in p.rglob("*") if f.is_file() and not _own_file(f.name))
 
@@ -828,12 +860,20 @@ def write_block(path, study, block, outputs, group=None, *, expected_hash: str |
     if expected_hash is not None:
         _holds(path, group, expected_hash)
     region = tuple(block.slices.values())
-    for name, arr in outputs.items():
-        g[name][region] = arr
-    checksum = block_checksum(outputs, block.index)
-    if expected_hash is not None:
-        _holds(path, group, expected_hash)
-    g[f"{BOOKKEEPING}/{FLAG}"][tuple(block.index)] = checksum
+    try:
+        for name, arr in outputs.items():
+            g[name][region] = arr
+        checksum = block_checksum(outputs, block.index)
+        if expected_hash is not None:
+            _holds(path, group, expected_hash)
+        g[f"{BOOKKEEPING}/{FLAG}"][tuple(block.index)] = checksum
+    except (SpecificationError, StaleWrite):
+        raise
+    except Exception as exc:  # a full disk, a quota, a read-only mount: said as such, not as the study's failure
+        system = _system_error(exc)
+        if system is None:
+            raise
+        raise cannot_write(path, system) from None
 
 
 def open_results(path: str | os.PathLike, group: str | None = None, *, flags: bool = False,

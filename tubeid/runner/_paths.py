@@ -1,0 +1,40 @@
+"""A store's path as a local directory path: the one check every command that takes a store makes first.
+
+zarr (3.x, ``zarr.storage._common._is_fsspec_uri``) reads a path whose text holds ``::`` (a chain of
+file systems) or ``://`` (a protocol) as an fsspec URL: ``prev.zarr::v2.zarr`` opens ``prev.zarr``. tubeid's
+own checks, lock and manifest work on the literal path, so such a path would have zarr write into
+another directory than the one tubeid checked. Imports nothing heavy (``tubeid status`` needs no zarr).
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import pathlib
+
+from tubeid.errors import SpecificationError
+
+__all__ = ["local_path"]
+
+
+def local_path(path, field: str = "store") -> pathlib.Path:
+    """``path`` as a local directory path, refused (``SpecificationError`` naming ``field``) if zarr
+    would read its text as a URL (``::`` chains file systems, ``://`` names a protocol: tubeid's checks,
+    lock and manifest would look at one directory while zarr wrote another) or if the file system
+    cannot look it up at all (a name longer than it allows, a loop of links)."""
+    text = os.fspath(path) if isinstance(path, (str, os.PathLike)) else path
+    if not isinstance(text, str) or not text:
+        raise SpecificationError(field, path, "must be a non-empty path of a local directory")
+    if "::" in text or "://" in text:
+        raise SpecificationError(field, text, "must be a local directory path: zarr reads '::' and '://' in a path as "
+                                 "a URL of another file system, not as part of a directory name; rename it")
+    p = pathlib.Path(text)
+    try:
+        p.lstat()
+    except FileNotFoundError:
+        pass
+    except OSError as exc:  # ENAMETOOLONG, ELOOP, EACCES on a parent, ...
+        if exc.errno == errno.ENOTDIR:
+            raise SpecificationError(field, text, "has a file, not a directory, among its parents") from None
+        raise SpecificationError(field, text, f"cannot be looked up: {exc.strerror}") from None
+    return p
