@@ -714,6 +714,71 @@ def test_a_failing_task_on_workers_names_its_block(tmp_path):
         run(path, tmp_path / "failing.zarr", workers=2, quiet=True, overrides={"marker": str(tmp_path / "fail-here")})
 
 
+REFUSING = '''
+from tubeid.mechanics import builtin_spec
+from tubeid.runner.study import Output, Study, pointwise
+
+@pointwise
+def f(point, rng):
+    if point["r"] == 3:
+        builtin_spec("no-such-model")  # a refusal of tubeid's own, raised inside the task
+    return {"y": float(point["r"])}
+
+study = Study(name="refusing", seed=3, axes={"r": range(6)}, chunks={"r": 2}, task=f, outputs={"y": Output(units="m")})
+'''
+
+
+@pytest.mark.parametrize("workers", [0, pytest.param(2, marks=pytest.mark.distributed)])
+def test_a_refusal_raised_in_a_task_keeps_its_field_value_and_rule_and_names_the_block(tmp_path, capsys, workers):
+    """A SpecificationError raised by a task stays a one-line refusal (exit 2, no traceback) with its field,
+    value and rule, and says which block raised it (it crosses from a worker process by pickle)."""
+    from tubeid.cli import main
+
+    path = tmp_path / "refusing.py"
+    path.write_text(REFUSING)
+    with pytest.raises(SpecificationError) as info:
+        run(path, tmp_path / "s.zarr", workers=workers, quiet=True)
+    assert (info.value.field, info.value.value) == ("model", "no-such-model")
+    assert info.value.rule.startswith("unknown built-in model")
+    assert str(info.value).endswith("(in study 'refusing', block (1,) (r = 2 … 3))")
+    assert main(["run", str(path), "--store", str(tmp_path / "s.zarr"), "--workers", str(workers), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "Traceback" not in err and err.splitlines()[-1] == f"tubeid: error: {info.value}"
+
+
+def test_tubeids_errors_survive_pickling_with_their_fields():
+    """They cross process boundaries (dask workers, multiprocessing): rebuilt with their fields, a value that
+    cannot be pickled travelling as its description."""
+    import pickle
+
+    from tubeid.errors import MissingDependencyError
+
+    e = pickle.loads(pickle.dumps(SpecificationError("tubes[1].length", -2.0, "must be > 0")))
+    assert type(e) is SpecificationError and (e.field, e.value, e.rule) == ("tubes[1].length", -2.0, "must be > 0")
+    assert str(e) == "tubes[1].length = -2.0: must be > 0"
+    e = pickle.loads(pickle.dumps(SpecificationError("task", lambda x: x, "must be picklable")))
+    assert str(e).startswith("task = <function test_tubeids_errors_survive_pickling_with_their_fields.<locals>.<lambda>")
+    e = pickle.loads(pickle.dumps(MissingDependencyError("tubeid report", "matplotlib", "plot")))
+    assert (e.feature, e.package, e.extra, e.name) == ("tubeid report", "matplotlib", "plot", "matplotlib")
+    assert str(e) == 'tubeid report needs matplotlib: pip install "tubeid[plot]"'
+
+
+@pytest.mark.parametrize("text, read", [("1e-400", "0.0"), ("-2e-999", "-0.0"), ("1e400", "inf"), ("-1e309", "-inf")])
+def test_set_refuses_a_number_beyond_a_floats_range(tmp_path, capsys, text, read):
+    """`--set delta=1e-400` was read as 0.0 (in the paper study: "use delta_opt"), silently."""
+    from tubeid.cli import main
+
+    study = write_study(tmp_path, realisations=4, work=0)
+    with pytest.raises(SystemExit) as info:
+        main(["run", str(study), "--store", str(tmp_path / "s.zarr"), "--set", f"work={text}"])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and f"{text} is beyond a float's range (it would be read as {read})" in err
+    assert not (tmp_path / "s.zarr").exists()
+    from tubeid.runner.cli import _setting
+
+    assert _setting("x=0.0e-400") == ("x", 0.0) and _setting("x=2.5e-300") == ("x", 2.5e-300)  # zeros, small numbers
+
+
 def test_a_setting_is_named_with_the_variable_that_sets_it():
     """Refusals name a setting with its environment variable: that variable must set that setting."""
     import re

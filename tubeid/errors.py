@@ -11,6 +11,7 @@ it, e.g. ``tubeid report needs matplotlib: pip install "tubeid[plot]"``.
 
 from __future__ import annotations
 
+import pickle
 import reprlib
 from typing import Any
 
@@ -76,6 +77,16 @@ class SpecificationError(ValueError):
         self.field, self.value, self.rule = field, value, rule
         super().__init__(f"{_clip(field, VALUE_CHARS)} = {shown(value)}: {_clip(rule, 4 * VALUE_CHARS)}")
 
+    def __reduce__(self):
+        # pickled with its field, value and rule (it crosses processes: a task's refusal on a worker); a
+        # value that cannot be pickled travels as its description, so the refusal itself always does
+        value = self.value
+        try:
+            pickle.dumps(value)
+        except Exception:  # noqa: BLE001 - any failure to pickle the value
+            value = Described(shown(value))
+        return type(self), (self.field, value, self.rule)
+
 
 class MissingDependencyError(ImportError):
     """A feature needs a package of one of tubeid's optional extras, and it is not installed.
@@ -95,6 +106,9 @@ class MissingDependencyError(ImportError):
     def __init__(self, feature: str, package: str, extra: str) -> None:
         self.feature, self.package, self.extra = feature, package, extra
         super().__init__(f'{feature} needs {package}: pip install "tubeid[{extra}]"', name=package)
+
+    def __reduce__(self):
+        return type(self), (self.feature, self.package, self.extra)
 
 
 class BlockFailed(RuntimeError):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import ast
 import json
+import math
 import sys
 
 __all__ = ["register", "main"]
@@ -18,6 +19,12 @@ def _setting(text: str) -> tuple[str, object]:
         value = ast.literal_eval(value)
     except (ValueError, SyntaxError):
         pass  # a plain string
+    else:
+        if isinstance(value, float):
+            mantissa = text.split("=", 1)[1].strip().lower().split("e")[0]
+            if (value == 0.0 and any(c in mantissa for c in "123456789")) or not math.isfinite(value):
+                raise argparse.ArgumentTypeError(f"{text!r}: {text.split('=', 1)[1].strip()} is beyond a float's "
+                                                 f"range (it would be read as {value!r})")
     return name.strip(), value
 
 
