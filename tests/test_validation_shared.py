@@ -115,3 +115,21 @@ def test_numeric_array_complex_finite_and_conversion():
     assert out.dtype == np.float64 and out.tolist() == [1.0, 2.5]
     ints = np.arange(3)
     assert v.numeric_array("x", ints) is ints and v.numeric_array("x", ints, dtype=float).dtype == np.float64
+
+
+def test_boolean_duration_and_byte_count():
+    """The checks of configuration values: true/false only; a duration or a size as dask writes them."""
+    assert v.boolean("b", np.bool_(False)) is False
+    for bad in (0, 1, "no", "true", None):
+        with pytest.raises(SpecificationError, match=r"^b = .*: must be true or false$"):
+            v.boolean("b", bad)
+    assert v.duration("t", "2 minutes") == 120.0 and v.duration("t", 3) == 3.0 and v.duration("t", "500ms") == 0.5
+    for bad in ("abc", 0, -1, "nan", math.inf, True, None, [1], 10**400):
+        with pytest.raises(SpecificationError, match=r"^t = .*: must be a duration > 0, e\.g\. 10s"):
+            v.duration("t", bad)
+    assert v.byte_count("n", "2 GiB") == 2.0 * 2**30 and v.byte_count("n", 1000) == 1000.0
+    for bad, shown in (("abc", "'abc'"), ("0 B", "'0 B'"), (0, "0"), (-5, "-5"), (True, "True"), (None, "None"),
+                       (math.nan, "nan"), (10**400, "<integer of")):
+        with pytest.raises(SpecificationError) as err:
+            v.byte_count("n", bad)
+        assert str(err.value).startswith(f"n = {shown}") and "must be a size in bytes > 0" in str(err.value)

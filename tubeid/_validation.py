@@ -22,7 +22,7 @@ import numpy as np
 from tubeid.errors import Described, SpecificationError
 
 __all__ = ["real", "positive", "non_negative", "integer", "open_unit", "one_of", "seed", "is_number", "limit",
-           "byte_size", "channel_count", "is_numeric_dtype", "numeric_array"]
+           "byte_size", "channel_count", "is_numeric_dtype", "numeric_array", "duration", "byte_count", "boolean"]
 
 
 def _unit(unit: str | None) -> str:
@@ -204,6 +204,45 @@ def seed(field: str, value: Any) -> int:
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (numbers.Integral, np.integer)) or value < 0:
         raise SpecificationError(field, value, "must be a non-negative integer")
     return int(value)
+
+
+def boolean(field: str, value: Any) -> bool:
+    """``True`` or ``False`` (also NumPy's), never a number or a string such as ``"no"``."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise SpecificationError(field, value, "must be true or false")
+    return bool(value)
+
+
+def duration(field: str, value: Any) -> float:
+    """A duration > 0 in seconds, as ``float``: a number of seconds or a text dask reads (``"10s"``,
+    ``"2 minutes"``); never ``bool``, NaN or infinity."""
+    from dask.utils import parse_timedelta
+
+    try:
+        seconds = None if isinstance(value, (bool, np.bool_)) or value is None else \
+            float(parse_timedelta(value, default="s"))
+    except (KeyError, ValueError, TypeError, AttributeError, OverflowError):  # dask's errors for what it cannot parse
+        seconds = None
+    if seconds is None or not math.isfinite(seconds) or seconds <= 0:
+        raise SpecificationError(field, value, "must be a duration > 0, e.g. 10s (a bare number is seconds)")
+    return seconds
+
+
+def byte_count(field: str, value: Any) -> float:
+    """A size > 0 in bytes: a number, or a text dask reads (``"2 GiB"``, ``"500 kB"``)."""
+    rule = 'must be a size in bytes > 0, e.g. "2 GiB" (a bare number is bytes)'
+    given = value
+    if isinstance(value, str):
+        from dask.utils import parse_bytes
+
+        try:
+            value = parse_bytes(value)
+        except (ValueError, TypeError, OverflowError):
+            raise SpecificationError(field, given, rule) from None
+    try:
+        return real(field, value, low=0.0, low_open=True)
+    except SpecificationError:
+        raise SpecificationError(field, given, rule) from None
 
 
 # -- resource limits (configuration section ``tubeid.io``) ----------------------------------------
