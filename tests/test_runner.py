@@ -531,7 +531,9 @@ def test_worker_environ_goes_over_dasks_and_refuses_bad_entries():
                               "number of bytes")):
         with dask.config.set({"tubeid.runner.worker-environ": bad}), pytest.raises(SpecificationError) as err:
             _worker_environ()
-        assert err.value.field == field and rule in str(err.value), (bad, str(err.value))
+        # named as every setting is, with the variable that sets the whole mapping (never the mangled one)
+        assert err.value.field == f"tubeid.{field} (TUBEID_RUNNER__WORKER_ENVIRON)" and rule in str(err.value), \
+            (bad, str(err.value))
     with dask.config.set({"distributed.nanny.pre-spawn-environ": ["x"]}), pytest.raises(SpecificationError) as err:
         _worker_environ()
     assert err.value.field == "distributed.nanny.pre-spawn-environ"

@@ -249,19 +249,12 @@ def byte_count(field: str, value: Any) -> float:
 def limit(key: str) -> float:
     """The configured limit ``tubeid.io.<key>`` as a number > 0 (sizes such as ``"2 GiB"`` in bytes).
 
-    A bad configured value is refused naming the configuration key.
+    A bad configured value is refused naming the setting and its environment variable
+    (:func:`tubeid.config.value`).
     """
     from tubeid import config
 
-    value = config.get(f"io.{key}")
-    if isinstance(value, str):
-        from dask.utils import parse_bytes
-
-        try:
-            value = parse_bytes(value)
-        except ValueError:
-            pass
-    return real(f"configuration tubeid.io.{key}", value, low=0.0, low_open=True)
+    return config.value(f"io.{key}")
 
 
 def byte_size(nbytes: float) -> str:

@@ -23,7 +23,6 @@ import importlib.util
 import logging
 import os
 import pathlib
-import re
 import sys
 import time
 
@@ -304,12 +303,12 @@ def _summary(study, store, group=None) -> dict:
 
 
 def default_store(study_name: str) -> pathlib.Path:
-    return pathlib.Path(config.get("runner.store-root", "results")) / f"{study_name}.zarr"
+    return config.value("runner.store-root") / f"{study_name}.zarr"
 
 
 def scheduler_address(explicit: str | None = None) -> str | None:
     """``explicit``, else ``tubeid.runner.scheduler-address``, else ``DASK_SCHEDULER_ADDRESS``, else None."""
-    return explicit or config.get("runner.scheduler-address") or os.environ.get("DASK_SCHEDULER_ADDRESS") or None
+    return explicit or config.value("runner.scheduler-address") or os.environ.get("DASK_SCHEDULER_ADDRESS") or None
 
 
 def _log(msg, quiet):
@@ -355,19 +354,21 @@ def _probe(address: str, seconds: float) -> None:
 
 def _connect(scheduler: str):
     """A Client to ``scheduler``, or a SpecificationError saying why not (never a library traceback)."""
-    from dask.utils import parse_timedelta
     from distributed import Client
 
-    timeout = config.get("runner.connect-timeout", "20s")
+    if not isinstance(scheduler, str) or not scheduler.strip():
+        raise SpecificationError("scheduler", scheduler, "must be a scheduler address such as tcp://host:8786")
+    timeout = config.get("runner.connect-timeout")  # as configured, for the message
+    seconds = config.value("runner.connect-timeout")  # refused as a setting, not as a connection failure
     # Never the process's default Client (the runner passes its Client explicitly): a default one sets
     # dask.config's scheduler, which a Client that failed to connect leaves behind. Built in two steps
     # so that a Client that failed to connect is closed here (not by the garbage collector at exit,
     # when its event loop is gone: a stall of twice the timeout and a traceback), Ctrl-C included.
     client = None
     try:
-        _probe(scheduler, parse_timedelta(timeout, default="s"))
+        _probe(scheduler, seconds)
         client = Client.__new__(Client)
-        client.__init__(scheduler, timeout=timeout, set_as_default=False)
+        client.__init__(scheduler, timeout=seconds, set_as_default=False)
         return client
     except BaseException as exc:  # unreachable, refused, silent, TLS expected or misconfigured, timed out; or Ctrl-C
         if client is not None:
@@ -389,7 +390,7 @@ def _connect(scheduler: str):
 
 def _embedded_security():
     """Ephemeral TLS credentials for the embedded cluster (only processes holding them may connect)."""
-    if not config.get("runner.embedded-tls", True):
+    if not config.value("runner.embedded-tls"):
         return None
     try:
         from distributed.security import Security
@@ -434,25 +435,11 @@ def _main_script() -> str | None:
 def _embedded_settings(workers: int | None) -> tuple[int, int, str, str]:
     """(worker processes, threads per worker, host, dashboard address) of the embedded cluster:
     ``workers`` if given, else the configuration, checked here (a refusal names the setting and its
-    environment variable) rather than by the cluster, which would hang on 0 workers or fail deep inside."""
-    from tubeid._validation import integer
-
-    def named(key):
-        return config.setting_name(f"runner.{key}")
-
-    n = workers
-    if not n:
-        configured = config.get("runner.workers")
-        n = (os.cpu_count() or 1) if configured is None else integer(named("workers"), configured, minimum=1)
-    threads = integer(named("threads-per-worker"), config.get("runner.threads-per-worker", 1), minimum=1)
-    host = config.get("runner.host", "127.0.0.1")
-    if not isinstance(host, str) or not host:
-        raise SpecificationError(named("host"), host, "must be a host name or address to bind to (e.g. 127.0.0.1)")
-    dashboard = config.get("runner.dashboard-address", "127.0.0.1:0")
-    if not isinstance(dashboard, str) or not dashboard:
-        raise SpecificationError(named("dashboard-address"), dashboard, "must be an address host:port (\":0\" for any "
-                                                                        "free port)")
-    return int(n), threads, host, dashboard
+    environment variable, :func:`tubeid.config.value`) rather than by the cluster, which would hang on
+    0 workers or fail deep inside."""
+    n = workers or config.value("runner.workers") or os.cpu_count() or 1
+    return (int(n), config.value("runner.threads-per-worker"), config.value("runner.host"),
+            config.value("runner.dashboard-address"))
 
 
 def _is_tubeid_command(script: str) -> bool:
@@ -530,7 +517,7 @@ def _client(workers: int | None, scheduler: str | None, client, quiet: bool):
     # put them back when the cluster is gone, so that a later cluster (and subprocess) sees the caller's
     saved = {k: os.environ.get(k) for k in {*environ, "PYTHONHASHSEED"}}
     try:
-        with dask.config.set({"distributed.scheduler.allowed-failures": config.get("runner.allowed-failures", 3),
+        with dask.config.set({"distributed.scheduler.allowed-failures": config.value("runner.allowed-failures"),
                               "distributed.nanny.pre-spawn-environ": environ}):
             try:
                 with _spawning_without_ctrl_c():
@@ -560,9 +547,6 @@ def _client(workers: int | None, scheduler: str | None, client, quiet: bool):
                 os.environ[name] = value
 
 
-_ENV_NAME = re.compile(r"[A-Z_][A-Z0-9_]*")
-
-
 def _worker_environ() -> dict:
     """dask's ``distributed.nanny.pre-spawn-environ`` with ``tubeid.runner.worker-environ`` over it:
     the environment the embedded cluster's nannies set before starting a worker process (a variable
@@ -571,21 +555,7 @@ def _worker_environ() -> dict:
     (glibc ignores anything else, and a trim threshold alone then fixes the mmap threshold at 128 KiB)."""
     import dask
 
-    extra = config.get("runner.worker-environ") or {}
-    if not isinstance(extra, dict):
-        raise SpecificationError("runner.worker-environ", extra, "must be a mapping of environment variable names "
-                                 "to values (or null)")
-    for name, value in extra.items():
-        if not isinstance(name, str) or not _ENV_NAME.fullmatch(name):
-            raise SpecificationError("runner.worker-environ", name, "must hold upper-case environment variable names "
-                                     "([A-Z_][A-Z0-9_]*); from the environment, set the whole mapping: "
-                                     "TUBEID_RUNNER__WORKER_ENVIRON='{\"MALLOC_TRIM_THRESHOLD_\": 268435456}'")
-        if isinstance(value, bool) or not (value is None or isinstance(value, (str, int))):
-            raise SpecificationError(f"runner.worker-environ.{name}", value, "must be a string, an integer or null")
-        if name.startswith("MALLOC_") and value is not None and not (
-                (isinstance(value, int) and value >= 0) or (isinstance(value, str) and value.isascii() and value.isdigit())):
-            raise SpecificationError(f"runner.worker-environ.{name}", value, "must be a number of bytes (a non-negative "
-                                     "integer; glibc ignores anything else)")
+    extra = config.value("runner.worker-environ")  # names and values checked there
     base = dask.config.get("distributed.nanny.pre-spawn-environ", default=None) or {}
     if not isinstance(base, dict):
         raise SpecificationError("distributed.nanny.pre-spawn-environ", base, "must be a mapping of environment "
@@ -750,6 +720,7 @@ def run(study_path: str | os.PathLike, store: str | os.PathLike | None = None, *
         What the run did (blocks computed, skipped, repaired; timings).
     """
     _refuse_in_a_spawned_reimport()
+    config.check()  # the whole configuration, before the study file runs and anything is created or started
     base, source, _ = load_definition(study_path)  # validates the definition as written
     # each --set value as its parameter's check makes it (e.g. a model file read into its content, checked
     # now, never from a cache): the workers and the study hash get that, not the raw text
@@ -773,7 +744,7 @@ def run(study_path: str | os.PathLike, store: str | os.PathLike | None = None, *
         check_store(path, key)  # refused before taking the lock (and leaving a lock file) if it is not ours
     else:
         remove_store(path, dry_run=True)  # refused up front if it is not a tubeid store
-    progress = config.get("runner.progress", True) if progress is None else progress
+    progress = config.value("runner.progress") if progress is None else progress
     lock = StoreLock(path, log=lambda m: _log(m, quiet))
     lock.acquire()
     try:

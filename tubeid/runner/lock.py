@@ -71,38 +71,14 @@ class LockLost(RuntimeError):
     """The store's lock was taken over by another runner while this one held it."""
 
 
-def _seconds(key: str, default: float) -> float:
-    """The duration configured at ``tubeid.<key>`` in seconds: finite and > 0, else refused naming the
-    setting and its environment variable (``runner.lock-heartbeat``: ``tubeid.runner.lock-heartbeat
-    (TUBEID_RUNNER__LOCK_HEARTBEAT)``)."""
-    import math
-
-    from dask.utils import parse_timedelta
-
+def lock_settings() -> tuple[float, float]:
+    """``(heartbeat, stale_after)`` in seconds, checked (:func:`tubeid.config.check`: each a duration > 0,
+    refused naming the setting and its environment variable, and the heartbeat shorter than
+    ``lock-stale-after``, else other hosts would take a live run's lock over)."""
     from tubeid import config  # dask's configuration: imported only where a lock is taken or judged
 
-    value = config.get(key, default)
-    try:
-        seconds = None if isinstance(value, bool) else float(parse_timedelta(value, default="s"))
-    except (KeyError, ValueError, TypeError, AttributeError, OverflowError):  # dask's errors for what it cannot parse
-        seconds = None
-    if seconds is None or not math.isfinite(seconds) or seconds <= 0:
-        raise SpecificationError(config.setting_name(key), value,
-                                 "must be a duration > 0, e.g. 10s (a bare number is seconds)")
-    return seconds
-
-
-def lock_settings() -> tuple[float, float]:
-    """``(heartbeat, stale_after)`` in seconds, checked (:func:`_seconds`, and the heartbeat shorter than
-    ``lock-stale-after``, else other hosts would take a live run's lock over)."""
-    heartbeat, stale_after = _seconds("runner.lock-heartbeat", 10), _seconds("runner.lock-stale-after", 60)
-    if heartbeat >= stale_after:
-        from tubeid import config
-
-        raise SpecificationError(config.setting_name("runner.lock-heartbeat"), f"{heartbeat:g} s",
-                                 f"must be shorter than tubeid.runner.lock-stale-after = {stale_after:g} s (a lock "
-                                 "without heartbeat for that long is taken over by another runner)")
-    return heartbeat, stale_after
+    values = config.check("runner.lock-heartbeat", "runner.lock-stale-after")
+    return values["runner.lock-heartbeat"], values["runner.lock-stale-after"]
 
 
 def _boot_id() -> str:
@@ -197,7 +173,9 @@ def holder_state(rec: dict, path: pathlib.Path) -> tuple[str, str]:
             return "dead", f"process {rec.get('pid')} exited (its PID now belongs to another process)"
         return "alive", f"process {rec.get('pid')} is running on this host"
     age = _server_age(path, me["token"])
-    stale_after = _seconds("runner.lock-stale-after", 60)
+    from tubeid import config  # dask's configuration: imported only where a lock is judged
+
+    stale_after = config.value("runner.lock-stale-after")
     if age is None:
         return "dead", "the lock was just released"
     rebooted = rec.get("host") == me["host"] and rec.get("boot") != me["boot"]

@@ -472,7 +472,7 @@ class Study(Parameterised):
             if dim not in axes:
                 raise SpecificationError(f"chunks.{dim}", c, f"is not an axis (axes: {list(axes)})")
         for dim in axes:
-            c = self.chunks.get(dim, config.get("runner.default-chunk", 16))
+            c = self.chunks[dim] if dim in self.chunks else config.value("runner.default-chunk")  # refused by name
             if isinstance(c, bool) or not isinstance(c, (int, np.integer)) or c < 1:
                 raise SpecificationError(f"chunks.{dim}", c, "must be a positive integer")
             chunks[dim] = min(int(c), axes[dim].size)
