@@ -117,6 +117,21 @@ def test_a_bad_connect_timeout_is_a_refused_setting_not_a_connection_failure(tmp
     assert not store.exists()
 
 
+@pytest.mark.parametrize("variable, value, setting, shown, rule", [
+    ("TUBEID_RUNNER__WORKER_ENVIRON", "{1:2}", "runner.worker-environ", "{1: 2}",
+     "must hold upper-case environment variable names"),  # was a TypeError at import, in every command
+    ("TUBEID_RUNNER__CONNECT_TIMEOUT", "abc", "runner.connect-timeout", "'abc'", "must be a duration > 0"),
+    ("TUBEID_RUNNER__WORKRES", "4", "runner.workres", "4", "is not a setting of tubeid.runner"),
+])
+def test_a_command_checks_every_setting_before_it_runs(variable, value, setting, shown, rule):
+    """``tubeid model`` reads no runner setting: a bad one is still refused at once, in one line, rather
+    than ignored until a command that reads it has done part of its work."""
+    proc = subprocess.run(TUBEID + ["model", "paper-simplified"], capture_output=True, text=True,
+                          env=_env(**{variable: value}), timeout=120)
+    _refused(proc, setting, variable, shown, rule)
+    assert proc.stdout == ""
+
+
 # -- every setting ---------------------------------------------------------------------------------
 def test_the_schema_has_every_setting_of_tubeid_yaml_and_the_defaults_pass():
     packaged = yaml.safe_load(config.DEFAULTS_PATH.read_text())["tubeid"]

@@ -33,20 +33,27 @@ class Command(NamedTuple):
     needs : tuple of str
         Optional dependencies (import names, keys of ``tubeid._optional.EXTRAS``) checked before the
         command runs, so that it fails at once, naming the extra, rather than after its computation.
+    settings : bool
+        Whether tubeid's configuration (``tubeid.yaml``, ``TUBEID_...`` variables) is checked as a whole
+        before the command runs (:func:`tubeid.config.check`): a bad setting is one line naming it, its
+        variable, the value and the rule, before anything is read, created or started. False for the
+        commands that only read a store (``status`` imports no dask).
     """
 
     name: str
     module: str
     help: str
     needs: tuple[str, ...] = ()
+    settings: bool = True
 
 
 COMMANDS: tuple[Command, ...] = (
     Command("run", "tubeid.runner.cli",
             "run or resume a study or pipeline (a studies/*.py file) into a Zarr store"),
     Command("status", "tubeid.runner.cli",
-            "blocks done / total of a study store, per stage for a pipeline (works while it runs)"),
-    Command("show", "tubeid.runner.cli", "summary of a study store: provenance and labelled results"),
+            "blocks done / total of a study store, per stage for a pipeline (works while it runs)", settings=False),
+    Command("show", "tubeid.runner.cli", "summary of a study store: provenance and labelled results",
+            settings=False),
     Command("report", "tubeid.report", "figures and summary (Markdown, JSON) of a paper study store",
             needs=("matplotlib",)),
     Command("diagnose", "tubeid.diagnose.cli",
@@ -158,6 +165,10 @@ def _main(argv: Sequence[str] | None) -> int:
     from tubeid.errors import BlockFailed, MissingDependencyError, SpecificationError
 
     try:
+        if next(c.settings for c in COMMANDS if c.name == args.command):
+            from tubeid import config
+
+            config.check()  # every setting, before the command reads, creates or starts anything
         # the hot paths are many small matrices (N ≈ 20–50): BLAS threads only contend with the
         # worker processes and with each other; dask workers are pinned to 1 thread by their nanny
         with threadpool_limits(limits=1):
