@@ -174,6 +174,43 @@ def test_a_break_file_of_a_dead_breaker_is_removed_unless_it_breaks_the_current_
         assert lockmod.remove_leftovers(store, held.record["token"]) == []
 
 
+KILLED_READING_THE_CLOCK = """
+import os, sys
+from tubeid.runner import lock
+real = os.stat
+def stat(path, *a, **k):
+    if ".probe-" in os.fspath(path):
+        os._exit(9)  # killed between creating the probe and removing it
+    return real(path, *a, **k)
+os.stat = stat
+lock._server_age(lock.pathlib.Path(sys.argv[1]) / lock.LOCK_NAME, lock._me())
+"""
+
+
+def test_a_probe_left_by_a_runner_killed_while_reading_the_clock_is_removed(tmp_path):
+    """The probe holds its process's record: a dead one's is removed by the next holder, a live one's, an
+    empty one (a user's look-alike, or a probe of an earlier tubeid) and one whose token is not its name's kept."""
+    store = tmp_path / "s.zarr"
+    store.mkdir()
+    killed = subprocess.run([sys.executable, "-c", KILLED_READING_THE_CLOCK, str(store)], capture_output=True, text=True)
+    assert killed.returncode == 9, killed.stderr
+    left = [f.name for f in store.iterdir()]
+    assert len(left) == 1 and left[0].startswith(f"{LOCK_NAME}.probe-"), left
+    rec = read_lock(store / left[0])
+    assert rec and left[0].startswith(f"{LOCK_NAME}.probe-{rec['token']}-") and rec["pid"] != os.getpid()
+    _write_record(store, name=f"{LOCK_NAME}.probe-{'a' * 24}-0123abcd", token="a" * 24)  # this process: alive
+    _write_record(store, name=f"{LOCK_NAME}.probe-{'b' * 24}-0123abcd", token="c" * 24, pid=_dead_pid())
+    (store / f"{LOCK_NAME}.probe-{'d' * 24}-0123abcd").write_bytes(b"")
+    gone = _write_record(store, name=f"{LOCK_NAME}.break-{'1' * 24}.probe-{'e' * 24}-89abcdef", token="e" * 24,
+                         pid=_dead_pid())
+    kept = sorted(f.name for f in store.iterdir() if f.name != left[0] and "e" * 24 not in f.name)
+    logged = []
+    with StoreLock(store, log=logged.append):
+        assert sorted(f.name for f in store.iterdir() if f.name != LOCK_NAME) == kept
+    assert len(logged) == 1 and "removed 2 file(s)" in logged[0] and gone["token"] in logged[0]
+    assert rec["token"] in logged[0]
+
+
 def test_the_sweep_never_costs_the_run(tmp_path):
     """A leftover that cannot be removed (a sticky shared directory, another user's file) or a damaged
     record: left in place, the lock taken and released as usual."""

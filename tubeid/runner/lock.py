@@ -29,9 +29,11 @@ break file left by a breaker that died is itself broken the same way (its own to
 
 **Leftovers of a killed runner.** A runner killed while taking the lock or breaking a stale one
 leaves its private file (``.tubeid-lock.tmp-<token>``) or its break file (``.tubeid-lock.break-T``,
-and their own ``.tmp-`` files). Whoever takes the lock next removes those it can prove are such
-leftovers: the name has that form, the file holds a complete lock record that matches it (a private
-file's record has the token its name carries; a break file's is its breaker's, ``<token>-<depth>``
+and their own ``.tmp-`` files); one killed while reading the file server's clock leaves that probe
+(``.tubeid-lock.probe-<token>-<8 hex>``, beside the lock or a break file). Whoever takes the lock next
+removes those it can prove are such leftovers: the name has that form, the file holds a complete lock
+record that matches it (a private file's or a probe's record has the token its name carries; a break
+file's is its breaker's, ``<token>-<depth>``
 with the depth its name's breaks give) and that record's process is dead (judged as a lock holder
 is, above). An empty or unreadable one, one of a live process and a break of the current lock are
 left; a sweep that cannot read, judge or remove a file leaves it and never stops the run.
@@ -138,12 +140,17 @@ def read_lock(path: pathlib.Path) -> dict | None:
     return rec if ok else {}  # a record without its token and PID is damaged: judged as unreadable
 
 
-def _server_age(path: pathlib.Path, token: str) -> float | None:
-    """Seconds since ``path`` was last modified, on the file server's clock; None if it is gone."""
-    probe = path.with_name(f"{path.name}.probe-{token}-{secrets.token_hex(4)}")
+def _server_age(path: pathlib.Path, me: dict) -> float | None:
+    """Seconds since ``path`` was last modified, on the file server's clock; None if it is gone. The probe
+    file beside it holds ``me``'s record, so that one left by a process killed before removing it is
+    provably a leftover (:func:`remove_leftovers`)."""
+    probe = path.with_name(f"{path.name}.probe-{me['token']}-{secrets.token_hex(4)}")
     try:
         fd = os.open(probe, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-        os.close(fd)
+        try:
+            os.write(fd, json.dumps(me, sort_keys=True).encode())
+        finally:
+            os.close(fd)
         now = os.stat(probe).st_mtime
     except OSError:
         now = time.time()
@@ -172,7 +179,7 @@ def holder_state(rec: dict, path: pathlib.Path) -> tuple[str, str]:
         if recorded not in (None, -1.0) and start != -1.0 and abs(start - recorded) > 0.05:
             return "dead", f"process {rec.get('pid')} exited (its PID now belongs to another process)"
         return "alive", f"process {rec.get('pid')} is running on this host"
-    age = _server_age(path, me["token"])
+    age = _server_age(path, me)
     from tubeid import config  # dask's configuration: imported only where a lock is judged
 
     stale_after = config.value("runner.lock-stale-after")
@@ -243,13 +250,16 @@ _TOKEN = r"[0-9a-f]{24}(?:-\d+)?"  # a record's token (a breaker's: its own toke
 _LEFTOVER_TMP = re.compile(re.escape(LOCK_NAME) + rf"(?:\.break-{_TOKEN})*\.tmp-({_TOKEN})")
 #: a break file (of the lock instance T, or of another break file)
 _LEFTOVER_BREAK = re.compile(re.escape(LOCK_NAME) + rf"\.break-({_TOKEN})(?:\.break-{_TOKEN})*")
+#: the probe file of a clock reading beside the lock or a break file (:func:`_server_age`): its record's token
+_LEFTOVER_PROBE = re.compile(re.escape(LOCK_NAME) + rf"(?:\.break-{_TOKEN})*\.probe-({_TOKEN})-[0-9a-f]{{8}}")
 
 
 def _is_leftover(entry: os.DirEntry, current_token: str) -> bool:
     """Whether the directory entry is provably a leftover (see the module docstring); False when
     anything about it cannot be read or judged."""
     name = entry.name
-    tmp, brk = _LEFTOVER_TMP.fullmatch(name), _LEFTOVER_BREAK.fullmatch(name)
+    tmp = _LEFTOVER_TMP.fullmatch(name) or _LEFTOVER_PROBE.fullmatch(name)  # a private file: its record's token
+    brk = _LEFTOVER_BREAK.fullmatch(name)
     if not (tmp or brk) or not entry.is_file(follow_symlinks=False):
         return False
     if brk and brk.group(1) == current_token:  # someone is breaking this very lock (at any depth): not a leftover
