@@ -1191,6 +1191,29 @@ def test_a_partial_store_resumes_on_two_workers_to_the_uninterrupted_result(cont
     assert store_digest(store) == before
 
 
+def test_the_records_copy_is_netcdf3_and_an_earlier_netcdf4_copy_is_replaced_on_resume(tmp_path):
+    """The validated record's copy in --out is NetCDF-3 (the core install writes and reads it, the
+    ``io`` extra not needed) and holds the record exactly. A directory where an earlier tubeid wrote
+    the copy as NetCDF-4 (readable with the ``io`` extra only) resumes its store, and its copy is
+    rewritten as NetCDF-3 under the same name (the store's parameters hold its path)."""
+    from tubeid._outputs import OutputDir
+
+    data = record(duration=16.0)
+    settings = DiagnoseSettings(**{**CONTROL_SET, "realisations": 9, "false_alarm": 0.1, "max_effects": 0})
+    out = tmp_path / "out"
+    diagnose(data, "paper-reference", settings, out=out)
+    (copy,) = out.glob("data-*.nc")
+    assert copy.read_bytes()[:4] in (b"CDF\x01", b"CDF\x02")
+    assert data_hash(read_measurements(copy)) == data_hash(data)
+    earlier = write_measurements(data, tmp_path / "earlier.nc", format="netcdf4")
+    OutputDir(out).write_bytes(copy.name, earlier.read_bytes())  # as tubeid wrote it before
+    assert copy.read_bytes()[:8] == b"\x89HDF\r\n\x1a\n"
+    d = diagnose(data, "paper-reference", settings, out=out)
+    assert d.report["runner"]["tasks_computed"] == 0 and d.report["runner"]["tasks_reused"] > 0  # resumed
+    assert copy.read_bytes()[:4] in (b"CDF\x01", b"CDF\x02") and OutputDir(out).owned(copy.name)
+    assert data_hash(read_measurements(copy)) == data_hash(data)
+
+
 def _check_named(rep, names):
     assert sorted(e["name"] for e in rep["effects"]) == sorted(names), json.dumps(rep["steps"], indent=1, default=str)[:4000]
     assert rep["detection"]["detected"] and rep["error_after"] < rep["error_before"]

@@ -204,6 +204,53 @@ def test_reading_a_file_format_without_its_extra_says_what_to_install(no_extras,
     assert res.returncode == 0 and res.stdout.strip() == message, res.stderr[-2000:]
 
 
+@pytest.fixture(scope="module")
+def no_io(tmp_path_factory):
+    """Environment of a subprocess (and its dask workers) in which the ``io`` extra's packages do not
+    import (pyuff, h5netcdf, h5py) but the others do (``tubeid diagnose`` needs matplotlib)."""
+    d = tmp_path_factory.mktemp("io-blocker")
+    io = sorted(name for name, (_, extra) in _optional.EXTRAS.items() if extra == "io")
+    (d / "sitecustomize.py").write_text(
+        "import sys\n"
+        f"for _name in {io!r}:\n"
+        "    sys.modules[_name] = None  # import fails as for an absent package\n")
+    return {**os.environ, "PYTHONPATH": os.pathsep.join([str(d), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep)}
+
+
+@pytest.fixture(scope="module")
+def core_records(tmp_path_factory):
+    """A short control record (tubeid.diagnose.testing.make_record) as CSV + sidecar, NetCDF-3 and Zarr."""
+    from tubeid.diagnose.testing import make_record
+    from tubeid.measured.readers import write_measurements
+
+    d = tmp_path_factory.mktemp("core-records")
+    data = make_record(xs=(2.0, 6.0, 10.0), duration=16.0, seed=11)
+    write_measurements(data, d / "rec.csv")
+    write_measurements(data, d / "rec.nc", format="netcdf3")
+    write_measurements(data, d / "rec.zarr")
+    return d
+
+
+@pytest.mark.parametrize("name, workers", [("rec.csv", 1), ("rec.nc", 0), ("rec.zarr", 0)])
+def test_diagnose_runs_on_the_core_formats_without_the_io_extra(no_io, core_records, tmp_path, name, workers):
+    """The core reads CSV, NetCDF-3 and Zarr records: ``tubeid diagnose`` of each works without pyuff,
+    h5netcdf and h5py. The record's copy in --out is NetCDF-3, and with --workers 1 a worker process
+    (with the same blocker) reads it back."""
+    out = tmp_path / "out"
+    settings = ["--set", "fit_realisations=1", "--set", "r0=(4.0,)", "--set", "r_fine_points=3"]
+    res = _run([sys.executable, "-m", "tubeid", "diagnose", str(core_records / name), "--model", "paper-reference",
+                "--out", str(out), "--max-effects", "0", "--workers", str(workers), "--no-progress",
+                "--realisations", "9", "--false-alarm", "0.1", "--delta", "0", *settings], no_io)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert "effect: none" in res.stdout
+    report = json.loads((out / "report.json").read_text())
+    assert report["runner"]["tasks_computed"] > 0
+    if workers:  # the tasks ran in a worker process, which read the copy (the blocker is inherited)
+        assert "embedded LocalCluster (1 single-threaded worker processes" in res.stderr, res.stderr[-2000:]
+    (copy,) = out.glob("data-*.nc")
+    assert copy.read_bytes()[:4] in (b"CDF\x01", b"CDF\x02"), "the record's copy must be NetCDF-3"
+
+
 def test_slurm_script_without_its_extra_says_what_to_install(no_extras):
     res = _run([sys.executable, str(REPO / "cluster/slurm/run_study.py"), "x.py"], no_extras)
     assert res.returncode == 2

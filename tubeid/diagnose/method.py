@@ -321,12 +321,25 @@ def _check_store(store: Path, key: str, overrides: dict | None = None) -> None:
             "mix them; choose another --out or use --overwrite")
 
 
-def _netcdf_bytes(data: xr.Dataset) -> bytes:
+#: Signatures of classic NetCDF-3 files (CDF-1, CDF-2): the format of the record's copy.
+_NETCDF3_MAGIC = (b"CDF\x01", b"CDF\x02")
+
+
+def _copy_bytes(data: xr.Dataset) -> bytes:
+    """The validated record as the copy the pipeline reads: NetCDF-3 (64-bit offset), written through
+    scipy, so that the core install writes and reads it (NetCDF-4 needs the ``io`` extra). It keeps
+    what the diagnosis reads, exactly: float64 time, displacement and x, the sensor and tube names
+    (UTF-8), so :func:`data_hash` of the copy is the record's."""
     from tubeid.measured.readers import write_measurements
 
     with tempfile.TemporaryDirectory(prefix="tubeid-diagnose-") as tmp:
-        path = write_measurements(data, Path(tmp) / "record.nc", format="netcdf")
+        path = write_measurements(data, Path(tmp) / "record.nc", format="netcdf3")
         return path.read_bytes()
+
+
+def _is_netcdf3(path: Path) -> bool:
+    with open(path, "rb") as fh:
+        return fh.read(4) in _NETCDF3_MAGIC
 
 
 def _check_outputs(outdir: OutputDir, names) -> None:
@@ -356,7 +369,8 @@ def diagnose(data: xr.Dataset | str | os.PathLike, model: str | BundleSpec = "pa
     settings : DiagnoseSettings
     out : path, optional
         Output directory: the pipeline store ``diagnose.zarr``, the validated record it reads
-        (``data-<sha256[:16]>.nc``) and the report files, all recorded in its manifest. Running
+        (``data-<sha256[:16]>.nc``, NetCDF-3: the core install writes and reads it) and the report
+        files, all recorded in its manifest. Running
         again with the same data, model and settings resumes or reuses the store; other ones are
         refused unless ``overwrite``, which removes only what the manifest lists (and replaces the
         store). Default: a temporary directory, removed afterwards (no files written).
@@ -406,8 +420,11 @@ def diagnose(data: xr.Dataset | str | os.PathLike, model: str | BundleSpec = "pa
             raise SpecificationError(f"out/{STORE_NAME}", str(store), "exists and was not created by tubeid here (not in "
                                      "the manifest): it is left untouched; move it or choose another --out")
         outdir.record_directory(STORE_NAME)
-        if not outdir.owned(copy):
-            outdir.write_bytes(copy, _netcdf_bytes(data))
+        # a copy written by an earlier tubeid (NetCDF-4, readable with the io extra only) is rewritten as
+        # NetCDF-3, same name and content (the store's parameters hold its path and content hash: it
+        # resumes), unless it is the very record being read
+        if not outdir.owned(copy) or (copy != source_name and not _is_netcdf3(outdir.path / copy)):
+            outdir.write_bytes(copy, _copy_bytes(data))
         _CONTEXTS[(overrides["data"], h, overrides["model"], overrides["settings"])] = ctx
         from threadpoolctl import threadpool_limits
 
