@@ -251,6 +251,34 @@ def test_diagnose_runs_on_the_core_formats_without_the_io_extra(no_io, core_reco
     assert copy.read_bytes()[:4] in (b"CDF\x01", b"CDF\x02"), "the record's copy must be NetCDF-3"
 
 
+def test_diagnose_in_python_without_matplotlib_refuses_before_any_work(no_extras, core_records, tmp_path):
+    """``tubeid.diagnose.diagnose(..., out=DIR)`` writes figures: without matplotlib it raises the
+    command line's MissingDependencyError before reading the record, running or writing anything (no
+    DIR, no store, no report.json); so does ``Diagnosis.write`` before writing any file. ``out=None``
+    writes no files and does not need matplotlib: it goes on to read the record and check the settings."""
+    out, out2 = tmp_path / "out", tmp_path / "out2"
+    code = (
+        "import os\n"
+        "from tubeid.diagnose import DiagnoseSettings, Diagnosis, diagnose\n"
+        "from tubeid.errors import MissingDependencyError, SpecificationError\n"
+        "small = DiagnoseSettings(realisations=9, false_alarm=0.1, delta=0.0, max_effects=0, fit_realisations=1,\n"
+        "                         r0=(4.0,), r_fine_points=3)\n"
+        f"rec, out, out2 = {str(core_records / 'rec.nc')!r}, {str(out)!r}, {str(out2)!r}\n"
+        "try:\n    diagnose(rec, 'paper-reference', small, out=out)\n"
+        "except MissingDependencyError as e:\n    print(e)\n"
+        "print('out:', sorted(os.listdir(out)) if os.path.exists(out) else None)\n"
+        "try:\n    diagnose(rec, 'paper-reference', DiagnoseSettings(load_dispersion=0.9))\n"
+        "except SpecificationError as e:\n    print('refused:', e.field)\n"
+        "os.mkdir(out2)\n"
+        "try:\n    Diagnosis(report={}, frequency=None, measured=None, sensors=(), bands={}).write(out2)\n"
+        "except MissingDependencyError as e:\n    print(e)\n"
+        "print('out2:', sorted(os.listdir(out2)))\n")
+    res = _run([sys.executable, "-c", code], no_extras)
+    message = 'tubeid diagnose needs matplotlib: pip install "tubeid[plot]"'
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert res.stdout.splitlines() == [message, "out: None", "refused: settings.load_dispersion", message, "out2: []"]
+
+
 def test_slurm_script_without_its_extra_says_what_to_install(no_extras):
     res = _run([sys.executable, str(REPO / "cluster/slurm/run_study.py"), "x.py"], no_extras)
     assert res.returncode == 2

@@ -273,6 +273,11 @@ class Diagnosis:
         -------
         pathlib.Path
             The directory written.
+
+        Raises
+        ------
+        MissingDependencyError
+            Without matplotlib (the figures), before any file is written.
         """
         from tubeid.diagnose.report import write_files
 
@@ -373,7 +378,9 @@ def diagnose(data: xr.Dataset | str | os.PathLike, model: str | BundleSpec = "pa
         files, all recorded in its manifest. Running
         again with the same data, model and settings resumes or reuses the store; other ones are
         refused unless ``overwrite``, which removes only what the manifest lists (and replaces the
-        store). Default: a temporary directory, removed afterwards (no files written).
+        store). Default: a temporary directory, removed afterwards (no files written). The report
+        files include figures, which need matplotlib (the ``plot`` extra): without it a given ``out``
+        is refused before any work, as ``tubeid diagnose`` is; ``out=None`` does not need it.
     workers : int or None
         0 (default): every task in this process; N > 0: an embedded LocalCluster of N
         single-threaded workers; None: the runner's default unless ``scheduler`` is given.
@@ -385,7 +392,16 @@ def diagnose(data: xr.Dataset | str | os.PathLike, model: str | BundleSpec = "pa
     Returns
     -------
     Diagnosis
+
+    Raises
+    ------
+    MissingDependencyError
+        ``out`` given without matplotlib (the figures), before anything is read, run or written.
     """
+    if out is not None:  # the figures: refused before any work, like the command line
+        from tubeid._optional import require
+
+        require("matplotlib", "tubeid diagnose")
     from tubeid.runner.execute import run
     from tubeid.runner.study import study_hash
 

@@ -242,6 +242,7 @@ def _assumptions(ctx) -> list[str]:
 
 def write_files(diag, out) -> Path:
     """Write the report files of ``diag`` into ``out`` through its manifest (:class:`OutputDir`)."""
+    _plt()  # matplotlib (the figures), before any file is written
     d = OutputDir(out, field="out")
     d.write_text("report.json", json.dumps(diag.report, indent=2, default=_json_default) + "\n")
     d.write_text("report.md", markdown(diag.report))
