@@ -174,6 +174,20 @@ def test_every_positional_argument_has_a_help_line(name):
         assert a.help and a.help.strip(), f"tubeid {name}: positional {a.dest!r} has no help"
 
 
+def test_model_help_names_every_built_in_model_from_the_registry(monkeypatch, capsys):
+    """``tubeid model --help`` lists the keys of ``BUILTIN_MODELS`` (one added here appears too): the
+    list cannot drift from the registry (it missed paper-simplified-one-spring)."""
+    from tubeid.mechanics import library
+
+    monkeypatch.setenv("COLUMNS", "400")  # one line: argparse would wrap at a name's hyphen
+    monkeypatch.setitem(library.BUILTIN_MODELS, "my-bundle", library.paper_reference)
+    with pytest.raises(SystemExit):
+        main(["model", "--help"])
+    out = capsys.readouterr().out
+    assert "paper-simplified-one-spring" in out
+    assert f"built-in name ({', '.join(library.BUILTIN_MODELS)})" in out, out
+
+
 def test_only_the_chosen_commands_module_is_imported():
     assert not _modules_after("from tubeid.cli import build_parser\nbuild_parser('model')") & set(HEAVY)
     code = ("import json, sys\nfrom tubeid.cli import build_parser\nbuild_parser('model')\n"

@@ -46,7 +46,9 @@ def _run(args) -> int:
 
 
 def register(sub) -> None:
+    from tubeid.mechanics.library import BUILTIN_MODELS  # the registry itself: the list cannot drift
+
     p = sub.add_parser("model", help="summarise a built-in model or a specification file")
-    p.add_argument("model", help="built-in name (paper-reference, paper-simplified) or a .yaml/.toml specification")
+    p.add_argument("model", help=f"built-in name ({', '.join(BUILTIN_MODELS)}) or a .yaml/.toml specification")
     p.add_argument("--json", action="store_true", help="print a JSON object")
     p.set_defaults(func=_run)

@@ -36,10 +36,14 @@ and 4 × 4e7 N/m per grid would coincide exactly with the reference as seen from
 from __future__ import annotations
 
 import os
+from typing import TYPE_CHECKING
 
 from tubeid.errors import SpecificationError
-from tubeid.mechanics.spec import (BundleSpec, LinkSpec, LoadPoint, ReductionSpec, SensorSpec, StopSpec, TubeSpec,
-                                  load_spec)
+
+if TYPE_CHECKING:
+    from tubeid.mechanics.spec import BundleSpec, TubeSpec
+# the specification classes (and numpy, which they need) are imported where a model is built: the
+# registry's names alone (``tubeid model --help``) load no numerical library
 
 __all__ = ["builtin_spec", "BUILTIN_MODELS", "resolve_spec"]
 
@@ -48,10 +52,14 @@ SECTION = dict(length=16.0, outer_radius=0.5, wall=0.2, n_elements=8, ends=("cla
 
 
 def _centre() -> TubeSpec:
+    from tubeid.mechanics.spec import TubeSpec
+
     return TubeSpec(name="centre", density=250.0, youngs_modulus=7.5e8, **SECTION)
 
 
 def _common(name: str, tubes, links, assumptions: str, **extra) -> BundleSpec:
+    from tubeid.mechanics.spec import BundleSpec, LoadPoint, SensorSpec, StopSpec
+
     return BundleSpec(
         name=name,
         tubes=tuple(tubes),
@@ -66,18 +74,24 @@ def _common(name: str, tubes, links, assumptions: str, **extra) -> BundleSpec:
 
 
 def paper_reference() -> BundleSpec:
+    from tubeid.mechanics.spec import LinkSpec, TubeSpec
+
     outer = [TubeSpec(name=f"outer{i}", density=250.0, youngs_modulus=4.5e8, **SECTION) for i in range(1, 5)]
     links = [LinkSpec(tube=t.name, x=x, stiffness=4e7, to_tube="centre") for x in GRIDS for t in outer]
     return _common("paper-reference", [_centre(), *outer], links, __doc__ or "")
 
 
 def paper_simplified() -> BundleSpec:
+    from tubeid.mechanics.spec import LinkSpec, ReductionSpec, TubeSpec
+
     eq = TubeSpec(name="equivalent", density=5 * 250.0, youngs_modulus=4 * 4.5e8 + 7.5e8, **{**SECTION, "n_elements": 4})
     links = [LinkSpec(tube="equivalent", x=x, stiffness=4 * 4e7, to_tube="centre") for x in GRIDS]
     return _common("paper-simplified", [_centre(), eq], links, __doc__ or "", reduction=ReductionSpec(b_modes=2))
 
 
 def paper_simplified_one_spring() -> BundleSpec:
+    from tubeid.mechanics.spec import LinkSpec, TubeSpec
+
     eq = TubeSpec(name="equivalent", density=1000.0, youngs_modulus=1.8e9, **SECTION)
     links = [LinkSpec(tube="equivalent", x=x, stiffness=4e7, to_tube="centre") for x in GRIDS]
     return _common("paper-simplified-one-spring", [_centre(), eq], links, __doc__ or "")
@@ -93,7 +107,7 @@ def builtin_spec(name: str) -> BundleSpec:
     Parameters
     ----------
     name : str
-        A key of :data:`BUILTIN_MODELS`: ``"paper-reference"`` or ``"paper-simplified"``.
+        A key of :data:`BUILTIN_MODELS` (``"paper-reference"``, ``"paper-simplified"``, …).
 
     Returns
     -------
@@ -119,6 +133,8 @@ def resolve_spec(name_or_path: BundleSpec | str | os.PathLike) -> BundleSpec:
     BundleSpec
         The specification.
     """
+    from tubeid.mechanics.spec import BundleSpec, load_spec
+
     if isinstance(name_or_path, BundleSpec):
         return name_or_path
     s = str(name_or_path)
