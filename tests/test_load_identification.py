@@ -189,6 +189,12 @@ def test_bad_inputs_are_refused():
         distance_map(m, EXP.isel(frequency=slice(0, 100)), n_bootstrap=0)
     with pytest.raises(SpecificationError, match="psd_model.r1"):
         distance_map(m.drop_vars("r1"), EXP, n_bootstrap=0)
+    with pytest.raises(SpecificationError) as err:  # the sensors' names shown plainly, not as np.str_('c02')
+        model, exp = np.array(["c02", "c06"]), np.array(["c02", "c10"])  # numpy strings, as read from a file
+        distance_map(m.expand_dims(sensor=2, sensor_=2, axis=(-2, -1)).assign_coords(sensor=model, sensor_=model),
+                     EXP.expand_dims(sensor=2, sensor_=2, axis=(-2, -1)).assign_coords(sensor=exp, sensor_=exp),
+                     n_bootstrap=0)
+    assert str(err.value) == "psd_exp.sensor = ['c02', 'c10']: must equal psd_model's ['c02', 'c06']"
     with pytest.raises(SpecificationError, match="must be > 0 for fit='log'"):
         distance_map(m.assign_coords(r1=R1 - R1[0]), EXP, n_bootstrap=0)
     with pytest.raises(SpecificationError, match="fit"):

@@ -215,7 +215,9 @@ def test_refuses_non_increasing_time(tmp_path):
     t = np.arange(50) / FS
     t[[20, 21]] = t[[21, 20]]
     path = good_csv(tmp_path / "order.csv", t=t)
-    refused(lambda: read_measurements(path), "order.csv", "time[21]", "strictly increasing")
+    msg = refused(lambda: read_measurements(path), "order.csv", "time[21]", "strictly increasing",
+                  f"(time[20] = {21 / FS!r} s)")  # a plain number, not np.float64(...)
+    assert "np." not in msg, msg
     t = np.arange(50) / FS
     t[30] = t[29]
     path = good_csv(tmp_path / "repeat.csv", t=t)
@@ -237,8 +239,9 @@ def test_refuses_non_finite_samples_csv(tmp_path, bad_value, word):
     values = gaussian(50, 2, key="csv").astype(object)
     values[17, 1] = bad_value
     path = good_csv(tmp_path / "nan.csv", values=values)
-    msg = refused(lambda: read_measurements(path), "nan.csv", "'S2'", "displacement[17]", "finite")
-    assert word in msg
+    msg = refused(lambda: read_measurements(path), "nan.csv", "'S2'", "displacement[17]", "finite",
+                  f"first at t = {17 / FS!r} s")  # a plain number, not np.float64(...)
+    assert word in msg and "np." not in msg, msg
 
 
 def test_refuses_nan_in_netcdf_and_nan_never_written_to_uff(tmp_path, record):

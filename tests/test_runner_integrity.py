@@ -219,6 +219,7 @@ def test_bad_block_values_are_refused_naming_output_block_and_rule(values, dtype
     with pytest.raises(SpecificationError) as err:
         s.compute_block(s.block((2,)))
     assert err.value.field == "outputs.y" and rule in err.value.rule and "block (2,)" in str(err.value)
+    assert "np." not in str(err.value), str(err.value)  # the value as a plain number, not np.int64(128)
 
 
 def test_a_refused_block_is_not_marked_done_and_declared_nonfinite_values_are_stored(tmp_path, capsys):
@@ -407,6 +408,13 @@ def test_parameter_values_must_have_the_declared_or_default_type(tmp_path, capsy
         assert err.value.field == f"parameters.{name}" and rule in err.value.rule
     assert s.with_parameters({"anything": "x"}).values["anything"] == "x"  # None: any plain value
     assert Parameter(1, type=float).check("p", 2) == 2.0
+    # NumPy defaults and choices are shown as plain numbers (NumPy 2's repr: np.float64(0.5))
+    with pytest.raises(SpecificationError) as err:
+        Parameter(np.float64(0.5)).check("p", "x")
+    assert err.value.rule == "must be a number (the default is 0.5)"
+    with pytest.raises(SpecificationError) as err:
+        Parameter(1, choices=np.arange(3)).check("p", 5)
+    assert err.value.rule == "must be one of [0, 1, 2]"
     with pytest.raises(SpecificationError, match="must be a number"):
         Parameter(None, type=float).check("p", "x")
     # the CLI refuses before anything is written: no store, no lock left behind

@@ -16,6 +16,26 @@ def test_real_refuses_what_is_not_a_finite_number(bad):
         v.real("x", bad)
 
 
+def test_numpy_values_are_shown_as_plain_numbers_and_strings_in_messages():
+    """NumPy 2 reprs a scalar as ``np.float64(0.3)``: a message shows the value it holds, inside
+    containers too (float32 by its own shortest digits); arrays keep their repr."""
+    from tubeid.errors import shown
+
+    with pytest.raises(SpecificationError) as info:
+        v.real("delta", np.float64(-1.0), low=0.0)
+    assert str(info.value) == "delta = -1.0: must be a finite number >= 0"
+    with pytest.raises(SpecificationError) as info:
+        v.integer("n", np.float64(3.0))
+    assert str(info.value) == "n = 3.0: must be an integer"
+    with pytest.raises(SpecificationError) as info:
+        v.one_of("k", 5, (np.int64(1), np.int64(2)))
+    assert str(info.value) == "k = 5: must be one of 1, 2"
+    assert shown(np.int64(128)) == "128" and shown(np.float32(0.3)) == "0.3" and shown(np.bool_(True)) == "True"
+    assert shown(np.str_("c02")) == "'c02'" and shown(np.complex64(1 + 2j)) == "(1+2j)"
+    assert shown([np.float64(0.1), (np.int8(-5), {"a": np.float16(0.5)})]) == "[0.1, (-5, {'a': 0.5})]"
+    assert shown(np.array([1.0, 2.0])) == "array([1., 2.])"
+
+
 def test_real_converts_numpy_and_python_numbers_to_float():
     for good in (3, 3.5, np.float32(2.5), np.int64(4), np.float64(-1e300)):
         out = v.real("x", good)

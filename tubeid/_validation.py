@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from tubeid.errors import Described, SpecificationError
+from tubeid.errors import Described, SpecificationError, shown
 
 __all__ = ["real", "positive", "non_negative", "integer", "open_unit", "one_of", "seed", "is_number", "limit",
            "byte_size", "channel_count", "is_numeric_dtype", "numeric_array", "duration", "byte_count", "boolean"]
@@ -118,7 +118,7 @@ def one_of(field: str, value: Any, choices: Iterable) -> Any:
     for c in choices:
         if type(c) is type(value) and c == value or (c is None and value is None):
             return value
-    raise SpecificationError(field, value, f"must be one of {', '.join(repr(c) for c in choices)}")
+    raise SpecificationError(field, value, f"must be one of {', '.join(shown(c) for c in choices)}")
 
 
 def is_numeric_dtype(dtype: Any, *, complex_ok: bool = False) -> bool:

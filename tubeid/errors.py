@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import pickle
 import reprlib
+import sys
 from typing import Any
 
 __all__ = ["BlockFailed", "SpecificationError", "MissingDependencyError", "Described", "shown", "VALUE_CHARS"]
@@ -43,6 +44,23 @@ class _Short(reprlib.Repr):
         if x.bit_length() > 128:  # repr of a huge int is slow, and refused beyond 4300 digits
             return f"<integer of {x.bit_length()} bits>"
         return repr(x)
+
+    def repr1(self, x, level):
+        return super().repr1(_plain_scalar(x), level)  # also for the items of containers
+
+
+def _plain_scalar(x):
+    """A NumPy scalar as the plain value it holds, so that a message shows ``0.3``, ``128`` or
+    ``'c02'``, not ``np.float64(0.3)``, ``np.int64(128)`` or ``np.str_('c02')`` (NumPy ≥ 2 reprs);
+    anything else unchanged. NumPy is not imported here: a value can only be its scalar once it is."""
+    np = sys.modules.get("numpy")
+    if np is None or not isinstance(x, np.generic):
+        return x
+    if isinstance(x, (np.floating, np.complexfloating)) and x.dtype not in (np.float64, np.complex128):
+        return Described(str(x))  # float32 0.3 as "0.3" (its shortest digits), not 0.30000001192092896
+    if isinstance(x, (np.bool_, np.number, np.str_, np.bytes_)):
+        return x.item()
+    return x
 
 
 def shown(value) -> str:

@@ -389,7 +389,7 @@ def _grid_inputs(psd_model, psd_exp, band_hz, n_bootstrap, rng, dim, fit, confid
         if d in psd_model.coords and d in psd_exp.coords and \
                 list(psd_model[d].values) != list(psd_exp[d].values):
             raise SpecificationError(f"psd_exp.{d}", list(psd_exp[d].values),
-                                     f"must equal psd_model's {list(psd_model[d].values)}")
+                                     f"must equal psd_model's {psd_model[d].values.tolist()}")
         if psd_model.sizes[d] != psd_exp.sizes[d]:
             raise SpecificationError(f"psd_exp.{d}", psd_exp.sizes[d], f"must have {psd_model.sizes[d]} entries")
     N = psd_model.sizes[dim]

@@ -286,7 +286,7 @@ def _time_checks(t: np.ndarray, time_units, source: str) -> float:
     if bad.size:
         i = int(bad[0])
         raise SpecificationError(f"{source}: time[{i + 1}]", float(t[i + 1]),
-                                 f"time must be strictly increasing (time[{i}] = {t[i]!r} s)")
+                                 f"time must be strictly increasing (time[{i}] = {float(t[i])!r} s)")
     n = t.size
     dt = float((t[-1] - t[0]) / (n - 1))
     dev = np.abs(d - dt)
@@ -398,7 +398,7 @@ def validate_measurements(ds: xr.Dataset, *, min_resolution_hz: float | None = N
             i = int(bad[0])
             raise SpecificationError(
                 _where(source, name, f"displacement[{i}]"), float(col[i]),
-                f"samples must be finite: {bad.size} NaN or infinite sample(s), first at t = {t[i]!r} s")
+                f"samples must be finite: {bad.size} NaN or infinite sample(s), first at t = {float(t[i])!r} s")
         big = np.flatnonzero(np.abs(col) * scale[j] > bound)
         if big.size:
             i = int(big[np.argmax(np.abs(col[big]))])

@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from tubeid import _validation
-from tubeid.errors import Described, SpecificationError
+from tubeid.errors import Described, SpecificationError, shown
 from tubeid.seeds import rng_for
 
 __all__ = ["Study", "Output", "Parameter", "Warmup", "pointwise", "load_study", "load_definition", "study_hash", "Block",
@@ -157,12 +157,12 @@ class Parameter:
                   str: lambda v: isinstance(v, str),
                   list: lambda v: isinstance(v, list)}[want](value)
             if not ok:
-                default = f" (the default is {self.value!r})" if self.type is None else ""
+                default = f" (the default is {shown(self.value)})" if self.type is None else ""
                 raise SpecificationError(field, value, f"must be {_TYPES[want]}{default}")
             if want is float:
                 value = float(value)
         if self.choices is not None and value not in list(self.choices):
-            raise SpecificationError(field, value, f"must be one of {list(self.choices)!r}")
+            raise SpecificationError(field, value, "must be one of [" + ", ".join(shown(c) for c in self.choices) + "]")
         if self.bounds is not None:
             lo, hi = self.bounds
             if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -264,7 +264,7 @@ class Output:
         def refuse(mask, rule):
             bad = np.argwhere(mask)[0]
             where = tuple(int(i) for i in bad)
-            raise SpecificationError(field, Described(f"{arr[where]!r} at position {where} of block {tuple(block_index)}"),
+            raise SpecificationError(field, Described(f"{shown(arr[where])} at position {where} of block {tuple(block_index)}"),
                                      rule)
 
         if arr.dtype.kind not in "biufc":
