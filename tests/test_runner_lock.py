@@ -121,15 +121,22 @@ lock.StoreLock(sys.argv[1]).acquire()
 """
 
 
+def _left_by_a_killed(script: str, store: pathlib.Path, kind: str) -> list[str]:
+    """Run ``script`` on the new directory ``store`` in a process it kills (exit 9): the one file it leaves,
+    named ``.tubeid-lock<kind>...``."""
+    store.mkdir()
+    killed = subprocess.run([sys.executable, "-c", script, str(store)], capture_output=True, text=True)
+    assert killed.returncode == 9, killed.stderr
+    left = [f.name for f in store.iterdir()]
+    assert len(left) == 1 and left[0].startswith(f"{LOCK_NAME}{kind}"), left
+    return left
+
+
 def test_a_runner_killed_while_taking_the_lock_leaves_nothing_after_the_next_run(tmp_path):
     """A real process killed between its private file and the link: the next holder removes the file,
     and only the files it can prove are such leftovers of a dead process (name, complete record, token)."""
     store = tmp_path / "s.zarr"
-    store.mkdir()
-    killed = subprocess.run([sys.executable, "-c", KILLED_TAKING_THE_LOCK, str(store)], capture_output=True, text=True)
-    assert killed.returncode == 9, killed.stderr
-    left = [f.name for f in store.iterdir()]
-    assert len(left) == 1 and left[0].startswith(f"{LOCK_NAME}.tmp-"), left
+    left = _left_by_a_killed(KILLED_TAKING_THE_LOCK, store, ".tmp-")
     token = read_lock(store / left[0])["token"]
     # look-alikes that prove nothing: a live process's private file, a token that is not the name's,
     # an empty one (killed before its record was written), a user's file, a link to a dead record
@@ -191,11 +198,7 @@ def test_a_probe_left_by_a_runner_killed_while_reading_the_clock_is_removed(tmp_
     """The probe holds its process's record: a dead one's is removed by the next holder, a live one's, an
     empty one (a user's look-alike, or a probe of an earlier tubeid) and one whose token is not its name's kept."""
     store = tmp_path / "s.zarr"
-    store.mkdir()
-    killed = subprocess.run([sys.executable, "-c", KILLED_READING_THE_CLOCK, str(store)], capture_output=True, text=True)
-    assert killed.returncode == 9, killed.stderr
-    left = [f.name for f in store.iterdir()]
-    assert len(left) == 1 and left[0].startswith(f"{LOCK_NAME}.probe-"), left
+    left = _left_by_a_killed(KILLED_READING_THE_CLOCK, store, ".probe-")
     rec = read_lock(store / left[0])
     assert rec and left[0].startswith(f"{LOCK_NAME}.probe-{rec['token']}-") and rec["pid"] != os.getpid()
     _write_record(store, name=f"{LOCK_NAME}.probe-{'a' * 24}-0123abcd", token="a" * 24)  # this process: alive
