@@ -765,20 +765,27 @@ def test_tubeids_errors_survive_pickling_with_their_fields():
     assert str(e) == 'tubeid report needs matplotlib: pip install "tubeid[plot]"'
 
 
-@pytest.mark.parametrize("text, read", [("1e-400", "0.0"), ("-2e-999", "-0.0"), ("1e400", "inf"), ("-1e309", "-inf")])
+@pytest.mark.parametrize("text, read", [("1e-400", "0.0"), ("-2e-999", "0.0"), ("1e400", "inf"), ("-1e309", "-inf"),
+                                        ("[1.0, (2, 1e-400)]", "0.0"), ("2.5e-324", "5e-324"), ("{'a': 1e999}", "inf")])
 def test_set_refuses_a_number_beyond_a_floats_range(tmp_path, capsys, text, read):
-    """`--set delta=1e-400` was read as 0.0 (in the paper study: "use delta_opt"), silently."""
+    """`--set delta=1e-400` was read as 0.0 (in the paper study: "use delta_opt"), silently; in a list too."""
     from tubeid.cli import main
 
     study = write_study(tmp_path, realisations=4, work=0)
     with pytest.raises(SystemExit) as info:
         main(["run", str(study), "--store", str(tmp_path / "s.zarr"), "--set", f"work={text}"])
     err = capsys.readouterr().err
-    assert info.value.code == 2 and f"{text} is beyond a float's range (it would be read as {read})" in err
+    assert info.value.code == 2 and f"a number beyond a float's range (read as {read}" in err, err
     assert not (tmp_path / "s.zarr").exists()
     from tubeid.runner.cli import _setting
 
     assert _setting("x=0.0e-400") == ("x", 0.0) and _setting("x=2.5e-300") == ("x", 2.5e-300)  # zeros, small numbers
+    assert _setting('x="1e-400"') == ("x", "1e-400")  # text stays text
+
+
+def test_a_float_parameter_refuses_an_integer_a_float_cannot_hold():
+    with pytest.raises(SpecificationError, match=r"parameters.x = <integer of 1329 bits>: must be a number a float can"):
+        Parameter(1.0).check("x", 10 ** 400)
 
 
 def test_a_setting_is_named_with_the_variable_that_sets_it():

@@ -445,14 +445,22 @@ def test_a_real_file_size_limit_is_one_line_and_the_store_resumes(defs, refs, tm
 
 
 # -- 9. paths zarr would read as URLs, names zarr or the file system cannot take ---------------------------------
-@pytest.mark.parametrize("form", ["{other}::v2.zarr", "file://{other}"])
-def test_a_store_path_zarr_would_read_as_a_url_is_refused_and_nothing_is_touched(defs, tmp_path, capsys, form):
+@pytest.mark.parametrize("form", ["{other}::v2.zarr", "file://{other}", "in {other}::v2: out.zarr",
+                                  "{tmp}/lnk/out.zarr"])
+def test_a_store_path_zarr_would_read_as_a_url_is_refused_and_nothing_is_touched(defs, tmp_path, capsys, monkeypatch,
+                                                                                form):
     """zarr reads `prev.zarr::v2.zarr` as a chain of file systems opening prev.zarr: the run used to write
-    into that other store (its provenance wiped). Refused up front by every command taking a store."""
+    into that other store (its provenance wiped). Refused up front by every command taking a store, also
+    when only the path made absolute (a working directory `prev.zarr::v2`) or resolved (a link to it) has `::`."""
     other = tmp_path / "prev.zarr"
     run(defs["study"], other, workers=0, quiet=True)
+    (tmp_path / "prev.zarr::v2").mkdir()
+    (tmp_path / "lnk").symlink_to(tmp_path / "prev.zarr::v2")
     before = {f: f.read_bytes() for f in tmp_path.rglob("*") if f.is_file()}
-    path = form.format(other=other)
+    path = form.format(other=other, tmp=tmp_path)
+    if path.startswith("in "):
+        where, path = path[3:].split(": ")
+        monkeypatch.chdir(where)
     rc, err = _cli([defs["study"], "--store", path], capsys)
     assert rc == 2 and err.strip().splitlines() == [err.strip()] and "must be a local directory path" in err
     for command in (["status", path], ["status", path, "--verify"], ["show", path]):
@@ -460,6 +468,16 @@ def test_a_store_path_zarr_would_read_as_a_url_is_refused_and_nothing_is_touched
     with pytest.raises(SpecificationError, match="must be a local directory path"):
         integrity.verify(path)
     assert {f: f.read_bytes() for f in tmp_path.rglob("*") if f.is_file()} == before
+    assert sorted(f.name for f in (tmp_path / "prev.zarr::v2").iterdir()) == []
+
+
+def test_a_study_whose_default_store_zarr_would_read_as_a_url_is_told_to_take_store(tmp_path, monkeypatch):
+    (tmp_path / "named.py").write_text(SUMMARY_STUDY.replace('name="summed"', 'name="summed::v2"'))
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SpecificationError, match=r"store \(the default one, named after study 'summed::v2': give "
+                                                 r"--store, or rename the study\) = .*must be a local directory path"):
+        run(tmp_path / "named.py", workers=0, quiet=True)
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["named.py"]
 
 
 def test_a_store_name_longer_than_the_file_system_allows_is_one_line(defs, tmp_path, capsys):
@@ -473,12 +491,15 @@ def test_a_store_name_longer_than_the_file_system_allows_is_one_line(defs, tmp_p
 def test_overwrite_keeps_a_users_file_named_like_tubeids_own(defs, refs, tmp_path, capsys):
     store = tmp_path / "s.zarr"
     run(defs["study"], store, workers=0, quiet=True)
-    mine = {store / ".tubeid-notes.txt": b"mine", store / ".tubeid-tmp-notes": b"also mine"}
+    mine = {store / ".tubeid-notes.txt": b"mine", store / ".tubeid-tmp-notes": b"also mine",
+            store / ".tubeid-tmp-notes_v2": b"mine, named exactly as a temporary file", store / ".tubeid-probe-data0001": b""}
     for f, data in mine.items():
         f.write_bytes(data)
+    left = store / ".tubeid-tmp-k2j4_x9q"  # a manifest write killed before its rename: tubeid's, removed
+    left.write_text('{\n "tubeid_manifest": 1,\n "nod')
     rc, err = _cli([defs["study"], "--store", store, "--overwrite"], capsys)
-    assert rc == 0 and "kept 2 file(s)" in err and ".tubeid-notes.txt" in err
-    assert all(f.read_bytes() == data for f, data in mine.items())
+    assert rc == 0 and "kept 2 file(s)" in err and ".tubeid-notes.txt" in err, err  # (lists none of its own names)
+    assert all(f.read_bytes() == data for f, data in mine.items()) and not left.exists()
     for f in mine:
         f.unlink()
     _same(store, refs["study"])
@@ -510,6 +531,8 @@ def test_a_kill_after_overwrite_emptied_the_store_is_run_again(defs, refs, tmp_p
     (store / "notes.txt").write_text("mine")
     _killed(tmp_path, BEFORE_NEW_ROOT, [defs["study"], "--store", store, "--overwrite"])
     assert json.loads((store / ".tubeid-manifest.json").read_text())["nodes"] == {}
+    with pytest.raises(SpecificationError, match="an --overwrite emptied it .* `tubeid run` makes it anew"):
+        store_status(store)
     run(defs["study"], store, workers=0, quiet=True, overwrite=bool(again))
     assert (store / "notes.txt").read_text() == "mine"
     (store / "notes.txt").unlink()
@@ -517,16 +540,16 @@ def test_a_kill_after_overwrite_emptied_the_store_is_run_again(defs, refs, tmp_p
 
 
 def _as_layout_1(store: pathlib.Path) -> None:
-    """``store`` as an older tubeid (layout /1, before manifests) left it: no manifest, format /1; its
-    root's consolidated metadata (which layout /1 rewrote after every change) names its nodes."""
+    """``store`` as an older tubeid (layout /1, before manifests) left it: no manifest, format /1."""
     (store / ".tubeid-manifest.json").unlink()
     meta = json.loads((store / "zarr.json").read_text())
     meta["attributes"]["format"] = "tubeid-study-store/1"
-    assert set(meta["consolidated_metadata"]["metadata"]) >= {"x", "realisation"}
     (store / "zarr.json").write_text(json.dumps(meta))
 
 
-def test_overwrite_of_an_older_layout_keeps_the_users_arrays_and_groups(defs, refs, tmp_path, capsys):
+def test_a_store_of_an_older_layout_is_never_replaced_and_new_store_writes_beside_it(defs, tmp_path, capsys):
+    """Layout /1 kept no record of what it wrote: nothing in it is provably tubeid's (a user's array, even
+    one the user consolidated into its metadata, looks like one), so --overwrite deletes nothing."""
     import zarr
 
     store = tmp_path / "s.zarr"
@@ -534,24 +557,15 @@ def test_overwrite_of_an_older_layout_keeps_the_users_arrays_and_groups(defs, re
     _as_layout_1(store)
     root = zarr.open_group(str(store), mode="r+", use_consolidated=False)
     root.create_array("my_analysis", shape=(3,), dtype="f8")[:] = [1.0, 2.0, 3.0]
-    root.create_group("my_notes").create_array("x", shape=(2,), dtype="i8")[:] = [7, 8]
-    mine = {f: f.read_bytes() for d in ("my_analysis", "my_notes") for f in (store / d).rglob("*") if f.is_file()}
-    rc, err = _cli([defs["study"], "--store", store, "--overwrite"], capsys)
-    assert rc == 0 and f"kept {len(mine)} file(s)" in err, err
-    assert {f: f.read_bytes() for f in mine} == mine
-    root = zarr.open_group(str(store), mode="r", use_consolidated=False)
-    assert root["my_analysis"][:].tolist() == [1.0, 2.0, 3.0] and root["my_notes/x"][:].tolist() == [7, 8]
-    # without consolidated metadata nothing of an older layout is provably tubeid's: refused, nothing deleted
-    other = tmp_path / "t.zarr"
-    run(defs["summed"], other, workers=0, quiet=True)
-    _as_layout_1(other)
-    meta = json.loads((other / "zarr.json").read_text())
-    del meta["consolidated_metadata"]
-    (other / "zarr.json").write_text(json.dumps(meta))
-    before = {f: f.read_bytes() for f in other.rglob("*") if f.is_file()}
-    rc, err = _cli([defs["study"], "--store", other, "--overwrite"], capsys)
-    assert rc == 2 and "no readable consolidated metadata" in err
-    assert {f: f.read_bytes() for f in other.rglob("*") if f.is_file()} == before
+    zarr.consolidate_metadata(str(store))
+    before = {f: f.read_bytes() for f in tmp_path.rglob("*") if f.is_file()}
+    for extra in (["--overwrite"], []):
+        rc, err = _cli([defs["study"], "--store", store, *extra], capsys)
+        assert rc == 2 and "older tubeid (layout tubeid-study-store/1)" in err and "--new-store" in err, err
+        assert {f: f.read_bytes() for f in tmp_path.rglob("*") if f.is_file()} == before
+    rep = run(defs["study"], store, workers=0, quiet=True, new_store=True)
+    assert rep.store.parent == tmp_path and rep.store.name.startswith("s-") and rep.computed == 4
+    assert all(f.read_bytes() == data for f, data in before.items())
 
 
 # -- 11. --new-store diverts only from a store it cannot use -------------------------------------------------------
@@ -566,6 +580,12 @@ def test_new_store_resumes_its_own_store_and_diverts_beside_dot(defs, tmp_path, 
     other = run(defs["summed"], ".", workers=0, quiet=True, new_store=True)
     assert other.store.parent == tmp_path.resolve() and other.store.name.startswith("s-")
     assert read_attrs(other.store)["study_name"] == "summed"
+    link = tmp_path / "link.zarr"  # a link, even to this study's store: tubeid never writes through one
+    link.symlink_to(store)
+    beside = run(defs["study"], link, workers=0, quiet=True, new_store=True)
+    assert beside.store.parent == tmp_path.resolve() and beside.store.name.startswith("link-") and beside.computed == 4
+    with pytest.raises(SpecificationError, match="root directory: --new-store has no name"):
+        run(defs["summed"], "/", workers=0, quiet=True, new_store=True)
 
 
 # -- 12. a full disk while a block is written ------------------------------------------------------------------------

@@ -19,22 +19,27 @@ __all__ = ["local_path"]
 
 def local_path(path, field: str = "store") -> pathlib.Path:
     """``path`` as a local directory path, refused (``SpecificationError`` naming ``field``) if zarr
-    would read its text as a URL (``::`` chains file systems, ``://`` names a protocol: tubeid's checks,
-    lock and manifest would look at one directory while zarr wrote another) or if the file system
-    cannot look it up at all (a name longer than it allows, a loop of links)."""
+    would read it as a URL (``::`` chains file systems, ``://`` names a protocol: tubeid's checks, lock
+    and manifest would look at one directory while zarr wrote another) in any form it may reach zarr:
+    as given, made absolute (a working directory named ``a::b``), or with links resolved; or if the
+    file system cannot look it up at all (a name longer than it allows, a loop of links)."""
     text = os.fspath(path) if isinstance(path, (str, os.PathLike)) else path
     if not isinstance(text, str) or not text:
         raise SpecificationError(field, path, "must be a non-empty path of a local directory")
-    if "::" in text or "://" in text:
-        raise SpecificationError(field, text, "must be a local directory path: zarr reads '::' and '://' in a path as "
-                                 "a URL of another file system, not as part of a directory name; rename it")
     p = pathlib.Path(text)
     try:
         p.lstat()
+        resolved = os.path.realpath(p)
     except FileNotFoundError:
-        pass
-    except OSError as exc:  # ENAMETOOLONG, ELOOP, EACCES on a parent, ...
-        if exc.errno == errno.ENOTDIR:
+        resolved = os.path.realpath(p)
+    except (OSError, ValueError) as exc:  # ENAMETOOLONG, ELOOP, EACCES on a parent, a NUL byte
+        if getattr(exc, "errno", None) == errno.ENOTDIR:
             raise SpecificationError(field, text, "has a file, not a directory, among its parents") from None
-        raise SpecificationError(field, text, f"cannot be looked up: {exc.strerror}") from None
+        raise SpecificationError(field, text, f"cannot be looked up: {getattr(exc, 'strerror', None) or exc}") from None
+    for form in (text, os.path.abspath(p), resolved):  # as given, from the working directory, links followed
+        if "::" in form or "://" in form:
+            where = "" if form == text else f" (as {form})"
+            raise SpecificationError(field, text, f"must be a local directory path{where}: zarr reads '::' and '://' in "
+                                     "a path as a URL of another file system, not as part of a directory name; "
+                                     "rename the directory")
     return p

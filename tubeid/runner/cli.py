@@ -20,12 +20,37 @@ def _setting(text: str) -> tuple[str, object]:
     except (ValueError, SyntaxError):
         pass  # a plain string
     else:
-        if isinstance(value, float):
-            mantissa = text.split("=", 1)[1].strip().lower().split("e")[0]
-            if (value == 0.0 and any(c in mantissa for c in "123456789")) or not math.isfinite(value):
-                raise argparse.ArgumentTypeError(f"{text!r}: {text.split('=', 1)[1].strip()} is beyond a float's "
-                                                 f"range (it would be read as {value!r})")
+        for number in _floats(value):
+            if not math.isfinite(number) or (number != 0.0 and abs(number) < sys.float_info.min):
+                raise argparse.ArgumentTypeError(f"{text!r}: a number beyond a float's range (read as {number!r}; "
+                                                 f"a float lies within ±{sys.float_info.max:.4g}, and is 0 or at "
+                                                 f"least {sys.float_info.min:.4g} in magnitude)")
+        if any(number == 0.0 for number in _floats(value)) and _underflows(text.split("=", 1)[1]):
+            raise argparse.ArgumentTypeError(f"{text!r}: a number beyond a float's range (read as 0.0; a float is 0 "
+                                             f"or at least {sys.float_info.min:.4g} in magnitude)")
     return name.strip(), value
+
+
+def _floats(value):
+    """The floats in a literal (nested in lists, tuples, sets and dicts too)."""
+    if isinstance(value, float):
+        yield value
+    elif isinstance(value, (list, tuple, set, frozenset)):
+        for item in value:
+            yield from _floats(item)
+    elif isinstance(value, dict):
+        for item in (*value.keys(), *value.values()):
+            yield from _floats(item)
+
+
+def _underflows(text: str) -> bool:
+    """Whether a float literal in ``text`` with a non-zero digit reads as 0.0 (1e-400)."""
+    import re
+
+    for m in re.finditer(r"(?<![\w.])(\d+\.?\d*|\.\d+)[eE]([-+]?\d+)", text):
+        if any(c in "123456789" for c in m.group(1)) and float(m.group(0)) == 0.0:
+            return True
+    return False
 
 
 def register(sub) -> None:

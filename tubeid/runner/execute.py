@@ -735,9 +735,16 @@ def run(study_path: str | os.PathLike, store: str | os.PathLike | None = None, *
     scheduler = scheduler_address(scheduler) if workers is None and client is None else scheduler
     if scheduler and workers is not None:
         raise SpecificationError("workers", workers, "give either --workers or --scheduler, not both")
-    path = local_path(store if store is not None else default_store(study.name))
+    if store is None:
+        path = local_path(default_store(study.name), field=f"store (the default one, named after study {study.name!r}: "
+                                                           "give --store, or rename the study)")
+    else:
+        path = local_path(store)
     if new_store and _holds_another(path, key):
         path = pathlib.Path(os.path.abspath(path))  # "." and ".." name no directory to write beside
+        if not path.name:
+            raise SpecificationError("store", str(store), "is the root directory: --new-store has no name to write "
+                                     "<store>-<hash8>.zarr beside it; give the store's own path")
         path = path.with_name(f"{path.name.removesuffix('.zarr')}-{key[:8]}.zarr")
     path = prepare_path(path).resolve()
     if not overwrite:
@@ -773,7 +780,10 @@ def run(study_path: str | os.PathLike, store: str | os.PathLike | None = None, *
 def _holds_another(path: pathlib.Path, key: str) -> bool:
     """Whether ``--new-store`` diverts from ``path``: it exists and cannot take this study as it is (another
     study definition, files tubeid did not write, an older layout), so ``<store>-<hash8>.zarr`` is written
-    beside it; a missing path or a store of this very study is used as given (a resume)."""
+    beside it (a symbolic link too: tubeid never writes through one); a missing path or a store of this very
+    study is used as given (a resume)."""
+    if path.is_symlink():
+        return True
     try:
         check_store(path, key)
     except SpecificationError:

@@ -176,16 +176,21 @@ def store_status(path: str | os.PathLike, group: str | None = None) -> dict:
 
 def _refuse_if_being_created(p: pathlib.Path) -> None:
     """Say so when the store ``p`` is a run's creation that has not written its root yet: in progress
-    (its lock's holder alive), or stopped before its first block (``creation_interrupted``, or only
-    tubeid's own files, all readable); a manifest or lock file that cannot be read is named as such.
-    Return otherwise (also when the directory cannot be listed: the caller's message stands)."""
+    (its lock's holder alive), or stopped before its first block (``creation_interrupted``, only
+    tubeid's own files, all readable, or a manifest an ``--overwrite`` emptied, user files kept beside
+    it); a manifest or lock file that cannot be read is named as such. Return otherwise (also when the
+    directory cannot be listed: the caller's message stands)."""
     from tubeid.runner.lock import LOCK_NAME, describe_holder, holder_state, read_lock
-    from tubeid.runner.store import _own_file, _read_manifest, creation_interrupted
+    from tubeid.runner.store import MANIFEST_NAME, _own_file, _read_manifest, creation_interrupted
 
     try:
         entries = list(p.iterdir())
         own_only = bool(entries) and not (p / "zarr.json").exists() and all(_own_file(c.name) for c in entries)
-        if not (own_only or creation_interrupted(p)):
+        try:
+            emptied = not (p / "zarr.json").exists() and (p / MANIFEST_NAME).is_file() and _read_manifest(p) == {}
+        except SpecificationError:
+            emptied = False
+        if not (own_only or emptied or creation_interrupted(p)):
             return
     except OSError:
         return
@@ -198,6 +203,9 @@ def _refuse_if_being_created(p: pathlib.Path) -> None:
     if rec and holder_state(rec, p / LOCK_NAME)[0] == "alive":
         raise SpecificationError("store", str(p), f"is being created by a run in progress ({describe_holder(rec)}); "
                                  "it has no block yet")
+    if emptied and not own_only:
+        raise SpecificationError("store", str(p), "holds no results: an --overwrite emptied it (the files tubeid did not "
+                                 "write are kept) and stopped before it wrote the new store; `tubeid run` makes it anew")
     raise SpecificationError("store", str(p), "holds only the start of a run that stopped before its first block (no "
                              "result): `tubeid run` with the same study makes it again")
 

@@ -208,8 +208,28 @@ _TOKEN = r"[0-9a-f]{24}(?:-\d+)?"  # a lock record's token (a breaker's: its own
 #: ``.tubeid-`` is not one of them.
 _OWN_NAME = re.compile(r"\.tubeid-(?:manifest\.json|(?:tmp|probe)-[a-z0-9_]{8}"
                        rf"|lock(?:\.break-{_TOKEN})*(?:\.tmp-{_TOKEN}|\.probe-{_TOKEN}-[0-9a-f]{{8}})?)")
-#: those of them :func:`remove_store` removes itself (the lock's leftovers are the lock's to judge)
-_REMOVABLE_NAME = re.compile(r"\.tubeid-(?:tmp|probe)-[a-z0-9_]{8}")
+#: the temporary file of a manifest write (:func:`_write_manifest`) killed before its rename, the only
+#: tubeid temporary at a store's top: its name, and it is empty or begins as a manifest does (a user's
+#: file merely named so is kept; the lock's leftovers are the lock's to judge)
+_MANIFEST_TMP = re.compile(r"\.tubeid-tmp-[a-z0-9_]{8}")
+_MANIFEST_HEAD = b'{\n "tubeid_manifest": '
+
+
+def _manifest_leftover(f: pathlib.Path) -> bool:
+    """Whether ``f``, at a store's top, is the temporary file a killed manifest write left
+    (:data:`_MANIFEST_TMP`); a zarr metadata write's temporary there is one too."""
+    if not (f.is_file() and not f.is_symlink()):
+        return False
+    if _ZARR_META_TMP.fullmatch(f.name):
+        return True
+    if not _MANIFEST_TMP.fullmatch(f.name):
+        return False
+    try:
+        with open(f, "rb") as fh:
+            head = fh.read(len(_MANIFEST_HEAD))
+    except OSError:
+        return False
+    return _MANIFEST_HEAD.startswith(head)  # empty, cut short, or a manifest's whole head
 
 
 def _own_file(name: str) -> bool:
@@ -303,7 +323,8 @@ def check_store(path, study_hash: str) -> str:
     fmt = attrs.get("format")
     if fmt in LEGACY_FORMATS:
         raise SpecificationError("store", str(p), f"was written by an older tubeid (layout {fmt}): xarray.open_zarr "
-                                 "still reads it; to run, use --new-store or --overwrite")
+                                 "still reads it; to run, use --new-store (it kept no record of what it wrote, so "
+                                 "tubeid does not replace it: remove it yourself to reuse the path)")
     if fmt not in (FORMAT, PIPELINE_FORMAT):
         raise SpecificationError("store", str(p), "exists but is not a tubeid study store; choose another path or --overwrite")
     if attrs.get("study_hash") != study_hash:
@@ -366,28 +387,6 @@ def _forget_nodes(p: pathlib.Path, nodes) -> None:
     _write_manifest(p, entries)
 
 
-def _legacy_nodes(p: pathlib.Path) -> dict:
-    """Nodes of a store written before manifests existed (layout /1): the groups and arrays its root's
-    consolidated metadata lists (layout /1 consolidated the root after every change it made), never a
-    node added since (a user's array or group written into it is kept). Without readable consolidated
-    metadata nothing is provably tubeid's: refused."""
-    try:
-        meta = json.loads((p / "zarr.json").read_bytes())
-        listed = meta["consolidated_metadata"]["metadata"]
-        if not isinstance(listed, dict):
-            raise TypeError
-    except (OSError, ValueError, KeyError, TypeError):
-        raise SpecificationError("store", str(p), "was written by an older tubeid (layout /1) and has no readable "
-                                 "consolidated metadata naming what tubeid wrote: refusing to delete anything in it "
-                                 "(remove it yourself, or choose another --store)") from None
-    nodes = {"": "group"}
-    for name, node in listed.items():
-        kind = node.get("node_type") if isinstance(node, dict) else None
-        if isinstance(name, str) and kind in ("group", "array"):
-            nodes[name] = kind
-    return nodes
-
-
 _CHUNK = re.compile(r"^c(/\d+)*$")
 #: zarr's atomic writes: ``Path.with_suffix(".<32 hex>.partial")`` of the file they replace, so
 #: ``zarr.json`` → ``zarr.<hex>.partial`` and chunk ``3`` → ``3.<hex>.partial``
@@ -409,7 +408,8 @@ def _node_files(p: pathlib.Path, node: str, kind: str) -> list[pathlib.Path]:
     d = p / node if node else p
     root = p.resolve()
     out = [f for f in (d / "zarr.json",) if _own_regular_file(f, root)]
-    out += [f for f in d.glob("*") if _is_temporary(f, chunk=False) and _own_regular_file(f, root)]
+    out += [f for f in d.glob("*") if (_manifest_leftover(f) if d == p else _is_temporary(f, chunk=False))
+            and _own_regular_file(f, root)]
     c = d / "c"
     if kind == "array" and c.is_dir() and not c.is_symlink():
         for top, dirs, files in os.walk(c):  # does not descend into linked directories
@@ -447,7 +447,7 @@ def remove_temporaries(path) -> list[str]:
     removed = []
     for node, kind in nodes.items():
         for f in _node_files(p, node, kind):
-            if _is_temporary(f, chunk=f.parent != (p / node if node else p)):
+            if _manifest_leftover(f) if f.parent == p else _is_temporary(f, chunk=f.parent != (p / node if node else p)):
                 f.unlink()
                 removed.append(f.relative_to(p).as_posix())
     return sorted(removed)
@@ -511,10 +511,10 @@ def remove_store(path, *, keep_lock: bool = True, dry_run: bool = False) -> list
             fmt = read_attrs(p).get("format")
         except Exception:
             fmt = None
-        if fmt not in LEGACY_FORMATS:
-            raise SpecificationError("store", str(p), f"has no manifest ({MANIFEST_NAME}) of what tubeid wrote: "
-                                     "refusing to delete anything in it (remove it yourself, or choose another --store)")
-        nodes = _legacy_nodes(p)
+        why = (f"was written by an older tubeid (layout {fmt}), which kept no record of what it wrote"
+               if fmt in LEGACY_FORMATS else f"has no manifest ({MANIFEST_NAME}) of what tubeid wrote")
+        raise SpecificationError("store", str(p), f"{why}: refusing to delete anything in it (remove it yourself, "
+                                 "or choose another --store, or --new-store to write beside it)")
     elif not (manifest or all(_own_file(c.name) for c in p.iterdir())):
         raise SpecificationError("store", str(p), "exists and is not a tubeid store: refusing to delete it (choose another --store)")
     _check_nodes(p, nodes)
@@ -526,7 +526,7 @@ def remove_store(path, *, keep_lock: bool = True, dry_run: bool = False) -> list
     from tubeid.runner.lock import LOCK_NAME
 
     for f in p.iterdir():
-        if f.is_file() and not f.is_symlink() and (_REMOVABLE_NAME.fullmatch(f.name) or (not keep_lock and f.name == LOCK_NAME)):
+        if _manifest_leftover(f) or (not keep_lock and f.name == LOCK_NAME and f.is_file() and not f.is_symlink()):
             f.unlink()
     return sorted(f.relative_to(p).as_posix() for f in p.rglob("*") if f.is_file() and not _own_file(f.name))
 

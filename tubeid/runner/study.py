@@ -160,7 +160,11 @@ class Parameter:
                 default = f" (the default is {shown(self.value)})" if self.type is None else ""
                 raise SpecificationError(field, value, f"must be {_TYPES[want]}{default}")
             if want is float:
-                value = float(value)
+                try:
+                    value = float(value)
+                except OverflowError:  # an int beyond a float's range
+                    raise SpecificationError(field, value, f"must be a number a float can hold (within "
+                                             f"±{sys.float_info.max:.4g})") from None
         if self.choices is not None and value not in list(self.choices):
             raise SpecificationError(field, value, "must be one of [" + ", ".join(shown(c) for c in self.choices) + "]")
         if self.bounds is not None:
