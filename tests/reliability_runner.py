@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import collections
 import contextlib
+import errno
 import io
 import json
 import os
@@ -341,6 +342,84 @@ def overwrite(tmp: Path, study: Path, ref: Path) -> dict:
     return out
 
 
+def paths_and_names(tmp: Path, study: Path, ref: Path) -> dict:
+    """Store paths zarr or the file system would misread, files named like tubeid's, an older layout and a
+    full disk while a block is written (the second review of the store, 8873fd6)."""
+    out = collections.Counter()
+    other = tmp / "paths-prev.zarr"
+    shutil.copytree(ref, other)
+    (tmp / "paths-prev.zarr::v2").mkdir()
+    (tmp / "paths-lnk").symlink_to(tmp / "paths-prev.zarr::v2")
+    refusals = [((), ("run", study, "--store", f"{other}::v2.zarr")), ((), ("status", f"{other}::v2.zarr")),
+                ((), ("run", study, "--store", f"file://{other}")), ((), ("show", f"file://{other}")),
+                (tmp / "paths-prev.zarr::v2", ("run", study, "--store", "out.zarr")),
+                ((), ("run", study, "--store", tmp / "paths-lnk" / "out.zarr")),
+                ((), ("run", study, "--store", tmp / ("x" * 300))), ((), ("run", study, "--store", "/", "--new-store")),
+                ((), ("run", study, "--store", tmp / "paths-new.zarr", "--set", "work=1e-400"))]
+    for where, args in refusals:
+        before = _files(tmp)
+        cwd = os.getcwd()
+        try:
+            if where:
+                os.chdir(where)
+            rc, text = _cli(*args, *(["--workers", "0", "--no-progress"] if args[0] == "run" else []))
+        finally:
+            os.chdir(cwd)
+        lost = int(_files(tmp) != before)
+        out["refused" if rc == 2 and text.strip().splitlines()[-1].startswith("tubeid") and "Traceback" not in text
+            and not lost else ("traceback" if rc == "traceback" else "wrong")] += 1
+        out["data lost"] += lost
+    # a user's files named like tubeid's own, through --overwrite: kept, the store made anew
+    store = tmp / "paths-named.zarr"
+    shutil.copytree(ref, store)
+    mine = {store / ".tubeid-notes.txt": b"mine", store / ".tubeid-tmp-notes_v2": b"mine, named as a temporary"}
+    for f, data in mine.items():
+        f.write_bytes(data)
+    rc, _ = _cli("run", study, "--store", store, "--workers", "0", "--no-progress", "--overwrite")
+    lost = sum(1 for f, data in mine.items() if not f.is_file() or f.read_bytes() != data)
+    for f in mine:
+        f.unlink(missing_ok=True)
+    out["handled" if rc == 0 and not lost and store_digest(store) == store_digest(ref) else
+        ("traceback" if rc == "traceback" else "wrong")] += 1
+    out["data lost"] += lost
+    # an older layout (no record of what it wrote) holding a user's array, consolidated: never replaced
+    old = tmp / "paths-layout1.zarr"
+    shutil.copytree(ref, old)
+    (old / MANIFEST_NAME).unlink()
+    meta = json.loads((old / "zarr.json").read_text())
+    meta["attributes"]["format"] = "tubeid-study-store/1"
+    (old / "zarr.json").write_text(json.dumps(meta))
+    zarr.open_group(str(old), mode="r+", use_consolidated=False).create_array("mine", data=np.arange(3.0), chunks=(3,))
+    zarr.consolidate_metadata(str(old))
+    before = _files(old)
+    rc, text = _cli("run", study, "--store", old, "--workers", "0", "--no-progress", "--overwrite")
+    lost = int(_files(old) != before)
+    out["refused" if rc == 2 and "tubeid: error:" in text and not lost else
+        ("traceback" if rc == "traceback" else "wrong")] += 1
+    out["data lost"] += lost
+    # a full disk while a block's chunk is written: one line naming the block, then the store resumes
+    from zarr.storage import _local
+
+    full = tmp / "paths-full.zarr"
+    put = _local._put
+
+    def no_space(path, value, *a, **kw):
+        if Path(path).parent == full / "x" / "c" / "0" / "1":
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return put(path, value, *a, **kw)
+
+    _local._put = no_space
+    try:
+        rc, text = _cli("run", study, "--store", full, "--workers", "0", "--no-progress")
+    finally:
+        _local._put = put
+    said = rc == 2 and "block (0, 1)" in text and os.strerror(errno.ENOSPC) in text and "Traceback" not in text
+    rc2, _ = _cli("run", study, "--store", full, "--workers", "0", "--no-progress")
+    out["handled" if said and rc2 == 0 and store_digest(full) == store_digest(ref) else
+        ("traceback" if "traceback" in (rc, rc2) else "wrong")] += 1
+    return out
+
+
 def output_manifest(tmp: Path) -> dict:
     """The output directory of a diagnosis (``OutputDir``) whose manifest was edited to list a file outside it,
     with that file's true checksum: removing tubeid's outputs must refuse, deleting nothing."""
@@ -440,6 +519,9 @@ def main() -> None:
             rows[name] = counter
         rows["a diagnosis's output directory: its manifest edited to list ../, an absolute path, a sub-path"] = \
             output_manifest(tmp)
+        rows["store paths zarr would read as URLs ('::', file://, from the working directory or a link), a name too "
+             "long, / with --new-store, --set 1e-400; a user's .tubeid-* files through --overwrite; an older layout "
+             "holding a user's array; a full disk while a block is written"] = paths_and_names(tmp, study, ref)
         if not args.no_network:
             rows["tcp://, bare address, tls:// without certificates to a TLS scheduler; unreachable; foreign "
                  "clients on the embedded cluster"] = network(tmp, study)
