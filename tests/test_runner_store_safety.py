@@ -452,6 +452,7 @@ def test_a_store_path_zarr_would_read_as_a_url_is_refused_and_nothing_is_touched
     """zarr reads `prev.zarr::v2.zarr` as a chain of file systems opening prev.zarr: the run used to write
     into that other store (its provenance wiped). Refused up front by every command taking a store, also
     when only the path made absolute (a working directory `prev.zarr::v2`) or resolved (a link to it) has `::`."""
+    monkeypatch.chdir(tmp_path)  # were the check gone, a relative "file:" directory would land here
     other = tmp_path / "prev.zarr"
     run(defs["study"], other, workers=0, quiet=True)
     (tmp_path / "prev.zarr::v2").mkdir()

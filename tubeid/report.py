@@ -69,7 +69,7 @@ from tubeid._outputs import OutputDir
 from tubeid._validation import integer, seed as _seed
 from tubeid.dynamics.spectra import confidence_band, j_s
 from tubeid.errors import SpecificationError
-from tubeid.runner._paths import local_path
+from tubeid._paths import local_path
 from tubeid.identification.likelihood import LR_THRESHOLD, likelihood_curve
 from tubeid.identification.loads import JS_UNITS, delta_f_likelihood
 from tubeid.identification.trial import DISTANCES, identify_r

@@ -32,7 +32,7 @@ from tubeid import config
 from tubeid.errors import BlockFailed, SpecificationError
 from tubeid.runner.integrity import repair_structure, verify
 from tubeid.runner.lock import StoreLock
-from tubeid.runner._paths import local_path
+from tubeid._paths import local_path
 from tubeid.runner.pipeline import End, Pipeline, stage_hash
 from tubeid.runner.status import NOT_NEEDED
 from tubeid.runner.store import (append_history, block_flags, check_blocks, check_stage, check_store, history_line,

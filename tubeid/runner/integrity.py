@@ -23,7 +23,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from tubeid.runner._paths import local_path
+from tubeid._paths import local_path
 
 __all__ = ["block_checksum", "values_checksum", "verify", "repair_structure", "Verification", "CHECKSUM_RULE",
            "chunk_key"]

@@ -19,7 +19,7 @@ import pathlib
 import numpy as np
 
 from tubeid.errors import SpecificationError, shown
-from tubeid.runner._paths import local_path
+from tubeid._paths import local_path
 from tubeid.runner.study import RESERVED
 
 __all__ = ["store_status", "pipeline_status", "FLAG", "BOOKKEEPING", "FORMAT", "PIPELINE_FORMAT", "LEGACY_FORMATS",

@@ -53,7 +53,7 @@ import numpy as np
 import zarr
 
 from tubeid.errors import SpecificationError
-from tubeid.runner._paths import local_path
+from tubeid._paths import local_path
 from tubeid.runner.status import BOOKKEEPING, FLAG, FORMAT, LEGACY_FORMATS, PIPELINE_FORMAT, pipeline_status, store_status
 
 if TYPE_CHECKING:  # imported where used: `tubeid status` needs no xarray

@@ -1,9 +1,10 @@
-"""A store's path as a local directory path: the one check every command that takes a store makes first.
+"""A path tubeid hands to zarr or xarray, as a local path: the check every store and record path gets first.
 
-zarr (3.x, ``zarr.storage._common._is_fsspec_uri``) reads a path whose text holds ``::`` (a chain of
-file systems) or ``://`` (a protocol) as an fsspec URL: ``prev.zarr::v2.zarr`` opens ``prev.zarr``. tubeid's
-own checks, lock and manifest work on the literal path, so such a path would have zarr write into
-another directory than the one tubeid checked. Imports nothing heavy (``tubeid status`` needs no zarr).
+zarr (3.x, ``zarr.storage._common._is_fsspec_uri``) and xarray's fsspec-aware backends read a path whose
+text holds ``::`` (a chain of file systems) or ``://`` (a protocol) as an fsspec URL: ``prev.zarr::v2.zarr``
+opens ``prev.zarr``. tubeid's own checks, lock and manifest work on the literal path, so such a path would
+have zarr write into (or read from) another place than the one tubeid checked. Imports nothing heavy
+(``tubeid status`` needs no zarr).
 """
 
 from __future__ import annotations
