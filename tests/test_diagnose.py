@@ -16,6 +16,7 @@ import json
 import shutil
 import subprocess
 import sys
+import unittest.mock
 
 import numpy as np
 import pytest
@@ -1499,3 +1500,21 @@ def test_the_probe_realisations_are_simulated_only_where_the_profile_reads_them(
     mixed = builtin_spec("paper-reference").replace(
         sensors=sensors((4.0,), tube="outer2", prefix="o") + sensors((2.0, 6.0), tube="outer1", prefix="p"))
     assert CATALOG["added_mass"].probe(mixed).tube == "outer1"  # the tube with the most sensors, not the first
+
+
+def test_the_figures_show_names_as_written_not_as_tex(tmp_path):
+    """A sensor or effect named with dollar signs (c$\\nope$) is a name: matplotlib's TeX parser failed on it
+    after report.json and report.md were written."""
+    import types
+
+    from tubeid._outputs import OutputDir
+    from tubeid.diagnose.report import write_files
+
+    f = np.linspace(0.0, 100.0, 51)
+    band = np.full((f.size, 2), 1e-12)
+    diag = types.SimpleNamespace(
+        frequency=f, sensors=["c$\\nope$", "c06"], measured=2 * band, bands={"before": (band, 3 * band)},
+        report={"settings": {"level": 0.95}, "effects": [{"name": "tone at $x$"}], "load": {"delta_F_given": True}})
+    with unittest.mock.patch("tubeid.diagnose.report.markdown", return_value="report\n"):
+        out = write_files(diag, tmp_path / "out")
+    assert (out / "residual.png").stat().st_size > 1000 and OutputDir(out, field="out").owned("residual.png")

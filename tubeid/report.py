@@ -1026,7 +1026,10 @@ def make_report(store, out=None, *, n_bootstrap: int = 200, seed: int = 2008, se
                 raise SpecificationError(f"out/{name}", str(target), "exists and was not written by tubeid (or was "
                                          "changed since): it is left untouched; move it or choose another --out")
         pending = _Pending()
-        summary = _analyse(st, store, pending, n_bootstrap, seed, sensor)
+        from tubeid._optional import require
+
+        with require("matplotlib", "tubeid report").rc_context({"text.parse_math": False}):  # names as written, not TeX
+            summary = _analyse(st, store, pending, n_bootstrap, seed, sensor)
     except BaseException:  # refused, failed or interrupted (Ctrl-C) before writing: DIR as it was
         _discard(od, created, outputs=False)
         raise

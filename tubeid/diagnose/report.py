@@ -246,10 +246,16 @@ def write_files(diag, out) -> Path:
     d = OutputDir(out, field="out")
     d.write_text("report.json", json.dumps(diag.report, indent=2, default=_json_default) + "\n")
     d.write_text("report.md", markdown(diag.report))
-    _residual_figure(diag, d)
-    if not diag.report["load"].get("delta_F_given", True):
-        _delta_f_figure(diag.report["load"], d)
+    with _plt().rc_context(_PLAIN_TEXT):
+        _residual_figure(diag, d)
+        if not diag.report["load"].get("delta_F_given", True):
+            _delta_f_figure(diag.report["load"], d)
     return d.path
+
+
+#: matplotlib settings of every figure: text shown as written (a sensor or effect named ``c$\x$`` is a
+#: name, not TeX math for matplotlib to parse, and fail on)
+_PLAIN_TEXT = {"text.parse_math": False}
 
 
 def _fmt(v, spec=".3g"):
