@@ -633,3 +633,19 @@ def test_any_value_anywhere_is_accepted_whole_or_refused_clearly(value):
         assert all(np.all(np.isfinite(m)) for m in mats), path
         outcomes["accepted"] += 1
     assert outcomes["accepted"] + outcomes["refused"] == len(list(_paths(base)))
+
+
+def test_load_and_sensor_points_off_their_tube_are_refused():
+    """FEModel.point_vector clamped the element and extrapolated the shape functions beyond the tube."""
+    from tubeid.mechanics.spec import LoadPoint, SensorSpec
+
+    model = reduce(builtin_spec("paper-simplified"))
+    with pytest.raises(SpecificationError, match=r"^points\[0\].x = 40.0: load point 'P' is off tube 'centre' of "
+                                                 r"length 16 m: must be in \[0, 16\] m"):
+        model.load_matrix((LoadPoint("P", "centre", 40.0),))
+    with pytest.raises(SpecificationError, match=r"^sensors\[0\].x = -1.0: sensor 's' is off tube 'centre'"):
+        model.sensor_matrix((SensorSpec("s", "centre", -1.0),))
+    with pytest.raises(SpecificationError, match=r"^x = 16.5: the point is off tube 'centre'"):
+        model.fe.point_vector("centre", 16.5)
+    # the ends themselves are on the tube
+    assert model.load_matrix((LoadPoint("P", "centre", 16.0, "moment"), LoadPoint("Q", "centre", 0.0))).shape[1] == 2

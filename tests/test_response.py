@@ -371,3 +371,16 @@ def test_results_carry_the_units_the_docstring_states():
     assert ds.displacement.attrs["units"] == "m"
     assert ds.time.attrs["units"] == "s" and ds.displacement.time.attrs["units"] == "s"
     assert ds.psd.attrs["units"] == "m^2/Hz" and ds.frequency.attrs["units"] == "Hz"
+
+
+@pytest.mark.parametrize("load, needle", [
+    (force_and_moment(1e-2, 1e-2, x=40.0), r"^load.x\[0\] = 40.0: load 'T' is off tube 'centre' of length 16 m: "
+                                           r"must be in \[0, 16\] m"),
+    (force_and_moment(1e-2, 1e-2, x=-20.0), r"^load.x\[0\] = -20.0: load 'T' is off tube 'centre'"),
+    (coherent_forces(x=[8.0, 100.0]), r"^load.x\[1\] = 100.0: load 'F2' is off tube 'centre' of length 16 m"),
+])
+def test_a_load_off_its_tube_is_refused_before_the_run(load, needle):
+    """The element index was clamped and the Hermite polynomials extrapolated: a force at x = 40 m on the
+    16 m tube gave a response (97 % contact) as if it were valid."""
+    with pytest.raises(SpecificationError, match=needle):
+        simulate_responses(reduce(builtin_spec("paper-simplified")), load, [0], seed=1, settings=SHORT)

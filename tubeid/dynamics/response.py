@@ -160,7 +160,8 @@ def simulate_responses(
     model : ReducedModel
         The reduced (mean) model, with its stops, sensors and carried effects.
     load : LoadSpectrum
-        The mean load spectrum, acting on the model's tube at its load positions.
+        The mean load spectrum, acting on the model's tube at its load positions (each within
+        [0, length] of that tube: a load off the tube is refused).
     realisations : array_like of int
         Realisation indices (R of them): distinct integers (not bools or floats; each keys its
         realisation's streams, a repeat would duplicate a realisation).
@@ -198,6 +199,13 @@ def simulate_responses(
         raise SpecificationError("model", Described(type(model).__name__), "must be a ReducedModel (tubeid.mechanics.reduce)")
     if not isinstance(load, LoadSpectrum):
         raise SpecificationError("load", Described(type(load).__name__), "must be a LoadSpectrum (tubeid.uncertainty)")
+    # every load on the model's tube, within [0, length]: checked before any work (the Hermite shape
+    # functions would extrapolate a point off the tube into a large, meaningless load)
+    tube_names = [t.name for t in model.spec.tubes]
+    if load.tube not in tube_names:
+        raise SpecificationError("load.tube", load.tube, f"no such tube in model {model.spec.name!r}; tubes are {tube_names}")
+    for i, (name, x) in enumerate(zip(load.names, load.x)):
+        model.fe._check_on_tube(f"load.x[{i}]", model.spec.tube(load.tube), x, f"load {name!r}")
     if not isinstance(dispersion, Dispersion):
         raise SpecificationError("dispersion", dispersion, "must be a tubeid.uncertainty.Dispersion "
                                  "(e.g. Dispersion(stiffness=0.1))")

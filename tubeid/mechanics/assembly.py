@@ -19,8 +19,9 @@ from functools import cached_property
 import numpy as np
 import scipy.linalg
 
+from tubeid._validation import real
 from tubeid.errors import SpecificationError
-from tubeid.mechanics.spec import BundleSpec, LoadPoint, SensorSpec, TubeSpec
+from tubeid.mechanics.spec import _NODE_TOL, BundleSpec, LoadPoint, SensorSpec, TubeSpec
 
 __all__ = ["beam_element", "hermite_shape", "FEModel", "assemble", "tube_matrices"]
 
@@ -150,7 +151,8 @@ class FEModel:
         tube : str
             Tube name.
         x : float
-            Abscissa [m], anywhere on the tube (Hermite interpolation between nodes).
+            Abscissa [m], anywhere on the tube: in [0, length] (Hermite interpolation between nodes);
+            a point off the tube is refused (the shape functions would extrapolate).
         derivative : int
             0 for the displacement, 1 for the rotation.
 
@@ -160,6 +162,7 @@ class FEModel:
             Shape (n_dof,).
         """
         t = self.spec.tube(tube)
+        self._check_on_tube("x", t, x)
         le = t.length / t.n_elements
         e = min(int(np.floor(x / le)), t.n_elements - 1)
         e = max(e, 0)
@@ -170,6 +173,14 @@ class FEModel:
             if i is not None:
                 v[i] += shape[local]
         return v
+
+    @staticmethod
+    def _check_on_tube(field: str, tube: TubeSpec, x, what: str = "the point") -> None:
+        """``x`` [m] lies on ``tube``, within [0, length] (to the specification's node tolerance)."""
+        rule = f"{what} is off tube {tube.name!r} of length {tube.length:g} m: must be in [0, {tube.length:g}] m"
+        xv = real(field, x, unit="m")
+        if not (-_NODE_TOL <= xv <= tube.length + _NODE_TOL):
+            raise SpecificationError(field, x, rule)
 
     def load_matrix(self, points: tuple[LoadPoint, ...] | None = None) -> np.ndarray:
         """Influence matrix of load points (force → y, moment → θ).
@@ -185,6 +196,8 @@ class FEModel:
             Shape (n_dof, m), one column per point: the generalised force of a unit load.
         """
         pts = self.spec.loads if points is None else points
+        for i, p in enumerate(pts):
+            self._check_on_tube(f"points[{i}].x", self.spec.tube(p.tube), p.x, f"load point {p.name!r}")
         cols = [self.point_vector(p.tube, p.x, 1 if p.kind == "moment" else 0) for p in pts]
         return np.stack(cols, axis=1) if cols else np.zeros((self.n_dof, 0))
 
@@ -202,6 +215,8 @@ class FEModel:
             Shape (n_sensors, n_dof): sensor displacements [m] = matrix @ u.
         """
         ss = self.spec.sensors if sensors is None else sensors
+        for i, p in enumerate(ss):
+            self._check_on_tube(f"sensors[{i}].x", self.spec.tube(p.tube), p.x, f"sensor {p.name!r}")
         rows = [self.point_vector(s.tube, s.x) for s in ss]
         return np.stack(rows) if rows else np.zeros((0, self.n_dof))
 
