@@ -312,3 +312,27 @@ def test_bools_strings_and_complex_values_are_not_numbers(call, needle):
         warnings.simplefilter("error")
         with pytest.raises(SpecificationError, match=needle):
             call(s)
+
+
+def _spread_samples(grid_name="delta", coords=(0.1, 0.2, 0.3)):
+    """Samples whose spread grows along the grid (N = 40 each), as a DataArray on (grid_name, realisation)."""
+    rng = rng_for(7, "likelihood_alignment")
+    vals = np.stack([rng.normal(1.0, s, 40) for s in (0.1, 0.2, 0.3)])
+    return xr.DataArray(vals, dims=(grid_name, "realisation"), coords={grid_name: list(coords)})
+
+
+def test_a_dataarray_is_matched_to_the_grid_by_its_coordinate():
+    """The rows were taken in storage order: stored in reverse, the same samples gave another argmax (the
+    mirror image over the grid), and a grid that disagrees with the coordinate ([.5, .6, .7]) was accepted."""
+    S = _spread_samples()
+    ordered = likelihood_curve(S, 1.25, [0.1, 0.2, 0.3], n_bootstrap=0)
+    for reordered in (S.isel(delta=[2, 1, 0]), S.isel(delta=[1, 2, 0]).T):
+        ds = likelihood_curve(reordered, 1.25, [0.1, 0.2, 0.3], n_bootstrap=0)
+        np.testing.assert_array_equal(ds.log_likelihood.values, ordered.log_likelihood.values)
+        assert ds.attrs["argmax"] == ordered.attrs["argmax"]
+    # an ordered DataArray gives the bits of its plain array
+    plain = likelihood_curve(S.values, 1.25, [0.1, 0.2, 0.3], n_bootstrap=0)
+    np.testing.assert_array_equal(plain.log_likelihood.values, ordered.log_likelihood.values)
+    with pytest.raises(SpecificationError, match=r"^grid = \[0.5 0.6 0.7\]: must equal the 'delta' coordinate of "
+                                                 r"samples \(\[0.1 0.2 0.3\]"):
+        likelihood_curve(S, 1.25, [0.5, 0.6, 0.7], n_bootstrap=0)

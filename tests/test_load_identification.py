@@ -626,3 +626,19 @@ def test_fine_grid_refuses_a_bad_centre(centre, needle):
     coarse = identify_r(_model(3, 0.1, 0), EXP, refine=False)
     with pytest.raises(SpecificationError, match=needle):
         fine_grid(coarse, 5, centre=centre)
+
+
+def test_delta_f_likelihood_matches_the_samples_to_the_grid_by_their_coordinate():
+    """A DataArray stored in reverse gave another δ_F,opt (mirrored over the grid); a grid that disagrees
+    with its coordinate was accepted; without a grid, a reversed coordinate was refused as not increasing."""
+    rng = rng_for(7, "likelihood_alignment")
+    vals = np.stack([rng.normal(1.0, s, 40) for s in (0.1, 0.2, 0.3)])
+    S = xr.DataArray(vals, dims=("delta_F", "realisation"), coords={"delta_F": [0.4, 0.5, 0.6]})
+    R = S.isel(delta_F=[2, 1, 0])
+    ordered = delta_f_likelihood(S, 1.25, grid=[0.4, 0.5, 0.6], n_bootstrap=0)
+    for ds in (delta_f_likelihood(R, 1.25, grid=[0.4, 0.5, 0.6], n_bootstrap=0), delta_f_likelihood(R, 1.25, n_bootstrap=0)):
+        assert ds.attrs["delta_F_opt"] == ordered.attrs["delta_F_opt"]
+        np.testing.assert_array_equal(ds.J_s.values, S.values)  # the samples kept in the grid's order
+    with pytest.raises(SpecificationError, match=r"^grid = \[0.1 0.2 0.3\]: must equal the 'delta_F' coordinate of "
+                                                 r"j_s_samples"):
+        delta_f_likelihood(S, 1.25, grid=[0.1, 0.2, 0.3], n_bootstrap=0)

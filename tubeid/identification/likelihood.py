@@ -61,6 +61,34 @@ def _as_samples(samples, field: str, min_n: int) -> np.ndarray:
     return s
 
 
+#: A given grid equals the samples' grid coordinate when every value agrees within this fraction of
+#: the largest |grid value| (round-off of a grid written out again, e.g. np.linspace against a list).
+GRID_RTOL = 1e-9
+
+
+def _aligned(da: xr.DataArray, g: np.ndarray, grid_name: str, field: str) -> xr.DataArray:
+    """``da`` (dims (grid_name, ...)) put in the order of the strictly increasing grid ``g`` by its
+    ``grid_name`` coordinate, when it has one; a coordinate whose values are not those of ``g`` is
+    refused naming both. An already ordered ``da`` is returned as it is (the same values)."""
+    if grid_name not in da.coords:
+        return da
+    try:
+        c = np.asarray(da[grid_name].values, dtype=float)
+    except (TypeError, ValueError):
+        c = None
+    order = None if c is None else np.argsort(c, kind="stable")
+    tol = GRID_RTOL * float(np.max(np.abs(g), initial=0.0))
+    if c is None or c.shape != g.shape or not np.all(np.abs(c[order] - g) <= tol):
+        shown_c = np.array2string(np.asarray(da[grid_name].values), threshold=8)
+        raise SpecificationError("grid", _Desc(np.array2string(g, threshold=8)),
+                                 f"must equal the {grid_name!r} coordinate of {field} ({shown_c}; in any order, "
+                                 f"within {GRID_RTOL:g} of the largest |value|): the samples are matched to the "
+                                 "grid by that coordinate")
+    if np.any(order != np.arange(order.size)):
+        da = da.isel({grid_name: order})
+    return da
+
+
 def _silverman(s: np.ndarray) -> np.ndarray:
     return _SILVERMAN * s.std(axis=-1, ddof=1) * s.shape[-1] ** (-0.2)
 
@@ -186,7 +214,9 @@ def likelihood_curve(samples: ArrayLike | xr.DataArray, x_ref: float | ArrayLike
     samples : array_like or xarray.DataArray
         (len(grid), N), N ≥ 5: ``samples[g, k]`` is realisation k of the observable at ``grid[g]``
         (common random numbers across the grid); a DataArray with a ``grid_name`` dimension is
-        transposed first.
+        transposed first and, when it has a ``grid_name`` coordinate, matched to ``grid`` by it
+        (rows in any order; a coordinate whose values differ from ``grid`` by more than
+        :data:`GRID_RTOL` of its largest |value| is refused).
     x_ref : float or array_like
         One observation, or a 1-D array of independent observations (the log-likelihood is then
         the sum of their log-densities, and ``likelihood`` their product divided by its maximum
@@ -232,7 +262,7 @@ def likelihood_curve(samples: ArrayLike | xr.DataArray, x_ref: float | ArrayLike
     if g.size > 1 and not np.all(np.diff(g) > 0):
         raise SpecificationError("grid", _Desc(np.array2string(g, threshold=8)), "must be strictly increasing")
     if isinstance(samples, xr.DataArray) and grid_name in samples.dims and samples.ndim == 2:
-        samples = samples.transpose(grid_name, ...).values
+        samples = _aligned(samples.transpose(grid_name, ...), g, grid_name, "samples").values
     s = _as_samples(samples, "samples", 5)
     if s.ndim != 2 or s.shape[0] != g.size:
         raise SpecificationError("samples", _Desc(f"array of shape {s.shape}"),

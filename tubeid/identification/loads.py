@@ -57,7 +57,7 @@ from numpy.typing import ArrayLike
 from tubeid.dynamics.spectra import distance, j_s, log_band_energies
 from tubeid._validation import integer, numeric_array, open_unit, positive, real
 from tubeid.errors import Described as _Desc, SpecificationError
-from tubeid.identification.likelihood import likelihood_curve
+from tubeid.identification.likelihood import _aligned, likelihood_curve
 from tubeid.seeds import rng_for
 from tubeid.uncertainty.random_matrices import delta_max
 
@@ -911,7 +911,9 @@ def delta_f_likelihood(j_s_samples: xr.DataArray | ArrayLike, j_s_exp: float | A
     j_s_exp : float or array_like
         The observed J_s, or several independent observations.
     grid : array_like, optional
-        The δ_F grid (required unless ``j_s_samples`` carries it as a coordinate).
+        The δ_F grid (required unless ``j_s_samples`` carries it as a coordinate). When both are
+        there the grid must equal the coordinate (the rows are matched to the grid by it, in any
+        order; see :func:`likelihood_curve`).
     n_bootstrap : int
         Bootstrap replicates (0: none).
     rng : numpy.random.Generator or int, optional
@@ -945,8 +947,8 @@ def delta_f_likelihood(j_s_samples: xr.DataArray | ArrayLike, j_s_exp: float | A
         if grid is None:
             if grid_name not in da.coords:
                 raise SpecificationError(f"j_s_samples.{grid_name}", None, "needs a coordinate (or pass grid)")
-            grid = da[grid_name].values
-        samples = da.values
+            grid = np.sort(np.asarray(da[grid_name].values))  # the rows are matched to it below
+        samples = da
     else:
         if grid is None:
             raise SpecificationError("grid", None, "is required when j_s_samples is not a DataArray with a "
@@ -957,6 +959,10 @@ def delta_f_likelihood(j_s_samples: xr.DataArray | ArrayLike, j_s_exp: float | A
     if g.ndim != 1 or not np.all(np.isfinite(g)) or np.any(g <= 0) or np.any(g >= dmax):
         raise SpecificationError(grid_name, _Desc(np.array2string(g, threshold=8)),
                                  f"must lie in the admissible set (0, {dmax:.4f}) of SG+ with m = {m}")
+    if isinstance(samples, xr.DataArray):  # its rows matched to the grid by its coordinate (refused if they differ)
+        if g.size > 1 and not np.all(np.diff(g) > 0):
+            raise SpecificationError("grid", _Desc(np.array2string(g, threshold=8)), "must be strictly increasing")
+        samples = _aligned(samples, g, grid_name, "j_s_samples").values
     ds = likelihood_curve(samples, j_s_exp, g, grid_name, n_bootstrap=n_bootstrap, rng=rng,
                           confidence=confidence, variance_corrected=variance_corrected)
     long_name = "J_s = integral over B of ||S_Z(w)||_F^2 dw" if observable == "J_s" else observable
