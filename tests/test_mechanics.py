@@ -649,3 +649,52 @@ def test_load_and_sensor_points_off_their_tube_are_refused():
         model.fe.point_vector("centre", 16.5)
     # the ends themselves are on the tube
     assert model.load_matrix((LoadPoint("P", "centre", 16.0, "moment"), LoadPoint("Q", "centre", 0.0))).shape[1] == 2
+
+
+def _paper_b():
+    sub = reduce(builtin_spec("paper-simplified")).subsystem
+    return sub.M, sub.D, sub.K, sub.n_c
+
+
+def _nonsymmetric(a):
+    a = a.copy()
+    a[0, 1] += 1e-3 * np.max(np.abs(a))
+    return a
+
+
+@pytest.mark.parametrize("call, needle", [
+    # a negative band gave a negative J, NaN/inf gave nan
+    (lambda M, D, K, nc: j_functional(M, D, K, nc, -100.0), r"^band_hz = -100.0: must be a finite number > 0 \(Hz\)"),
+    (lambda M, D, K, nc: j_functional(M, D, K, nc, float("nan")), r"^band_hz = nan: must be a finite number > 0"),
+    (lambda M, D, K, nc: j_functional(M, D, K, nc, float("inf")), r"^band_hz = inf: must be a finite number > 0"),
+    # n_c beyond n or <= 0 gave a value
+    (lambda M, D, K, nc: j_functional(M, D, K, M.shape[0] + 1, 100.0), r"^n_c = 6: must be an integer in \[1, 5\]"),
+    (lambda M, D, K, nc: j_functional(M, D, K, 0, 100.0), r"^n_c = 0: must be an integer in \[1, 5\]"),
+    (lambda M, D, K, nc: j_functional(M, D, K, 3.0, 100.0), r"^n_c = 3.0: must be an integer in \[1, 5\]"),
+    (lambda M, D, K, nc: condensed_stiffness(M, D, K, -1, [1.0]), r"^n_c = -1: must be an integer in \[1, 5\]"),
+    # a non-symmetric matrix was accepted
+    (lambda M, D, K, nc: j_functional(M, _nonsymmetric(D), K, nc, 100.0), r"^D = matrix with max \|D - Dᵀ\| = .*must be symmetric"),
+    (lambda M, D, K, nc: condensed_stiffness(M, D, _nonsymmetric(K), nc, [1.0]), r"^K = matrix with max .*must be symmetric"),
+    # shapes and types ended in numpy IndexError / ValueError / TypeError
+    (lambda M, D, K, nc: j_functional(M, D, K[:-1, :-1], nc, 100.0), r"^K = array of shape \(4, 4\): must be \(\.\.\., 5, 5\)"),
+    (lambda M, D, K, nc: condensed_stiffness(M, D, K[:-1, :-1], nc, [1.0]), r"^K = array of shape \(4, 4\)"),
+    (lambda M, D, K, nc: j_functional(M * np.nan, D, K, nc, 100.0), r"^M = 25 NaN or infinite value\(s\)"),
+    (lambda M, D, K, nc: condensed_stiffness(M, D, K, nc, 10.0), r"^omega = array of shape \(\): must be a non-empty 1-D"),
+    (lambda M, D, K, nc: condensed_stiffness(M, D, K, nc, np.ones((2, 2))), r"^omega = array of shape \(2, 2\)"),
+    (lambda M, D, K, nc: condensed_stiffness(M, D, K, nc, np.array([1.0 + 1j])), r"^omega = array of dtype complex128"),
+    (lambda M, D, K, nc: condensed_stiffness(M, D, K, nc, [float("nan")]), r"^omega = 1 NaN or infinite value"),
+])
+def test_j_functional_and_condensed_stiffness_check_their_arguments_up_front(call, needle):
+    with pytest.raises(SpecificationError, match=needle):
+        call(*_paper_b())
+
+
+def test_random_j_and_j_monte_carlo_check_the_band():
+    from tubeid.uncertainty import Dispersion
+    from tubeid.uncertainty.random_models import j_monte_carlo, random_j
+
+    sub = reduce(builtin_spec("paper-simplified")).subsystem
+    with pytest.raises(SpecificationError, match=r"^band_hz = -100.0: must be a finite number > 0"):
+        j_monte_carlo(sub, [0.1], 1, [0, 1], -100.0)
+    with pytest.raises(SpecificationError, match=r"^band_hz = nan: must be a finite number > 0"):
+        random_j(sub, Dispersion(stiffness=0.1), 1, [0, 1], float("nan"))

@@ -25,7 +25,8 @@ from functools import cached_property
 import numpy as np
 import scipy.linalg
 
-from tubeid.errors import SpecificationError
+from tubeid._validation import integer, numeric_array, positive
+from tubeid.errors import Described, SpecificationError
 from tubeid.mechanics.assembly import FEModel, assemble
 from tubeid.mechanics.spec import BundleSpec, LoadPoint, SensorSpec
 
@@ -262,26 +263,66 @@ def reduce(model: BundleSpec | FEModel) -> ReducedModel:
 
 
 # -- frequency-domain functionals of subsystem B ---------------------------------------------------
+#: M, D and K must be symmetric: max |A − Aᵀ| <= SYMMETRY_RTOL · max |A| for each of them.
+SYMMETRY_RTOL = 1e-8
+
+
+def _check_functional_inputs(M, D, K, n_c) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """M, D, K as real finite symmetric (..., n, n) arrays of one n with broadcastable batch axes, and
+    n_c an integer in [1, n]; each refused naming it."""
+    out = []
+    for name, a in (("M", M), ("D", D), ("K", K)):
+        a = numeric_array(name, a, dtype=float)  # real and finite: complex, bool, strings, NaN refused
+        if a.ndim < 2 or a.shape[-1] != a.shape[-2] or a.shape[-1] < 1:
+            raise SpecificationError(name, Described(f"array of shape {a.shape}"),
+                                     "must be a square matrix (..., n, n) with n >= 1 (optional batch axes)")
+        out.append(a)
+    n = out[0].shape[-1]
+    for name, a in zip(("D", "K"), out[1:]):
+        if a.shape[-1] != n:
+            raise SpecificationError(name, Described(f"array of shape {a.shape}"), f"must be (..., {n}, {n}) like M")
+    try:
+        np.broadcast_shapes(*(a.shape[:-2] for a in out))
+    except ValueError:
+        raise SpecificationError("M, D, K", Described(f"batch shapes {[a.shape[:-2] for a in out]}"),
+                                 "their batch axes must broadcast together") from None
+    for name, a in zip(("M", "D", "K"), out):
+        scale = float(np.max(np.abs(a), initial=0.0))
+        asym = float(np.max(np.abs(a - np.swapaxes(a, -1, -2)), initial=0.0))
+        if asym > SYMMETRY_RTOL * scale:
+            raise SpecificationError(name, Described(f"matrix with max |{name} - {name}ᵀ| = {asym:.3g} "
+                                                     f"(max |entry| = {scale:.3g})"),
+                                     f"must be symmetric (within {SYMMETRY_RTOL:g} of its largest |entry|)")
+    n_c = integer("n_c", n_c, minimum=1, maximum=n)
+    return out[0], out[1], out[2], n_c
+
+
 def condensed_stiffness(M: np.ndarray, D: np.ndarray, K: np.ndarray, n_c: int, omega: np.ndarray) -> np.ndarray:
     """Condensed dynamic stiffness Z(ω) = A_cc − A_cy A_yy⁻¹ A_yc on the interface [N/m].
 
     Parameters
     ----------
     M, D, K : numpy.ndarray
-        Reduced matrices of B, shape (..., n, n) with optional batch axes; the last ``n_c``
-        coordinates are the interface.
+        Reduced matrices of B, shape (..., n, n) with optional batch axes (broadcast together);
+        real, finite and symmetric (max |A − Aᵀ| <= :data:`SYMMETRY_RTOL` · max |A|); the last
+        ``n_c`` coordinates are the interface.
     n_c : int
-        Number of interface coordinates.
+        Number of interface coordinates, an integer in [1, n].
     omega : array_like
-        Angular frequencies [rad/s], 1-D.
+        Angular frequencies [rad/s], a non-empty 1-D array of real finite numbers (any sign).
 
     Returns
     -------
     numpy.ndarray
         Complex, shape (..., len(omega), n_c, n_c).
     """
-    M, D, K = (np.asarray(x)[..., None, :, :] for x in (M, D, K))
-    w = np.asarray(omega, dtype=float)[:, None, None]
+    M, D, K, n_c = _check_functional_inputs(M, D, K, n_c)
+    w = numeric_array("omega", omega, dtype=float)
+    if w.ndim != 1 or w.size == 0:
+        raise SpecificationError("omega", Described(f"array of shape {w.shape}"),
+                                 "must be a non-empty 1-D array of angular frequencies (rad/s)")
+    M, D, K = (x[..., None, :, :] for x in (M, D, K))
+    w = w[:, None, None]
     A = K - w**2 * M + 1j * w * D
     y, cc = slice(0, A.shape[-1] - n_c), slice(A.shape[-1] - n_c, None)
     Ayy, Ayc, Acy, Acc = A[..., y, y], A[..., y, cc], A[..., cc, y], A[..., cc, cc]
@@ -311,19 +352,21 @@ def j_functional(M: np.ndarray, D: np.ndarray, K: np.ndarray, n_c: int, band_hz:
     Parameters
     ----------
     M, D, K : numpy.ndarray
-        Reduced matrices of B, shape (..., n, n) with optional batch axes; the last ``n_c``
-        coordinates are the interface. M must be positive definite and every pole damped.
+        Reduced matrices of B, shape (..., n, n) with optional batch axes (broadcast together);
+        real, finite and symmetric (max |A − Aᵀ| <= :data:`SYMMETRY_RTOL` · max |A|); the last
+        ``n_c`` coordinates are the interface. M must be positive definite and every pole damped.
     n_c : int
-        Number of interface coordinates.
+        Number of interface coordinates, an integer in [1, n].
     band_hz : float
-        Half-width of the band [Hz].
+        Half-width of the band [Hz], a finite number > 0.
 
     Returns
     -------
     numpy.ndarray
         J [m²·rad/(N²·s)] (``J_UNITS``), shape (...) — a 0-d array without batch axes.
     """
-    M, D, K = (np.asarray(x, dtype=float) for x in (M, D, K))
+    M, D, K, n_c = _check_functional_inputs(M, D, K, n_c)
+    band_hz = positive("band_hz", band_hz, "Hz")
     n = M.shape[-1]
     _check_mass(M)
     Omega = 2 * np.pi * band_hz

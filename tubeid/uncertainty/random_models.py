@@ -18,7 +18,7 @@ import numpy as np
 import xarray as xr
 from numpy.typing import ArrayLike
 
-from tubeid._validation import numeric_array
+from tubeid._validation import numeric_array, positive
 from tubeid._validation import seed as _seed
 from tubeid.errors import Described, SpecificationError
 from tubeid.mechanics.reduction import J_UNITS, ReducedSubsystem, condensed_stiffness, j_functional
@@ -169,13 +169,14 @@ def random_j(sub: ReducedSubsystem, dispersion: Dispersion, seed: int, realisati
     realisations : array_like of int
         Realisation indices (R of them): distinct integers (:func:`realisation_indices`).
     band_hz : float
-        Half-width of the band of J [Hz].
+        Half-width of the band of J [Hz], a finite number > 0.
 
     Returns
     -------
     numpy.ndarray
         J [m²·rad/(N²·s)], shape (R,).
     """
+    positive("band_hz", band_hz, "Hz")  # before the draws
     M, D, K = random_subsystem(sub, dispersion, seed, realisations)
     return j_functional(M, D, K, sub.n_c, band_hz)
 
@@ -195,7 +196,7 @@ def j_monte_carlo(sub: ReducedSubsystem, deltas: ArrayLike, seed: int, realisati
     realisations : array_like of int
         Realisation indices: distinct integers (:func:`realisation_indices`).
     band_hz : float
-        Half-width of the band of J [Hz].
+        Half-width of the band of J [Hz], a finite number > 0.
     which : str
         The randomised matrix: ``"stiffness"`` (the paper), ``"mass"``, ``"damping"`` or ``"all"``.
 
@@ -211,6 +212,7 @@ def j_monte_carlo(sub: ReducedSubsystem, deltas: ArrayLike, seed: int, realisati
         raise SpecificationError("deltas", deltas.tolist(), "must be a non-empty 1-D grid")
     realisations = realisation_indices(realisations)
     _seed("seed", seed)
+    positive("band_hz", band_hz, "Hz")  # checked, not converted: recorded as given
     germs = _germs(sub.n, seed, realisations)
     J = np.empty((deltas.size, realisations.size))
     for i, d in enumerate(deltas):
