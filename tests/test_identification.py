@@ -140,3 +140,20 @@ def test_grids_counts_and_frequencies_are_numbers(call, needle):
     """Strings were read as numbers, complex values lost their imaginary part, a float count was truncated."""
     with pytest.raises(SpecificationError, match=needle):
         call()
+
+
+def test_a_bundle_without_a_b_interface_is_refused_naming_it():
+    """No stops (no tube A) or no link from A to the others: n_c = 0 gave J = 0 and a δ_opt."""
+    from tubeid.identification.delta import reference_j
+
+    spec = builtin_spec("paper-simplified")
+    no_stops = spec.replace(stops=())
+    no_links = spec.replace(links=())
+    with pytest.raises(SpecificationError, match=r"^reference = 'paper-simplified': has no A–B interface DOF "
+                                                 r"\(n_c = 0: it has no stops"):
+        reference_j(no_stops)
+    with pytest.raises(SpecificationError, match=r"^reference = 'paper-simplified': has no A–B interface DOF "
+                                                 r"\(n_c = 0: no link joins its non-linear tube 'centre'"):
+        reference_j(no_links)
+    with pytest.raises(SpecificationError, match=r"^model = 'paper-simplified': has no A–B interface DOF"):
+        identify_delta(no_stops, j_reference=1e-9, n_realisations=20, n_bootstrap=0)

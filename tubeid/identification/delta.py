@@ -16,6 +16,7 @@ import xarray as xr
 from numpy.typing import ArrayLike
 
 from tubeid._validation import integer, numeric_array
+from tubeid.errors import SpecificationError
 from tubeid._validation import seed as _seed
 from tubeid.identification.likelihood import likelihood_curve
 from tubeid.mechanics.library import resolve_spec
@@ -38,11 +39,22 @@ def reference_j(reference: BundleSpec | str | os.PathLike = "paper-reference") -
     Returns
     -------
     float
-        J [m²·rad/(N²·s)] over the model's band.
+        J [m²·rad/(N²·s)] over the model's band. A bundle without an A–B interface (no stops, or
+        no link from the non-linear tube to the others: n_c = 0) is refused.
     """
     spec = resolve_spec(reference)
     sub = reduce(spec).subsystem
+    _check_interface("reference", spec, sub)
     return float(j_functional(sub.M, sub.D, sub.K, sub.n_c, spec.band_hz))
+
+
+def _check_interface(field: str, spec: BundleSpec, sub) -> None:
+    """J needs an A–B interface: refused, naming the model and why, when it has none (n_c = 0)."""
+    if sub.n_c == 0:
+        why = ("it has no stops, so no non-linear tube A" if spec.a_tube is None and not spec.nonlinear_tube
+               else f"no link joins its non-linear tube {spec.a_tube!r} to another tube")
+        raise SpecificationError(field, spec.name, f"has no A–B interface DOF (n_c = 0: {why}): J = ∫ ‖Z(ω)⁻¹‖²_F dω "
+                                 "is defined on the interface only")
 
 
 def default_delta_grid(n: int, step: float = 0.025) -> np.ndarray:
@@ -109,6 +121,7 @@ def identify_delta(
     given = None if deltas is None else numeric_array("deltas", deltas, finite=False, dtype=float)
     spec = resolve_spec(model)
     sub = reduce(spec).subsystem
+    _check_interface("model", spec, sub)
     j_ref = reference_j(reference) if j_reference is None else j_reference
     grid = default_delta_grid(sub.n) if deltas is None else given
     J = j_monte_carlo(sub, grid, seed, np.arange(n_realisations), spec.band_hz, which=which)
