@@ -1,5 +1,7 @@
 """Random reduced models and the maximum-likelihood identification of δ."""
 
+import warnings
+
 import numpy as np
 import pytest
 import scipy.stats
@@ -157,3 +159,24 @@ def test_a_bundle_without_a_b_interface_is_refused_naming_it():
         reference_j(no_links)
     with pytest.raises(SpecificationError, match=r"^model = 'paper-simplified': has no A–B interface DOF"):
         identify_delta(no_stops, j_reference=1e-9, n_realisations=20, n_bootstrap=0)
+
+
+@pytest.mark.parametrize("kwargs, needle", [
+    (dict(deltas=[0.3]), r"^deltas = \[0.3\]: must be a 1-D grid of at least 3 values"),  # δ_opt with std 5.7e-17
+    (dict(deltas=[0.3, 0.4]), r"^deltas = \[0.3, 0.4\]: must be a 1-D grid of at least 3 values"),
+    (dict(j_reference=-1.0), r"^j_reference = -1.0: must be a finite number >= 0"),  # was accepted
+    (dict(j_reference=[1e-10, -1.0]), r"^j_reference = \[1e-10, -1.0\]: must be a finite number >= 0"),
+    (dict(j_reference=float("inf")), r"^j_reference = 1 NaN or infinite value\(s\): must be finite"),
+])
+def test_identify_delta_refuses_a_short_grid_and_a_negative_or_infinite_reference(kwargs, needle):
+    with pytest.raises(SpecificationError, match=needle):
+        identify_delta(**{"j_reference": 2.9e-10, **kwargs}, n_realisations=20, n_bootstrap=0)
+
+
+def test_a_reference_beyond_reach_of_every_sample_is_refused_without_warnings():
+    """j_reference = 1e300: (x - X)/h overflowed, δ_opt was NaN with RuntimeWarnings."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(SpecificationError, match=r"^x_ref = 1e\+300: lies so far from the samples that its "
+                                                     r"log-likelihood is -inf at every delta"):
+            identify_delta(j_reference=1e300, n_realisations=20, n_bootstrap=0)

@@ -96,9 +96,9 @@ def identify_delta(
         The reference model giving J_ref (unused when ``j_reference`` is given).
     j_reference : float or array_like, optional
         Observed J value(s) [m²·rad/(N²·s)]; several are independent observations (joint
-        likelihood). Default: J of ``reference``.
+        likelihood), each finite and >= 0. Default: J of ``reference``.
     deltas : array_like, optional
-        δ grid (default: ``default_delta_grid(n)``).
+        δ grid, at least 3 values (default: ``default_delta_grid(n)``).
     n_realisations : int
         Monte Carlo realisations per δ (common random numbers across the grid).
     seed : int
@@ -119,6 +119,14 @@ def identify_delta(
     n_realisations = integer("n_realisations", n_realisations, minimum=1)
     _seed("seed", seed)
     given = None if deltas is None else numeric_array("deltas", deltas, finite=False, dtype=float)
+    if given is not None and (given.ndim != 1 or given.size < 3):
+        raise SpecificationError("deltas", given.tolist(), "must be a 1-D grid of at least 3 values (a maximum "
+                                 "inside the grid needs a value on each side of it)")
+    if j_reference is not None:
+        jr = numeric_array("j_reference", j_reference, dtype=float)  # real and finite
+        if jr.ndim > 1 or jr.size == 0 or np.any(jr < 0):
+            raise SpecificationError("j_reference", j_reference, "must be a finite number >= 0 (J = ∫ ‖Z(ω)⁻¹‖²_F dω "
+                                     "is never negative) or a 1-D array of them")
     spec = resolve_spec(model)
     sub = reduce(spec).subsystem
     _check_interface("model", spec, sub)

@@ -116,7 +116,7 @@ def silverman_bandwidth(samples: ArrayLike) -> np.ndarray | float:
 def _log_kde(s: np.ndarray, x, h: np.ndarray) -> np.ndarray:
     """log p̂(x) for samples s (..., N), x broadcastable to s.shape[:-1], bandwidths h (s.shape[:-1])."""
     x = np.asarray(x, dtype=float)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # far beyond the samples: log p̂ = -inf
         u = (x[..., None] - s) / h[..., None]
         out = logsumexp(-0.5 * u * u, axis=-1) - math.log(s.shape[-1]) - np.log(h) - _LOG_SQRT_2PI
     return np.where(h > 0, out, -np.inf)
@@ -296,6 +296,10 @@ def likelihood_curve(samples: ArrayLike | xr.DataArray, x_ref: float | ArrayLike
         return sum(_log_kde(samples_, float(x), h_) for x in xs)
 
     ll = joint(s, h)  # log-sum-exp: finite even where the likelihood itself underflows to 0
+    if not np.any(np.isfinite(ll)):
+        raise SpecificationError("x_ref", x_ref if xs.size == 1 else _Desc(f"{xs.size} observations"),
+                                 f"lies so far from the samples that its log-likelihood is -inf at every "
+                                 f"{grid_name} of the grid (the kernel density underflows): no maximum to find")
     # several observations: their joint density can overflow; report it relative to its maximum
     log_scale = float(np.max(ll)) if xs.size > 1 else 0.0
     discrete, refined = _refine_argmax(g, ll)
