@@ -642,3 +642,25 @@ def test_delta_f_likelihood_matches_the_samples_to_the_grid_by_their_coordinate(
     with pytest.raises(SpecificationError, match=r"^grid = \[0.1 0.2 0.3\]: must equal the 'delta_F' coordinate of "
                                                  r"j_s_samples"):
         delta_f_likelihood(S, 1.25, grid=[0.1, 0.2, 0.3], n_bootstrap=0)
+
+
+@pytest.mark.parametrize("distance", ["paper", "relative", "bands", "log"])
+def test_every_distance_refuses_spectra_that_stop_before_the_band(distance):
+    """PSDs up to 50 Hz with band_hz = 100: "log" shortened the band silently (and recorded band_hz = 100)."""
+    from tubeid.identification.trial import identify_r
+
+    short = dict(frequency=slice(0.0, 50.0))
+    with pytest.raises(SpecificationError, match=r"frequency"):
+        identify_r(_model(6, 0.1, 5).sel(**short), EXP.sel(**short), distance=distance, band_hz=100.0)
+
+
+@pytest.mark.parametrize("distance", ["paper", "log"])
+def test_a_one_point_trial_grid_is_refused(distance):
+    """A 1 × 1 grid returned its only point as r_opt with r_opt_at_boundary = False; a 1 × n grid stays allowed."""
+    from tubeid.identification.trial import identify_r
+
+    one = _model(6, 0.1, 5, R1[:1], R2[:1])
+    with pytest.raises(SpecificationError, match=r"^psd_model = a grid of 1 point \(r1, r2\): needs at least 2 grid "
+                                                 r"points"):
+        identify_r(one, EXP, distance=distance)
+    assert len(identify_r(_model(6, 0.1, 5, R1, R2[:1]), EXP, distance=distance).r_opt) == 2

@@ -376,6 +376,10 @@ def _grid_inputs(psd_model, psd_exp, band_hz, n_bootstrap, rng, dim, fit, confid
             raise SpecificationError(f"psd_model.{d}", _Desc(np.array2string(a, threshold=8)),
                                      "must be > 0 for fit='log'")
         axes.append(a)
+    if math.prod(a.size for a in axes) < 2:
+        raise SpecificationError("psd_model", _Desc(f"a grid of 1 point ({', '.join(grid_dims)})"),
+                                 "needs at least 2 grid points (an axis with 2 or more values): an optimum over a "
+                                 "one-point grid is that point, not an identification")
     exp_extra = [d for d in psd_exp.dims if d not in ("frequency",) + _SENSOR_DIMS]
     if len(exp_extra) > 1:
         raise SpecificationError("psd_exp.dims", psd_exp.dims,
@@ -798,6 +802,9 @@ def log_spectral_distance_map(psd_model: xr.DataArray, psd_exp: xr.DataArray, ba
         g_[k] for k in ("grid_dims", "axes", "sensor_dims", "exp_extra", "f", "band", "N", "gen"))
     n_bootstrap, confidence, P, E = g_["n_bootstrap"], g_["confidence"], g_["P"], g_["E"]
     fb = f[g_["sl"]]
+    if fb[-1] < band * (1 - 1e-12):  # as the other distances: a band beyond the spectra is not shortened silently
+        raise SpecificationError("psd_model.frequency", _Desc(f"{f.size} bins, {f[0]:g}..{f[-1]:g} Hz"),
+                                 f"must reach the band {band:g} Hz (band_hz = {band_hz!r})")
     keep = (fb > 0) & (fb <= band * (1 + 1e-12))
     if not np.any(keep):
         raise SpecificationError("psd_model.frequency", _Desc(f"{f.size} bins"), f"must hold bins in (0, {band:g}] Hz")
