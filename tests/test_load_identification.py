@@ -664,3 +664,12 @@ def test_a_one_point_trial_grid_is_refused(distance):
                                                  r"points"):
         identify_r(one, EXP, distance=distance)
     assert len(identify_r(_model(6, 0.1, 5, R1, R2[:1]), EXP, distance=distance).r_opt) == 2
+
+
+@pytest.mark.parametrize("name", ["likelihood", "log_likelihood", "bandwidth", "delta_F", "realisation", ""])
+def test_delta_f_likelihood_refuses_an_observable_named_like_its_own_variables(name):
+    """observable="likelihood" overwrote the likelihood curve with the samples silently."""
+    S = xr.DataArray(rng_for(7, "observable").normal(1.0, 0.2, (3, 40)), dims=("delta_F", "realisation"),
+                     coords={"delta_F": [0.4, 0.5, 0.6]})
+    with pytest.raises(SpecificationError, match=rf"^observable = '{name}': must be a non-empty name other than"):
+        delta_f_likelihood(S, 1.25, n_bootstrap=0, observable=name)

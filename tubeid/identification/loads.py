@@ -934,7 +934,8 @@ def delta_f_likelihood(j_s_samples: xr.DataArray | ArrayLike, j_s_exp: float | A
     units : str
         Units of J_s (of the observable).
     observable : str
-        Name of the observable: the samples' variable and the ``<observable>_exp`` attribute.
+        Name of the observable: the samples' variable and the ``<observable>_exp`` attribute; not
+        one of the result's own variables (``likelihood``, ``log_likelihood``, ...) or coordinates.
     variance_corrected : bool
         :func:`likelihood_curve`'s variance-corrected kernel (for an observable whose spread δ_F
         sets, such as the level difference of record pairs).
@@ -946,6 +947,11 @@ def delta_f_likelihood(j_s_samples: xr.DataArray | ArrayLike, j_s_exp: float | A
         listed above.
     """
     m = integer("m", m, minimum=1)
+    own = ("likelihood", "log_likelihood", "bandwidth", "likelihood_std", "likelihood_low", "likelihood_high",
+           grid_name, "realisation")
+    if not isinstance(observable, str) or not observable or observable in own:
+        raise SpecificationError("observable", observable, "must be a non-empty name other than the result's own "
+                                 f"variables and coordinates {list(own)}")
     if isinstance(j_s_samples, xr.DataArray):
         if grid_name not in j_s_samples.dims or j_s_samples.ndim != 2:
             raise SpecificationError("j_s_samples.dims", j_s_samples.dims,
