@@ -384,3 +384,27 @@ def test_a_load_off_its_tube_is_refused_before_the_run(load, needle):
     16 m tube gave a response (97 % contact) as if it were valid."""
     with pytest.raises(SpecificationError, match=needle):
         simulate_responses(reduce(builtin_spec("paper-simplified")), load, [0], seed=1, settings=SHORT)
+
+
+@pytest.mark.parametrize("kwargs, needle", [
+    # refused by psd_matrix only after the whole simulation, named "segment_seconds"
+    (dict(segment_seconds=0.004, output_dt=0.01), r"^settings.segment_seconds = 0.004: must span at least 2 samples "
+                                                  r"of output_dt = 0.01 s"),
+    # refused later by gaussian_loads
+    (dict(dt_load=4.0), r"^settings.dt_load = 4.0: must not exceed duration = 3.0 s"),
+    (dict(output_dt=2.6), r"^settings.output_dt = 2.6: must not exceed duration − discard = 2.5 s"),
+])
+def test_response_settings_refuse_bad_combinations_when_made(kwargs, needle):
+    with pytest.raises(SpecificationError, match=needle):
+        ResponseSettings(**{"duration": 3.0, "discard": 0.5, "segment_seconds": 2.0, **kwargs})
+
+
+def test_an_output_step_whose_nyquist_frequency_is_below_the_load_band_is_refused_before_the_run():
+    """output_dt = 10 ms (Nyquist 50 Hz) under a 100 Hz load: the response PSD was aliased silently."""
+    settings = ResponseSettings(duration=3.0, discard=0.5, segment_seconds=2.0, output_dt=0.01)
+    with pytest.raises(SpecificationError, match=r"^settings.output_dt = 0.01: its Nyquist frequency 1/\(2 output_dt\) "
+                                                 r"= 50 Hz must not lie below the load band 100 Hz"):
+        simulate_responses(reduce(builtin_spec("paper-simplified")), force_and_moment(1.0, 1.0), [0], seed=1,
+                           settings=settings)
+    # a caller that estimates its own spectra from the series may subsample
+    assert ResponseSettings(duration=3.0, discard=0.5, segment_seconds=0.004, output_dt=0.01, keep="series-only")

@@ -55,17 +55,20 @@ class ResponseSettings:
     duration : float
         Simulated time [s] (220 s as the paper).
     dt_load : float
-        Load sampling [s] (the solver reads the load as piecewise linear between samples; 2 ms:
+        Load sampling [s], at most ``duration`` (the solver reads the load as piecewise linear between samples; 2 ms:
         Nyquist 250 Hz for the 100 Hz band, the sinc⁴ pre-compensation of ``gaussian_loads`` (x1.31
         at 100 Hz) gives the interpolant the target PSD in band, its images above 400 Hz carry 0.09 %
         of the load power; tones are pre-compensated by 1/sinc²(f0 dt_load) likewise; the
         integration step is set by f_max, not by dt_load).
     output_dt : float
-        Response sampling [s] (3 ms as the paper).
+        Response sampling [s] (3 ms as the paper), at most duration − discard; unless ``keep`` is
+        ``"series-only"``, its Nyquist frequency 1/(2 output_dt) must reach the load's band
+        (checked by ``simulate_responses``).
     discard : float
         Initial transient removed [s], in [0, duration).
     segment_seconds : float
-        Welch segment [s] (Hann window, 50 % overlap), at most duration − discard.
+        Welch segment [s] (Hann window, 50 % overlap), at most the kept record (duration − discard)
+        and at least 2 output samples (unless ``keep`` is ``"series-only"``).
     method : str
         The solver's method, a key of ``tubeid.dynamics.solver.METHODS`` (``tubeid.dynamics.simulate``).
     keep : str
@@ -93,6 +96,24 @@ class ResponseSettings:
         if self.keep not in KEEP:
             raise SpecificationError("settings.keep", self.keep, f"must be one of {KEEP}")
         one_of("settings.method", self.method, METHODS)
+        if self.dt_load > self.duration:
+            raise SpecificationError("settings.dt_load", self.dt_load, f"must not exceed duration = {self.duration} s "
+                                     "(a load record of at least 2 samples)")
+        if self.output_dt > self.duration - self.discard:
+            raise SpecificationError("settings.output_dt", self.output_dt,
+                                     f"must not exceed duration − discard = {self.duration - self.discard:g} s")
+        if self.keep != "series-only":  # psd_matrix's rule, before the run instead of after it
+            import math
+
+            from tubeid.dynamics.spectra import _segment_length
+
+            n_t = int(math.floor(self.duration / self.output_dt + 1e-9)) + 1 - \
+                int(math.ceil(self.discard / self.output_dt - 1e-9))
+            try:
+                _segment_length(self.segment_seconds, self.output_dt, n_t)
+            except SpecificationError as exc:
+                raise SpecificationError("settings.segment_seconds", self.segment_seconds,
+                                         exc.rule.replace("dt = ", "output_dt = ")) from None
 
 
 def realisation_streams(seed: int | None, realisation: int,
@@ -214,6 +235,10 @@ def simulate_responses(
         _check_delta(load_dispersion, len(load.names), "load_dispersion")
     if not isinstance(settings, ResponseSettings):
         raise SpecificationError("settings", Described(type(settings).__name__), "must be a ResponseSettings")
+    if settings.keep != "series-only" and 0.5 / settings.output_dt < load.band:
+        raise SpecificationError("settings.output_dt", settings.output_dt,
+                                 f"its Nyquist frequency 1/(2 output_dt) = {0.5 / settings.output_dt:g} Hz must not lie "
+                                 f"below the load band {load.band:g} Hz (the response PSD would be aliased)")
     rngs = _generators("rngs", rngs, len(realisations))
     system_rngs = _generators("system_rngs", system_rngs, len(realisations))
     streams = [realisation_streams(seed, r, None if rngs is None else rngs[i]) for i, r in enumerate(realisations)]
