@@ -637,3 +637,13 @@ def test_sensor_names_must_be_distinct_strings():
         simulate(M, D, K, [], B, C, F, DT_LOAD, sensor_names=[0, 1])
     assert list(simulate(M, D, K, [], B, C, F, DT_LOAD, sensor_names=["a", "b"]).rms.sensor.values) == ["a", "b"]
     assert list(simulate(M, D, K, [], B, C, F, DT_LOAD).rms.sensor.values) == ["y0", "y1"]  # the default y<i>
+
+
+def test_an_output_step_longer_than_the_record_is_refused():
+    """output_dt = 5 s on a 1 s record returned one sample at t = 0 (rms 0.0) beside a contact fraction."""
+    F = rng_for(3, "long_output_dt").standard_normal((1001, 1))
+    args = (np.eye(1), 0.1 * np.eye(1), 100.0 * np.eye(1), [], np.eye(1), np.eye(1), F, DT_LOAD)
+    with pytest.raises(SpecificationError, match=r"^output_dt = 5.0: must not exceed the record's duration "
+                                                 r"\(n_t − 1\) dt_load = 1 s"):
+        simulate(*args, output_dt=5.0)
+    assert simulate(*args, output_dt=1.0).observations.sizes["time"] == 2  # the whole record still allowed

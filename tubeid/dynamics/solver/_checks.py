@@ -157,6 +157,9 @@ def prepare(M, D, K, stops, B, C, loads, dt_load, output_dt, discard, method, me
     dt_load = positive("dt_load", dt_load, "s")
     output_dt = positive("output_dt", output_dt, "s")
     duration = (L.shape[1] - 1) * dt_load
+    if output_dt > duration * (1 + 1e-9):  # one sample at t = 0 of a response from rest: rms 0
+        raise SpecificationError("output_dt", output_dt, f"must not exceed the record's duration (n_t − 1) dt_load = "
+                                 f"{duration:g} s")
     discard = real("discard", discard, unit="s", low=0.0, high=duration, high_open=True)
     n_out_total = int(math.floor(duration / output_dt + 1e-9)) + 1
     j0 = int(math.ceil(discard / output_dt - 1e-9))

@@ -88,7 +88,7 @@ def simulate(M: ArrayLike, D: ArrayLike, K: ArrayLike, stops: Sequence[Stop], B:
     dt_load : float
         Load sampling (s).
     output_dt : float
-        Observation sampling (s), default 3 ms.
+        Observation sampling (s), default 3 ms; at most the record's duration (n_t − 1) dt_load.
     dt : float, optional
         Integration step (s); None: per realisation from :func:`choose_step`.
     method : {"exact", "symplectic-euler"}
