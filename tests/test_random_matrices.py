@@ -209,3 +209,20 @@ def test_complex_bool_or_string_matrices_are_refused_not_truncated(call, needle)
 
 def test_real_matrices_given_as_lists_are_read_as_before():
     np.testing.assert_array_equal(se_plus([[2, 0], [0, 2]], 0.3, rng=5), se_plus(np.eye(2) * 2.0, 0.3, rng=5))
+
+
+@pytest.mark.parametrize("delta", [1e-13, 1e-155, 1e-170])
+def test_a_dispersion_too_small_to_draw_is_refused(delta):
+    """δ = 1e-155 gave an all-NaN matrix, δ <= 1e-162 a ZeroDivisionError, δ = 1e-20 draws of dispersion 0.7 δ."""
+    from tubeid.uncertainty.random_matrices import sg_plus
+
+    with pytest.raises(SpecificationError, match=r"^delta = .*: must be at least 1e-12 when not 0"):
+        sg_plus(3, delta, rng=1)
+
+
+def test_the_smallest_dispersion_allowed_is_still_drawn_accurately():
+    from tubeid.uncertainty.random_matrices import DELTA_MIN, sg_plus, sg_plus_dispersion
+
+    for n in (1, 3, 20):
+        ref = sg_plus_dispersion(sg_plus(n, 1e-6, 20000, rng=1)) / 1e-6
+        assert sg_plus_dispersion(sg_plus(n, DELTA_MIN, 20000, rng=1)) / DELTA_MIN / ref == pytest.approx(1, rel=1e-5)
