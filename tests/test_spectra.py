@@ -414,3 +414,11 @@ def test_confidence_band_level_must_be_a_number():
     for bad in ("0.9", True):
         with pytest.raises(SpecificationError, match=r"^level = .*: must be a finite number in \(0, 1\)"):
             confidence_band(samples, bad)
+
+
+def test_an_overlap_that_would_hold_one_segment_per_sample_is_refused():
+    """overlap = 0.9999 on 8 s segments materialised a segment per sample (MemoryError)."""
+    x = rng_for(5, "overlap").standard_normal((20000, 1))
+    with pytest.raises(SpecificationError, match=r"^overlap = 0.9999: must be at most 0.95 \(a hop of at least 5% "):
+        psd_matrix(x, 3e-3, segment_seconds=8.0, overlap=0.9999)
+    assert psd_matrix(x, 3e-3, segment_seconds=8.0, overlap=0.95)[1].shape[-1] == 1

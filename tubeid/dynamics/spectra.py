@@ -71,6 +71,11 @@ def _window(window: Any, n: int) -> np.ndarray:
     return scipy.signal.get_window(window, n)
 
 
+#: Largest Welch overlap: a hop of at least 5 % of the segment (the segments take at most 20 times the
+#: record's memory; 0.9999 made one segment per sample and a MemoryError).
+MAX_OVERLAP = 0.95
+
+
 def _segment_length(segment_seconds, dt, n_t) -> int:
     seg = positive("segment_seconds", segment_seconds, "s")
     nper = 2 * int(round(seg / (2.0 * dt)))
@@ -101,7 +106,7 @@ def psd_matrix(x: ArrayLike, dt: float, segment_seconds: float = 2.0, window: An
         numbers for a segment of n samples; negative weights allowed, as in scipy's ``"flattop"``,
         but not all zero).
     overlap : float
-        Fraction of a segment shared with the next, in [0, 1).
+        Fraction of a segment shared with the next, in [0, 0.95] (:data:`MAX_OVERLAP`).
     detrend : bool or str
         False, ``"constant"`` or ``"linear"`` (per segment).
 
@@ -149,6 +154,10 @@ def _welch_transforms(x, dt, segment_seconds, window, overlap, detrend) -> tuple
     n_t = x.shape[-2]
     nper = _segment_length(segment_seconds, dt, n_t)
     ov = real("overlap", overlap, low=0.0, high=1.0, high_open=True)
+    if ov > MAX_OVERLAP:  # every segment is transformed at once: memory grows as 1/(1 − overlap)
+        raise SpecificationError("overlap", overlap, f"must be at most {MAX_OVERLAP:g} (a hop of at least "
+                                 f"{1 - MAX_OVERLAP:.0%} of the segment: the segments, held at once, take "
+                                 "1/(1 − overlap) times the record's memory)")
     noverlap = min(int(round(ov * nper)), nper - 1)
     if detrend is not False and detrend not in _DETRENDS:
         raise SpecificationError("detrend", detrend, f"must be one of {_DETRENDS}")
