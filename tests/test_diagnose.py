@@ -1515,6 +1515,17 @@ def test_the_figures_show_names_as_written_not_as_tex(tmp_path):
     diag = types.SimpleNamespace(
         frequency=f, sensors=["c$\\nope$", "c06"], measured=2 * band, bands={"before": (band, 3 * band)},
         report={"settings": {"level": 0.95}, "effects": [{"name": "tone at $x$"}], "load": {"delta_F_given": True}})
-    with unittest.mock.patch("tubeid.diagnose.report.markdown", return_value="report\n"):
+    figures = {}
+    save = OutputDir.save_figure
+
+    def keep(self, fig, name, **kw):
+        figures[name] = fig
+        return save(self, fig, name, **kw)
+
+    with unittest.mock.patch("tubeid.diagnose.report.markdown", return_value="report\n"), \
+            unittest.mock.patch.object(OutputDir, "save_figure", keep):
         out = write_files(diag, tmp_path / "out")
     assert (out / "residual.png").stat().st_size > 1000 and OutputDir(out, field="out").owned("residual.png")
+    first = figures["residual.png"].axes[0]
+    assert first.title.get_text() == "c\\$\\nope\\$: before"  # shown as c$\nope$
+    assert any("mathdefault" in t.get_text() for t in first.get_yticklabels())  # the log ticks' own math kept

@@ -283,6 +283,11 @@ def _sensor_name(da: xr.DataArray, sensor) -> str:
     return "P_obs"
 
 
+def _as_written(name) -> str:
+    """A sensor's name as a figure shows it: dollar signs escaped (matplotlib would parse ``a$x$`` as TeX)."""
+    return str(name).replace("$", r"\$")
+
+
 def _figure(height=4.4):
     from tubeid._optional import require
 
@@ -633,7 +638,7 @@ def _figure4(mean, f, rec_auto, name, band, sensor, out, written, notes, details
     ax.semilogy(f, mean_auto, lw=1.8, color="C3", label="mean simplified model, same load history")
     ax.set_xlim(0, band)
     ax.set_xlabel("frequency [Hz]")
-    ax.set_ylabel(f"PSD of the displacement at {name} [m²/Hz] (two-sided)")
+    ax.set_ylabel(f"PSD of the displacement at {_as_written(name)} [m²/Hz] (two-sided)")
     pos = (f > 0) & (ref_auto.values > 0) & (mean_auto.values > 0)
     lr = np.abs(np.log10(mean_auto.values[pos] / ref_auto.values[pos]))
     fp = f[pos]
@@ -671,7 +676,7 @@ def _figure6(regions, f, rec_auto, name, band, out, written, details, run) -> No
     ax.set_yscale("log")
     ax.set_xlim(0, band)
     ax.set_xlabel("frequency [Hz]")
-    ax.set_ylabel(f"PSD of the displacement at {name} [m²/Hz] (two-sided)")
+    ax.set_ylabel(f"PSD of the displacement at {_as_written(name)} [m²/Hz] (two-sided)")
     self_cov = details.get("reference_self_coverage") or {}
     seg, rec = run.get("segment_seconds"), run.get("record_seconds")
     estimator = (f"Welch PSD, {seg:g} s Hann segments, 50 % overlap, {rec:g} s records" if seg and rec else
@@ -1026,10 +1031,7 @@ def make_report(store, out=None, *, n_bootstrap: int = 200, seed: int = 2008, se
                 raise SpecificationError(f"out/{name}", str(target), "exists and was not written by tubeid (or was "
                                          "changed since): it is left untouched; move it or choose another --out")
         pending = _Pending()
-        from tubeid._optional import require
-
-        with require("matplotlib", "tubeid report").rc_context({"text.parse_math": False}):  # names as written, not TeX
-            summary = _analyse(st, store, pending, n_bootstrap, seed, sensor)
+        summary = _analyse(st, store, pending, n_bootstrap, seed, sensor)
     except BaseException:  # refused, failed or interrupted (Ctrl-C) before writing: DIR as it was
         _discard(od, created, outputs=False)
         raise

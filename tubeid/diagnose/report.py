@@ -246,16 +246,16 @@ def write_files(diag, out) -> Path:
     d = OutputDir(out, field="out")
     d.write_text("report.json", json.dumps(diag.report, indent=2, default=_json_default) + "\n")
     d.write_text("report.md", markdown(diag.report))
-    with _plt().rc_context(_PLAIN_TEXT):
-        _residual_figure(diag, d)
-        if not diag.report["load"].get("delta_F_given", True):
-            _delta_f_figure(diag.report["load"], d)
+    _residual_figure(diag, d)
+    if not diag.report["load"].get("delta_F_given", True):
+        _delta_f_figure(diag.report["load"], d)
     return d.path
 
 
-#: matplotlib settings of every figure: text shown as written (a sensor or effect named ``c$\x$`` is a
-#: name, not TeX math for matplotlib to parse, and fail on)
-_PLAIN_TEXT = {"text.parse_math": False}
+def _as_written(name: str) -> str:
+    """A name (a sensor's, an effect's) as a figure shows it: its dollar signs escaped, so that matplotlib
+    does not parse ``c$\\x$`` as TeX math (and fail on it); the axes' own math (log ticks) is untouched."""
+    return str(name).replace("$", r"\$")
 
 
 def _fmt(v, spec=".3g"):
@@ -366,7 +366,7 @@ def _residual_figure(diag, d: OutputDir) -> None:
     rows = len(diag.bands)
     fig, axes = plt.subplots(rows, m, figsize=(3.6 * m, 3.0 * rows), squeeze=False)
     level = diag.report["settings"]["level"]
-    names = ", ".join(e["name"] for e in diag.report["effects"])
+    names = ", ".join(_as_written(e["name"]) for e in diag.report["effects"])
     for i, (label, (lo, hi)) in enumerate(diag.bands.items()):
         for j, s in enumerate(diag.sensors):
             ax = axes[i, j]
@@ -374,7 +374,7 @@ def _residual_figure(diag, d: OutputDir) -> None:
             ax.semilogy(f[1:], diag.measured[1:, j], "r", lw=0.6, label="measured (held out)")
             ax.yaxis.set_minor_locator(NullLocator())  # decades only: minor log ticks double the drawing time
             # y given: matplotlib then skips placing each title above the axis' tick labels (a third of the drawing)
-            ax.set_title(f"{s}: {label}" + (f" ({names})" if label == "after" else ""), fontsize=8, y=1.0)
+            ax.set_title(f"{_as_written(s)}: {label}" + (f" ({names})" if label == "after" else ""), fontsize=8, y=1.0)
             ax.set_xlabel("f [Hz]", fontsize=8)
             ax.tick_params(labelsize=7)
             if j == 0:
