@@ -800,3 +800,40 @@ def test_epoch_time_stamps_pass_the_uniformity_rule(tmp_path):
     # exactly representable stamps stay valid however large they are
     exact = 2.0**31 + np.arange(50) * 2.0**-14
     assert read_measurements(good_csv(tmp_path / "exact.csv", t=exact)).attrs["dt"] == 2.0**-14
+
+
+# --------------------------------------------------------------------------- review: measured files
+def _by_xarray(ds: xr.Dataset, path: Path, zarr: bool = False) -> Path:
+    """A record written by xarray itself (not tubeid's writer): NetCDF-4 by h5netcdf, or Zarr; under a
+    plain name first, then renamed (zarr would write a name holding '::' elsewhere)."""
+    plain = path.with_name("plain-tmp")
+    if zarr:
+        ds.to_zarr(plain, consolidated=False)
+    else:
+        ds.to_netcdf(plain, engine="h5netcdf")
+    return plain.rename(path)
+
+
+@pytest.mark.parametrize("name, other", [("a::b.nc", "a:"), ("z::b.zarr", "z:")])
+def test_a_record_path_that_xarray_would_read_as_a_url_is_refused(tmp_path, monkeypatch, name, other):
+    """xarray and zarr read 'a::b.nc' as the fsspec chain 'a:' (a file of another record, read silently)."""
+    monkeypatch.chdir(tmp_path)
+    mine = raw_dataset(gaussian(64, 3, key="mine", scale=1e-6))
+    _by_xarray(mine, tmp_path / name, zarr=name.endswith(".zarr"))
+    _by_xarray(raw_dataset(gaussian(64, 3, key="theirs", scale=1e-6)), tmp_path / other, zarr=name.endswith(".zarr"))
+    for path in (name, Path(name)):
+        refused(lambda: read_measurements(path), f"data = '{name}'", "must be a local", "'::'", "rename")
+    before = sorted(p.name for p in tmp_path.iterdir())
+    refused(lambda: write_measurements(validate_measurements(mine), "c::d" + Path(name).suffix), "path = 'c::d",
+            "'::'")
+    assert sorted(p.name for p in tmp_path.iterdir()) == before  # nothing written, neither 'c::d' nor 'c:'
+    # a working directory named like a URL: the relative path is fine, its absolute form is not
+    (tmp_path / "w::d").mkdir()
+    _by_xarray(mine, tmp_path / "w::d" / "rec.nc")
+    monkeypatch.chdir(tmp_path / "w::d")
+    refused(lambda: read_measurements("rec.nc"), "data = 'rec.nc'", "(as ", "w::d")
+
+
+def test_a_record_path_the_file_system_cannot_look_up_is_refused(tmp_path):
+    for ext in ("csv", "nc", "uff", "zarr"):
+        refused(lambda: read_measurements(tmp_path / ("x" * 300 + "." + ext)), "data = ", "cannot be looked up")

@@ -15,18 +15,16 @@ import pathlib
 
 from tubeid.errors import SpecificationError
 
-__all__ = ["local_path"]
+__all__ = ["local_path", "looked_up"]
 
 
-def local_path(path, field: str = "store") -> pathlib.Path:
-    """``path`` as a local directory path, refused (``SpecificationError`` naming ``field``) if zarr
-    would read it as a URL (``::`` chains file systems, ``://`` names a protocol: tubeid's checks, lock
-    and manifest would look at one directory while zarr wrote another) in any form it may reach zarr:
-    as given, made absolute (a working directory named ``a::b``), or with links resolved; or if the
-    file system cannot look it up at all (a name longer than it allows, a loop of links)."""
+def looked_up(path, field: str = "store", kind: str = "directory") -> tuple[pathlib.Path, str, str]:
+    """``path`` as (Path, its text, its resolved form), refused (``SpecificationError`` naming
+    ``field``) if it is not a non-empty path or the file system cannot look it up at all (a name
+    longer than it allows, a loop of links, a file among its parents). A missing path is no error."""
     text = os.fspath(path) if isinstance(path, (str, os.PathLike)) else path
     if not isinstance(text, str) or not text:
-        raise SpecificationError(field, path, "must be a non-empty path of a local directory")
+        raise SpecificationError(field, path, f"must be a non-empty path of a local {kind}")
     p = pathlib.Path(text)
     try:
         p.lstat()
@@ -37,10 +35,21 @@ def local_path(path, field: str = "store") -> pathlib.Path:
         if getattr(exc, "errno", None) == errno.ENOTDIR:
             raise SpecificationError(field, text, "has a file, not a directory, among its parents") from None
         raise SpecificationError(field, text, f"cannot be looked up: {getattr(exc, 'strerror', None) or exc}") from None
+    return p, text, resolved
+
+
+def local_path(path, field: str = "store", kind: str = "directory") -> pathlib.Path:
+    """``path`` as a local ``kind`` (directory or file) path, refused (``SpecificationError`` naming
+    ``field``) if zarr or xarray would read it as a URL (``::`` chains file systems, ``://`` names a
+    protocol: tubeid's checks, lock and manifest would look at one place while zarr wrote, or xarray
+    read, another) in any form it may reach them: as given, made absolute (a working directory named
+    ``a::b``), or with links resolved; or if the file system cannot look it up at all
+    (:func:`looked_up`)."""
+    p, text, resolved = looked_up(path, field, kind)
     for form in (text, os.path.abspath(p), resolved):  # as given, from the working directory, links followed
         if "::" in form or "://" in form:
             where = "" if form == text else f" (as {form})"
-            raise SpecificationError(field, text, f"must be a local directory path{where}: zarr reads '::' and '://' in "
-                                     "a path as a URL of another file system, not as part of a directory name; "
-                                     "rename the directory")
+            raise SpecificationError(field, text, f"must be a local {kind} path{where}: zarr and xarray read '::' and "
+                                     f"'://' in a path as a URL of another file system, not as part of a {kind} name; "
+                                     f"rename the {kind}")
     return p

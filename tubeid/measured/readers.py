@@ -51,6 +51,11 @@ refused (:func:`tubeid._validation.channel_count`); Zarr arrays must have all th
 chunk would read as its fill value). :func:`~tubeid.measured.validation.validate_measurements` then
 refuses implausible amplitudes (``max-displacement``) and unscaled integer data.
 
+Paths (checked before anything is opened or written): a NetCDF or Zarr path holding ``::`` or ``://``
+as given, made absolute or with links resolved is refused (xarray and zarr read it as an fsspec URL:
+``a::b.nc`` would open the file ``a:``, :func:`tubeid._paths.local_path`); a path of any format the
+file system cannot look up (a name too long, a loop of links) is refused naming it.
+
 Safety: nothing is ever loaded by unpickling. This module uses neither ``pickle`` nor
 ``np.load``; ``.npy``/``.pkl`` and other extensions are refused as unknown formats, and a file
 forced to a format must carry that format's signature or parse as text.
@@ -70,6 +75,7 @@ import numpy as np
 import xarray as xr
 
 from tubeid._optional import require
+from tubeid._paths import local_path, looked_up
 from tubeid._validation import byte_size, channel_count, limit
 from tubeid.errors import Described, SpecificationError
 from tubeid.measured.validation import check_options, layout, length_scale, validate_measurements
@@ -541,6 +547,17 @@ def _as_path(path, what: str) -> Path:
         raise SpecificationError(what, path, "must be a file path") from None
 
 
+def _checked_path(path: Path, fmt: str, field: str) -> None:
+    """Refuse a record path the file system cannot look up (a name too long, a loop of links), and a
+    NetCDF or Zarr path xarray or zarr would read as a URL of another file system (``a::b.nc`` opens
+    ``a:``): :func:`tubeid._paths.local_path`, before anything is opened."""
+    kind = "directory" if fmt == "zarr" else "file"
+    if fmt in ("netcdf", "netcdf3", "zarr"):
+        local_path(path, field=field, kind=kind)
+    else:  # CSV and UFF are opened by Python itself, by their literal name
+        looked_up(path, field=field, kind=kind)
+
+
 def read_measurements(path: str | os.PathLike, *, format: str | None = None, min_resolution_hz: float | None = None,
                       tubes: Mapping[str, float] | None = None) -> xr.Dataset:
     """Read a measured record (NetCDF, Zarr, CSV + sidecar or UFF 58) into the canonical Dataset.
@@ -571,6 +588,7 @@ def read_measurements(path: str | os.PathLike, *, format: str | None = None, min
     source = str(path)
     check_options(min_resolution_hz, tubes)
     fmt = _resolve_format(path, format)
+    _checked_path(path, fmt, "data")
     if not path.exists():
         raise SpecificationError(source, fmt, "file does not exist")
     if fmt in ("netcdf", "netcdf3"):
@@ -681,6 +699,7 @@ def write_measurements(ds: xr.Dataset, path: str | os.PathLike, *, format: str |
     """
     path = _as_path(path, "path")
     fmt = _resolve_format(path, format)
+    _checked_path(path, fmt, "path")
     if validate:
         ds = validate_measurements(ds)
     lay = layout(ds, str(path))
