@@ -837,3 +837,54 @@ def test_a_record_path_that_xarray_would_read_as_a_url_is_refused(tmp_path, monk
 def test_a_record_path_the_file_system_cannot_look_up_is_refused(tmp_path):
     for ext in ("csv", "nc", "uff", "zarr"):
         refused(lambda: read_measurements(tmp_path / ("x" * 300 + "." + ext)), "data = ", "cannot be looked up")
+
+
+def _csv_by_hand(path: Path, data: str, side: str = "sensor,tube,x\nS1,centre,0.1\nS2,centre,0.2\n") -> Path:
+    path.write_bytes(data.encode())
+    sidecar_path(path).write_bytes(side.encode())
+    return path
+
+
+_CSV_DATA = "time,S1,S2\n0.0,1.5e-6,-2.5e-6\n0.001,-0.5e-6,3.5e-6\n0.002,2.5e-6,0.5e-6\n"
+
+
+def test_csv_line_endings_other_than_lf_or_crlf_are_refused_naming_file_and_line(tmp_path):
+    """CR-only line endings, and a \\r inside a header name, gave the csv module's traceback
+    ("new-line character seen in unquoted field")."""
+    assert read_measurements(_csv_by_hand(tmp_path / "lf.csv", _CSV_DATA)).sizes == {"time": 3, "sensor": 2}
+    crlf = _csv_by_hand(tmp_path / "crlf.csv", _CSV_DATA.replace("\n", "\r\n"),
+                        "sensor,tube,x\r\nS1,centre,0.1\r\nS2,centre,0.2\r\n")
+    assert read_measurements(crlf).sizes == {"time": 3, "sensor": 2}
+    rule = "must have lines ending in \\n or \\r\\n"
+    path = _csv_by_hand(tmp_path / "cr.csv", _CSV_DATA.replace("\n", "\r"))
+    refused(lambda: read_measurements(path), "cr.csv: line 1 = ", rule)
+    path = _csv_by_hand(tmp_path / "crside.csv", _CSV_DATA, "sensor,tube,x\rS1,centre,0.1\rS2,centre,0.2\r")
+    refused(lambda: read_measurements(path), "crside.sensors.csv: line 1 = ", rule)
+    path = _csv_by_hand(tmp_path / "name.csv", _CSV_DATA.replace("S2", "S\r2", 1))
+    refused(lambda: read_measurements(path), "name.csv: line 1 = ", rule)
+    path = _csv_by_hand(tmp_path / "tube.csv", _CSV_DATA, 'sensor,tube,x\nS1,centre,0.1\nS2,"cen\rtre",0.2\n')
+    refused(lambda: read_measurements(path), "tube.sensors.csv: line 3 = ", rule)
+    # a file cut between \r and \n is cut short, as before
+    path = _csv_by_hand(tmp_path / "cut.csv", _CSV_DATA.replace("\n", "\r\n")[:-1])
+    refused(lambda: read_measurements(path), "cut.csv: line 4", "cut short")
+    # and tubeid never writes a tube name it could not read back
+    rec = validate_measurements(raw_dataset(gaussian(8, 1, scale=1e-6), names=("S1",), x=(0.1,), tube=("a\rb",)))
+    refused(lambda: write_measurements(rec, tmp_path / "w.csv"), "tube name", "faithfully")
+
+
+def test_csv_fields_beyond_the_csv_modules_limit_are_refused_naming_file_and_line(tmp_path):
+    """A header or sidecar field over 131072 characters gave '_csv.Error: field larger than field limit'."""
+    import csv
+
+    long = "S" * (csv.field_size_limit() + 1)
+    rule = f"at most {csv.field_size_limit()} characters"
+    path = _csv_by_hand(tmp_path / "head.csv", _CSV_DATA.replace("S2", long, 1),
+                        f"sensor,tube,x\nS1,centre,0.1\n{long},centre,0.2\n")
+    refused(lambda: read_measurements(path), "head.csv: line 1 = ", rule)
+    path = _csv_by_hand(tmp_path / "side.csv", _CSV_DATA, f'sensor,tube,x\nS1,centre,0.1\nS2,"{long}",0.2\n')
+    refused(lambda: read_measurements(path), "side.sensors.csv: line 3 = ", rule)
+    path = _csv_by_hand(tmp_path / "sidehead.csv", _CSV_DATA, f"sensor,tube,x,{long}\nS1,centre,0.1,\nS2,centre,0.2,\n")
+    refused(lambda: read_measurements(path), "sidehead.sensors.csv: line 1 = ", rule)
+    path = _csv_by_hand(tmp_path / "quote.csv", _CSV_DATA, 'sensor,tube,x\nS1,"centre,0.1\n' + "S2,centre,0.2\n" * 11000)
+    refused(lambda: read_measurements(path), "quote.sensors.csv: line ", rule)
+    assert csv.field_size_limit() == 131072  # refused, not read by raising the limit

@@ -15,7 +15,9 @@ Formats (chosen by ``format=`` or by the extension):
   (x in m) and optionally ``units`` (per channel; empty or absent = ``m``) and ``scale`` (the size
   of one count in ``units``: required for a channel written in integers only, counts, e.g.
   ``S1,centre,6.0,um,0.05``). Every data column must be listed in the sidecar and every sidecar
-  row must be a data column.
+  row must be a data column. Lines end in ``\\n`` or ``\\r\\n`` (a lone ``\\r``, old Mac line endings or
+  inside a name, is refused naming its line), and no field may exceed the csv module's limit of
+  131072 characters.
 - ``uff`` (``.uff``, ``.unv``): universal file, one type-58 dataset per channel (other dataset
   types are ignored), read and written with pyuff. Convention:
 
@@ -217,6 +219,32 @@ def _decode(raw: bytes, source: str, kind: str) -> str:
         _fail_read(source, kind, exc)
 
 
+_LONE_CR = re.compile(r"\r(?=[^\n])")  # a carriage return that ends no line (a final one: a file cut inside \r\n)
+
+
+def _check_line_ends(text: str, source: str) -> None:
+    r"""A CSV (data or sidecar) must end its lines with ``\n`` or ``\r\n``: a lone ``\r`` (old Mac line
+    endings, or a ``\r`` inside a name) is refused naming its line, never read as part of a value."""
+    lone = _LONE_CR.search(text)
+    if lone:
+        line_no = text.count("\n", 0, lone.start()) + 1
+        raise SpecificationError(
+            f"{source}: line {line_no}", Described("a carriage return (\\r) not followed by \\n"),
+            "must have lines ending in \\n or \\r\\n: a lone \\r ends no line here (a file saved with old Mac "
+            "line endings, or a \\r inside a name); save it with \\n or \\r\\n line endings")
+
+
+def _csv_error(source: str, line_no: int, exc: csv.Error):
+    """A csv module error as a refusal naming the file and line (never the module's traceback)."""
+    bound = csv.field_size_limit()
+    if "field limit" in str(exc):
+        raise SpecificationError(
+            f"{source}: line {line_no}", Described(f"a field longer than {bound} characters"),
+            f"a CSV field must hold at most {bound} characters (the CSV reader's limit): no name, unit or number "
+            f"is that long (a damaged file, or a quote never closed?)") from None
+    raise SpecificationError(f"{source}: line {line_no}", Described(str(exc)), "is not valid CSV") from None
+
+
 def _check_complete_text(text: str, source: str, header: list[str] | None) -> None:
     """A text file must end its last line with a line break: a file cut short (a truncated copy or
     download) ends inside a line, often inside a number that still parses (``-1.14`` of
@@ -246,8 +274,15 @@ def _read_sidecar(data_path: Path, source: str, *, required: bool):
         return None
     sname = str(side)
     text = _decode(_read_bytes(side, sname, "sidecar"), sname, "UTF-8 CSV")
+    _check_line_ends(text, sname)
     reader = csv.reader(text.split("\n"))
-    header = next(reader, None)
+    lines = []  # (line number, row): a quoted field may span lines
+    try:
+        for row in reader:
+            lines.append((reader.line_num, row))
+    except csv.Error as exc:
+        _csv_error(sname, reader.line_num, exc)
+    header = lines[0][1] if lines else None
     if not header:
         raise SpecificationError(sname, "", "empty sidecar; header must be sensor,tube,x")
     header = [h.strip() for h in header]
@@ -257,7 +292,7 @@ def _read_sidecar(data_path: Path, source: str, *, required: bool):
         raise SpecificationError(f"{sname}: header", header, f"sidecar lacks column(s) {missing}; needs sensor,tube,x")
     col = {c: header.index(c) for c in ("sensor", "tube", "x", "units", "scale") if c in header}
     rows: dict[str, tuple[str, float, str, float | None]] = {}
-    for lineno, row in enumerate(reader, start=2):
+    for lineno, row in lines[1:]:
         if not row or all(not cell.strip() for cell in row):
             continue
         if len(row) != len(header):
@@ -320,8 +355,12 @@ def _read_csv(path: Path, source: str) -> xr.Dataset:
     if not path.is_file():
         raise SpecificationError(source, "csv", "a CSV record must be a file")
     text = _decode(_read_bytes(path, source, "CSV"), source, "CSV")
+    _check_line_ends(text, source)
     header_line, _, body = text.partition("\n")
-    header = next(csv.reader([header_line.rstrip("\r")]), None)
+    try:
+        header = next(csv.reader([header_line.rstrip("\r")]), None)
+    except csv.Error as exc:
+        _csv_error(source, 1, exc)
     if not header or not text.strip():
         raise SpecificationError(source, "", "empty CSV; the header must be time,<sensor>,...")
     header = [h.strip() for h in header]
@@ -613,9 +652,10 @@ def _strings_as_objects(ds: xr.Dataset) -> xr.Dataset:
 
 def _write_csv(lay: dict, path: Path) -> None:
     names, x_m = lay["names"], _x_metres(lay, path)
-    for name in names:
-        if name != name.strip() or any(c in name for c in "\r\n") or not name:
-            raise SpecificationError(f"{path}: sensor name", name, "cannot be written to CSV faithfully")
+    for what, values in (("sensor name", names), ("tube name", lay["tube"])):  # a tube may be absent ("")
+        for name in values:
+            if name != name.strip() or any(c in name for c in "\r\n") or (not name and what == "sensor name"):
+                raise SpecificationError(f"{path}: {what}", name, "cannot be written to CSV faithfully")
     with open(path, "w", newline="", encoding="utf-8") as fh:
         csv.writer(fh, lineterminator="\n").writerow(["time", *names])
         np.savetxt(fh, np.column_stack([lay["time"], lay["values"]]), delimiter=",", fmt="%.17g")
