@@ -888,3 +888,13 @@ def test_csv_fields_beyond_the_csv_modules_limit_are_refused_naming_file_and_lin
     path = _csv_by_hand(tmp_path / "quote.csv", _CSV_DATA, 'sensor,tube,x\nS1,"centre,0.1\n' + "S2,centre,0.2\n" * 11000)
     refused(lambda: read_measurements(path), "quote.sensors.csv: line ", rule)
     assert csv.field_size_limit() == 131072  # refused, not read by raising the limit
+
+
+@pytest.mark.parametrize("data, side, name, column", [
+    (_CSV_DATA, "sensor,tube,x,x\nS1,centre,0.1,0.3\nS2,centre,0.2,0.4\n", "dup.sensors.csv", "x"),
+    (_CSV_DATA, "sensor,tube,tube,x\nS1,centre,north,0.1\nS2,centre,north,0.2\n", "dup.sensors.csv", "tube"),
+    (_CSV_DATA.replace("S2", "time", 1), "sensor,tube,x\nS1,centre,0.1\ntime,centre,0.2\n", "dup.csv", "time")])
+def test_csv_headers_naming_a_column_twice_are_refused(tmp_path, data, side, name, column):
+    """A sidecar 'sensor,tube,x,x' used the first x silently (and 'time,S1,time' made a sensor 'time')."""
+    path = _csv_by_hand(tmp_path / "dup.csv", data, side)
+    refused(lambda: read_measurements(path), f"{name}: header = ['{column}']", "duplicate column name")

@@ -15,7 +15,7 @@ Formats (chosen by ``format=`` or by the extension):
   (x in m) and optionally ``units`` (per channel; empty or absent = ``m``) and ``scale`` (the size
   of one count in ``units``: required for a channel written in integers only, counts, e.g.
   ``S1,centre,6.0,um,0.05``). Every data column must be listed in the sidecar and every sidecar
-  row must be a data column. Lines end in ``\\n`` or ``\\r\\n`` (a lone ``\\r``, old Mac line endings or
+  row must be a data column. A header (data or sidecar) naming a column twice is refused. Lines end in ``\\n`` or ``\\r\\n`` (a lone ``\\r``, old Mac line endings or
   inside a name, is refused naming its line), and no field may exceed the csv module's limit of
   131072 characters.
 - ``uff`` (``.uff``, ``.unv``): universal file, one type-58 dataset per channel (other dataset
@@ -70,6 +70,7 @@ import math
 import os
 import re
 import warnings
+from collections import Counter
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -245,6 +246,15 @@ def _csv_error(source: str, line_no: int, exc: csv.Error):
     raise SpecificationError(f"{source}: line {line_no}", Described(str(exc)), "is not valid CSV") from None
 
 
+def _check_columns(header: list[str], source: str) -> None:
+    """Refuse a header naming a column twice (the reader would use one of them silently)."""
+    dup = sorted(k for k, c in Counter(header).items() if c > 1)
+    if dup:
+        raise SpecificationError(f"{source}: header", dup,
+                                 "duplicate column name(s): each column needs its own name (for a data file, each "
+                                 "sensor's name is its column's)")
+
+
 def _check_complete_text(text: str, source: str, header: list[str] | None) -> None:
     """A text file must end its last line with a line break: a file cut short (a truncated copy or
     download) ends inside a line, often inside a number that still parses (``-1.14`` of
@@ -287,6 +297,7 @@ def _read_sidecar(data_path: Path, source: str, *, required: bool):
         raise SpecificationError(sname, "", "empty sidecar; header must be sensor,tube,x")
     header = [h.strip() for h in header]
     _check_complete_text(text, sname, header)
+    _check_columns(header, sname)
     missing = [c for c in ("sensor", "tube", "x") if c not in header]
     if missing:
         raise SpecificationError(f"{sname}: header", header, f"sidecar lacks column(s) {missing}; needs sensor,tube,x")
@@ -367,10 +378,8 @@ def _read_csv(path: Path, source: str) -> xr.Dataset:
     _check_complete_text(text, source, header)
     if header[0] != "time" or len(header) < 2:
         raise SpecificationError(f"{source}: header", header, "must be time,<sensor>,... (time in s first)")
+    _check_columns(header, source)
     names = header[1:]
-    dup = sorted({s for s in names if names.count(s) > 1})
-    if dup:
-        raise SpecificationError(f"{source}: header", dup, "duplicate sensor names (each channel needs its own name)")
     channel_count(f"{source}: header", len(names))
     lines = body.split("\n")[:-1]  # the text ends with a line break (checked above)
     try:
