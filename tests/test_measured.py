@@ -898,3 +898,36 @@ def test_csv_headers_naming_a_column_twice_are_refused(tmp_path, data, side, nam
     """A sidecar 'sensor,tube,x,x' used the first x silently (and 'time,S1,time' made a sensor 'time')."""
     path = _csv_by_hand(tmp_path / "dup.csv", data, side)
     refused(lambda: read_measurements(path), f"{name}: header = ['{column}']", "duplicate column name")
+
+
+def _uff_of_type(path: Path, rec: xr.Dataset, data_type: int, unit: str, scale: float = 1.0) -> Path:
+    """An ASCII UFF 58 file by pyuff directly, its ordinate of specific data type ``data_type`` (record 8)."""
+    sets = [pyuff.prepare_58(
+        binary=0, id1=str(name), id4=f"tube=centre x={0.1 * (j + 1)}", func_type=1, rsp_node=j + 1, rsp_dir=1,
+        ref_node=0, ref_dir=0, abscissa_spacing=1, abscissa_spec_data_type=17, abscissa_axis_units_lab="s",
+        ordinate_spec_data_type=data_type, ordinate_axis_units_lab=unit, orddenom_spec_data_type=0,
+        data=rec.displacement.values[:, j] * scale, x=rec.time.values) for j, name in enumerate(rec.sensor.values)]
+    path.write_bytes(b"")
+    pyuff.UFF(str(path)).write_sets(sets, mode="add")
+    return path
+
+
+@pytest.mark.parametrize("data_type, word", [(12, "12 (acceleration)"), (11, "11 (velocity)"), (3, "3 (strain)"),
+                                             (9, "9 (reaction force)"), (4, "= 4:")])
+def test_uff_datasets_that_are_not_displacement_are_refused(tmp_path, data_type, word):
+    """Acceleration, velocity or strain labelled 'm' was read as displacement in metres, silently."""
+    rec = _small_record()
+    path = _uff_of_type(tmp_path / "acc.uff", rec, data_type, "m")
+    refused(lambda: read_measurements(path), "acc.uff: channel 'S1' ordinate data type = ", word, "must be 8 (displacement")
+
+
+def test_uff_datasets_of_unknown_or_general_type_need_a_length_unit(tmp_path):
+    rec = _small_record()
+    for data_type in (0, 1, 8):
+        back = read_measurements(_uff_of_type(tmp_path / f"t{data_type}.uff", rec, data_type, "mm", scale=1e3))
+        # ASCII 58: 12 significant digits (see test_lab_ascii_uff_with_sidecar_positions_and_mm)
+        np.testing.assert_allclose(back.displacement.values, rec.displacement.values, rtol=1e-11, atol=0)
+    for data_type in (0, 1):
+        path = _uff_of_type(tmp_path / f"g{data_type}.uff", rec, data_type, "m/s^2")
+        refused(lambda: read_measurements(path), f"g{data_type}.uff: channel 'S1' ordinate data type = {data_type} (",
+                "only with a length units label", "'m/s^2'")

@@ -27,6 +27,9 @@ Formats (chosen by ``format=`` or by the extension):
     (``sensor,tube,x``; a ``units`` cell there, if any, must agree with the UFF label) is used;
     both present must agree; neither is refused;
   * units = ordinate units label (record 9, field 6); the unit exponents are ignored;
+  * data type = ordinate specific data type (record 8, field 1): 8 (displacement); 0 (unknown) and
+    1 (general) are read as displacement only with a length units label (m, mm, um, µm, micron,
+    nm); any other (acceleration 12, velocity 11, strain 3, …) is refused, never read as a length;
   * function type (record 6) must be 1 (time response), data real, abscissa time
     (specific data type 0 or 17, label ``s`` or blank) and identical for all channels;
   * ID line 5 reads ``channel k of n`` in files tubeid writes; when present, the file must hold
@@ -81,7 +84,7 @@ from tubeid._optional import require
 from tubeid._paths import local_path, looked_up
 from tubeid._validation import byte_size, channel_count, limit
 from tubeid.errors import Described, SpecificationError
-from tubeid.measured.validation import check_options, layout, length_scale, validate_measurements
+from tubeid.measured.validation import LENGTH_UNITS, check_options, layout, length_scale, validate_measurements
 
 __all__ = ["read_measurements", "write_measurements", "sidecar_path", "EXTENSIONS", "FORMATS"]
 
@@ -462,6 +465,31 @@ def _check_uff_whole(raw: bytes, source: str) -> None:
 
 
 _UFF_CHANNEL_OF = re.compile(r"^channel (\d+) of (\d+)$")
+#: UFF specific data types (record 8 field 1) named in messages.
+_UFF_DATA_TYPES = {0: "unknown", 1: "general", 2: "stress", 3: "strain", 5: "temperature", 6: "heat flux",
+                   8: "displacement", 9: "reaction force", 11: "velocity", 12: "acceleration", 13: "excitation force",
+                   15: "pressure", 16: "mass", 17: "time", 18: "frequency", 19: "rpm", 20: "order"}
+
+
+def _check_uff_data_type(s: dict, unit: str, where: str) -> None:
+    """The ordinate must be a displacement (module docstring): a dataset of acceleration with the label
+    'm' would otherwise read as metres."""
+    raw = s.get("ordinate_spec_data_type")
+    kind = int(raw) if isinstance(raw, (int, np.integer)) and not isinstance(raw, bool) else None
+    label = Described(f"{kind} ({_UFF_DATA_TYPES[kind]})") if kind in _UFF_DATA_TYPES else raw
+    if kind == 8:
+        return
+    if kind in (0, 1):
+        if unit in LENGTH_UNITS:
+            return
+        raise SpecificationError(
+            f"{where} ordinate data type", label,
+            f"a dataset of data type 0 (unknown) or 1 (general) is read as displacement only with a length units label "
+            f"(record 9 field 6: m, mm, um, µm, micron, nm), not {unit!r}")
+    raise SpecificationError(
+        f"{where} ordinate data type", label,
+        "must be 8 (displacement; record 8 field 1), or 0 (unknown) / 1 (general) with a length units label: tubeid "
+        "reads displacement only (acceleration, velocity or strain is never read as a length)")
 
 
 def _check_uff_channel_count(sets: list[dict], source: str) -> None:
@@ -542,6 +570,7 @@ def _read_uff(path: Path, source: str) -> xr.Dataset:
             raise SpecificationError(f"{where} units", unit or None,
                                      "units missing: the ordinate units label (record 9 field 6) must be one of "
                                      "m, mm, um, µm, micron, nm")
+        _check_uff_data_type(s, unit, where)
         id4 = _uff_text(s.get("id4"))
         mt, mx = _UFF_TOKEN_TUBE.search(id4), _UFF_TOKEN_X.search(id4)
         if (mt is None) != (mx is None):
