@@ -931,3 +931,22 @@ def test_uff_datasets_of_unknown_or_general_type_need_a_length_unit(tmp_path):
         path = _uff_of_type(tmp_path / f"g{data_type}.uff", rec, data_type, "m/s^2")
         refused(lambda: read_measurements(path), f"g{data_type}.uff: channel 'S1' ordinate data type = {data_type} (",
                 "only with a length units label", "'m/s^2'")
+
+
+@pytest.mark.parametrize("fmt", ["h5netcdf", "scipy", "zarr"])
+@pytest.mark.parametrize("attr, value, counts", [("scale_factor", "abc", False), ("add_offset", "abc", False),
+                                                 ("scale_factor", "0.05", True), ("scale_factor", [0.5, 2.0], False)])
+def test_cf_packing_attributes_that_are_not_numbers_are_refused(tmp_path, fmt, attr, value, counts):
+    """A text scale_factor on float data was refused with numpy's "UFuncTypeError: ufunc 'multiply' ..."."""
+    raw = raw_dataset(gaussian(64, 3, key="packing", scale=1e-6))
+    if counts:
+        raw["displacement"] = raw.displacement.copy(data=np.round(raw.displacement.values * 1e9).astype("int32"))
+        raw.displacement.attrs["units"] = "nm"
+    raw.displacement.attrs[attr] = value  # written as it is by xarray (a text or array attribute is not packing)
+    path = tmp_path / ("rec.zarr" if fmt == "zarr" else "rec.nc")
+    if fmt == "zarr":
+        raw.to_zarr(path, consolidated=False)
+    else:
+        raw.to_netcdf(path, engine=fmt)
+    refused(lambda: read_measurements(path), f"rec.{path.suffix[1:]}: displacement.{attr} = ", "must be a finite number",
+            "stored * scale_factor + add_offset")

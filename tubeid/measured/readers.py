@@ -10,6 +10,8 @@ Formats (chosen by ``format=`` or by the extension):
   writes NetCDF-4 (h5netcdf) for ``netcdf``/``netcdf4`` and NetCDF-3 64-bit offset (scipy) for
   ``netcdf3``. ``zarr`` (``.zarr`` directory): written as Zarr v3, strings as variable length.
   Both hold the canonical layout (MODEL.md §5); ``displacement`` must carry a ``units`` attribute.
+  CF packing attributes (``scale_factor``, ``add_offset``) of any variable must be finite numbers
+  (a text one is refused naming it).
 - ``csv`` (``.csv``): one header line ``time,<sensor>,…`` then one row per sample (time in s,
   displacement in m). Sidecar ``<stem>.sensors.csv`` beside it with columns ``sensor,tube,x``
   (x in m) and optionally ``units`` (per channel; empty or absent = ``m``) and ``scale`` (the size
@@ -82,7 +84,7 @@ import xarray as xr
 
 from tubeid._optional import require
 from tubeid._paths import local_path, looked_up
-from tubeid._validation import byte_size, channel_count, limit
+from tubeid._validation import byte_size, channel_count, is_number, limit
 from tubeid.errors import Described, SpecificationError
 from tubeid.measured.validation import LENGTH_UNITS, check_options, layout, length_scale, validate_measurements
 
@@ -152,17 +154,44 @@ def _claimed_bytes(ds: xr.Dataset) -> int:
 
 
 def _open_xarray(path: Path, source: str, engine: str, kind: str, **kw) -> xr.Dataset:
+    opts = dict(engine=engine, decode_times=False, decode_timedelta=False, create_default_indexes=False, **kw)
     try:  # lazily, without indexes: nothing is read but the metadata until the size is known
-        raw = xr.open_dataset(path, engine=engine, decode_times=False, decode_timedelta=False,
-                              create_default_indexes=False, **kw)
+        raw = xr.open_dataset(path, **opts)
     except Exception as exc:  # noqa: BLE001 - every library failure becomes a clear refusal
+        try:  # a packing attribute xarray cannot even decode (scale_factor = [0.5, 2.0]): name it
+            with xr.open_dataset(path, mask_and_scale=False, **opts) as plain:
+                _check_packing(plain, source)
+        except SpecificationError:
+            raise
+        except Exception:  # noqa: BLE001 - not that: the first failure is the one to tell
+            pass
         _fail_read(source, kind, exc)
     with raw:
         _check_claimed(source, _claimed_bytes(raw), f"{kind} record claiming {_shapes(raw)}")
+        _check_packing(raw, source)
         try:
             return raw.load()
         except Exception as exc:  # noqa: BLE001
             _fail_read(source, kind, exc)
+
+
+def _check_packing(ds: xr.Dataset, source: str) -> None:
+    """CF packing attributes must be numbers: xarray unpacks ``stored * scale_factor + add_offset``
+    when the data are loaded, and a text one (``scale_factor = 'abc'``) would fail inside numpy."""
+    for name, var in ds.variables.items():
+        for attr in ("scale_factor", "add_offset"):
+            for held in (var.encoding, var.attrs):
+                if attr not in held:
+                    continue
+                value = held[attr]
+                if isinstance(value, np.ndarray) and value.size == 1:
+                    value = value.reshape(())[()]
+                if isinstance(value, np.generic):
+                    value = value.item()
+                if not is_number(value) or not math.isfinite(float(value)):
+                    raise SpecificationError(
+                        f"{source}: {name}.{attr}", held[attr],
+                        "must be a finite number (CF packing: values are read as stored * scale_factor + add_offset)")
 
 
 def _shapes(ds: xr.Dataset) -> str:
