@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 import scipy.stats
+import xarray as xr
 import zarr
 
 from tubeid.cli import main
@@ -1008,6 +1009,27 @@ def test_bad_input_is_refused(tmp_path, capsys):
         diagnose(data, "paper-reference", DiagnoseSettings(delta_reference="no-such-model"))
     assert main(["diagnose", "nowhere.nc", "--set", "nonsense=1"]) == 2  # refused before reading anything
     assert "--set nonsense" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("x, end", [(0.0, "clamped end x = 0.0 m"), (16.0, "clamped end x = 16.0 m")])
+def test_a_record_with_a_sensor_at_a_clamped_end_is_refused_before_any_run(tmp_path, capsys, x, end):
+    """Its model displacement is zero: the diagnosis failed deep in its pipeline ('loads = non-finite
+    samples ... r1 = 1e95'). Refused before any run, naming the sensor, its x, the tube and the rule."""
+    dt = 3e-3
+    y = 1e-6 * np.random.default_rng(5).standard_normal((int(16.0 / dt), 3))
+    data = xr.Dataset({"displacement": (("time", "sensor"), y, {"units": "m"})},
+                      coords={"time": np.arange(y.shape[0]) * dt, "sensor": ["c02", "end", "c10"],
+                              "x": ("sensor", [2.0, x, 10.0]), "tube": ("sensor", ["centre"] * 3)})
+    rule = f"data: sensor 'end': x = {x!r}: in model 'paper-simplified': sensor 'end' is at the {end} of tube 'centre'"
+    with pytest.raises(SpecificationError) as exc:
+        diagnose(data, "paper-simplified", SMALL, out=tmp_path / "out")
+    assert str(exc.value).startswith(rule) and "identically zero" in str(exc.value)
+    assert not (tmp_path / "out").exists()  # refused before any work
+    path = tmp_path / "end.nc"
+    data.to_netcdf(path, engine="h5netcdf")
+    assert main(["diagnose", str(path), "--out", str(tmp_path / "cli"), "--workers", "0"]) == 2
+    err = capsys.readouterr().err
+    assert rule in err and "Traceback" not in err
 
 
 def test_the_simplified_form_refuses_what_it_cannot_do(monkeypatch):

@@ -315,6 +315,25 @@ def test_bad_specifications_are_refused_with_field_value_rule(mutate, field, rul
     assert rule in str(exc.value)
 
 
+@pytest.mark.parametrize("ends, x, refused_at", [
+    (("clamped", "clamped"), 0.0, "clamped end x = 0.0 m"), (("clamped", "clamped"), 16.0, "clamped end x = 16.0 m"),
+    (("pinned", "clamped"), 0.0, "pinned end x = 0.0 m"), (("clamped", "pinned"), 16.0 - 1e-10, "pinned end x = 16.0 m"),
+    (("clamped", "free"), 16.0, None), (("clamped", "clamped"), 1e-6, None), (("clamped", "clamped"), 15.999, None)])
+def test_a_sensor_at_a_clamped_or_pinned_end_is_refused(ends, x, refused_at):
+    """Its displacement is identically zero: a diagnosis then failed deep in its pipeline (load levels
+    overflowing to fit a zero PSD). Inside the tube and at a free end a sensor is fine."""
+    t = _tube(4, ends=ends)
+    sensors = (SensorSpec("inside", "t", 2.0), SensorSpec("s1", "t", x))
+    if refused_at is None:
+        spec = BundleSpec(name="bundle", tubes=(t,), sensors=sensors)
+        assert reduce(spec).sensor_matrix().shape[0] == 2
+        return
+    with pytest.raises(SpecificationError, match=r"^sensors\[1\]\.x = ") as exc:
+        BundleSpec(name="bundle", tubes=(t,), sensors=sensors)
+    assert f"sensor 's1' is at the {refused_at} of tube 't'" in str(exc.value)
+    assert "identically zero" in str(exc.value) and "0 < x < 16.0 m" in str(exc.value)
+
+
 def test_rigid_body_mode_refused():
     t = _tube(4, ends=("free", "free"))
     with pytest.raises(SpecificationError, match="rigid-body"):
@@ -573,7 +592,7 @@ def test_model_size_is_bounded_with_a_memory_estimate():
     with pytest.raises(SpecificationError, match=r"tubes = 10 tubes: the bundle would have 6020 degrees"):
         spec_from_dict(d)
     d = spec_to_dict(builtin_spec("paper-simplified"))
-    d["sensors"] = [{"name": f"s{i}", "tube": "centre", "x": 16.0 * i / 999} for i in range(1000)]
+    d["sensors"] = [{"name": f"s{i}", "tube": "centre", "x": 16.0 * (i + 1) / 1001} for i in range(1000)]  # inside
     with pytest.raises(SpecificationError, match=r"sensors = 1000 sensors: at most 64 \(configuration tubeid.io.max-sensors\)"
                                                  r".* 15\.26 MiB per frequency bin, 14\.90 GiB per realisation"):
         spec_from_dict(d)

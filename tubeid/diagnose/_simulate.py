@@ -12,7 +12,7 @@ from tubeid.dynamics.response import ResponseSettings, simulate_responses
 from tubeid.errors import SpecificationError
 from tubeid.mechanics.effects import apply_effects
 from tubeid.mechanics.reduction import reduce
-from tubeid.mechanics.spec import BundleSpec, SensorSpec
+from tubeid.mechanics.spec import BundleSpec, SensorSpec, held_sensor_rule
 from tubeid.uncertainty.loads import coherent_forces, force_and_moment
 from tubeid.uncertainty.random_matrices import Dispersion
 
@@ -39,9 +39,12 @@ def load_dimension(spec: BundleSpec, settings: DiagnoseSettings) -> int:
 def spec_for(spec: BundleSpec, sensors, tubes, xs) -> BundleSpec:
     """The declared model with the data's sensors (names, tubes, positions [m])."""
     names = [t.name for t in spec.tubes]
-    for s, tube in zip(sensors, tubes):
+    for s, tube, x in zip(sensors, tubes, xs):
         if tube not in names:
             raise SpecificationError(f"data: sensor {s!r}: tube", tube, f"is not a tube of model {spec.name!r} ({names})")
+        t = spec.tubes[names.index(tube)]
+        if t.held_end(float(x)) is not None:  # its model displacement, and PSD, is zero: the diagnosis cannot run
+            raise SpecificationError(f"data: sensor {s!r}: x", float(x), f"in model {spec.name!r}: " + held_sensor_rule(s, t, float(x)))
     return spec.replace(sensors=tuple(SensorSpec(name=s, tube=t, x=x) for s, t, x in zip(sensors, tubes, xs)))
 
 

@@ -185,6 +185,34 @@ class TubeSpec:
         k = round(x / self.length * self.n_elements)
         return k if abs(k * self.length / self.n_elements - x) <= _NODE_TOL * max(1.0, self.length) else None
 
+    def held_end(self, x: float) -> str | None:
+        """The clamped or pinned end ``x`` sits at, where the tube's displacement is identically zero.
+
+        Parameters
+        ----------
+        x : float
+            Abscissa along the tube [m].
+
+        Returns
+        -------
+        str or None
+            ``"clamped end x = 0.0 m"`` (or pinned, or at x = length) when ``x`` is that end's node
+            (within the tolerance of :meth:`node_index`) and the end is clamped or pinned; None for a
+            point inside the tube or at a free end.
+        """
+        k = self.node_index(x)
+        for index, end, at in ((0, self.ends[0], 0.0), (self.n_elements, self.ends[1], self.length)):
+            if k == index and end in ("clamped", "pinned"):
+                return f"{end} end x = {at!r} m"
+        return None
+
+
+def held_sensor_rule(name: str, tube: TubeSpec, x: float) -> str:
+    """The rule refusing sensor ``name`` at ``x`` on ``tube`` when that is a clamped or pinned end."""
+    return (f"sensor {name!r} is at the {tube.held_end(x)} of tube {tube.name!r}: the model's displacement there is "
+            f"identically zero (a clamped or pinned end does not move), so nothing can be compared or identified; "
+            f"a sensor must lie inside the tube (0 < x < {tube.length!r} m) or at a free end")
+
 
 @dataclass(frozen=True)
 class LinkSpec:
@@ -271,7 +299,9 @@ class SensorSpec:
     tube : str
         The tube it measures.
     x : float
-        Its abscissa [m] (between nodes the Hermite shape functions interpolate).
+        Its abscissa [m] (between nodes the Hermite shape functions interpolate): inside the tube
+        or at a free end; a clamped or pinned end, whose displacement is identically zero, is
+        refused.
     """
 
     name: str
@@ -347,7 +377,7 @@ class BundleSpec:
     loads : sequence of LoadPoint
         Load points, names unique.
     sensors : sequence of SensorSpec
-        Displacement sensors, names unique.
+        Displacement sensors, names unique, none at a clamped or pinned end.
     band_hz : float
         The frequency band of analysis [−band_hz, band_hz] Hz.
     nonlinear_tube : str, optional
@@ -456,7 +486,10 @@ class BundleSpec:
                 if not isinstance(p.name, str) or not p.name or p.name in seen:
                     raise SpecificationError(f"{w}.name", p.name, "must be a unique non-empty string")
                 seen.add(p.name)
-                on_tube(f"{w}.x", tube_of(f"{w}.tube", p.tube), p.x)
+                t = tube_of(f"{w}.tube", p.tube)
+                on_tube(f"{w}.x", t, p.x)
+                if what == "sensors" and t.held_end(p.x) is not None:
+                    raise SpecificationError(f"{w}.x", p.x, held_sensor_rule(p.name, t, p.x))
                 if what == "loads" and p.kind not in LOAD_KINDS:
                     raise SpecificationError(f"{w}.kind", p.kind, f"must be one of {LOAD_KINDS}")
         from tubeid.mechanics.effects import SensorNoise, Tone
