@@ -44,7 +44,8 @@ def spec_for(spec: BundleSpec, sensors, tubes, xs) -> BundleSpec:
             raise SpecificationError(f"data: sensor {s!r}: tube", tube, f"is not a tube of model {spec.name!r} ({names})")
         t = spec.tubes[names.index(tube)]
         if t.held_end(float(x)) is not None:  # its model displacement, and PSD, is zero: the diagnosis cannot run
-            raise SpecificationError(f"data: sensor {s!r}: x", float(x), f"in model {spec.name!r}: " + held_sensor_rule(s, t, float(x)))
+            raise SpecificationError(f"data: sensor {s!r}: x", float(x),
+                                     f"in model {spec.name!r}: " + held_sensor_rule(s, t, float(x)))
     return spec.replace(sensors=tuple(SensorSpec(name=s, tube=t, x=x) for s, t, x in zip(sensors, tubes, xs)))
 
 

@@ -17,9 +17,9 @@ Formats (chosen by ``format=`` or by the extension):
   (x in m) and optionally ``units`` (per channel; empty or absent = ``m``) and ``scale`` (the size
   of one count in ``units``: required for a channel written in integers only, counts, e.g.
   ``S1,centre,6.0,um,0.05``). Every data column must be listed in the sidecar and every sidecar
-  row must be a data column. A header (data or sidecar) naming a column twice is refused. Lines end in ``\\n`` or ``\\r\\n`` (a lone ``\\r``, old Mac line endings or
-  inside a name, is refused naming its line), and no field may exceed the csv module's limit of
-  131072 characters.
+  row must be a data column. A header (data or sidecar) naming a column twice is refused. Lines
+  end in ``\\n`` or ``\\r\\n`` (a lone ``\\r``, old Mac line endings or inside a name, is refused
+  naming its line), and no field may exceed the csv module's limit of 131072 characters.
 - ``uff`` (``.uff``, ``.unv``): universal file, one type-58 dataset per channel (other dataset
   types are ignored), read and written with pyuff. Convention:
 
