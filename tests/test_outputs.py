@@ -126,3 +126,35 @@ def test_a_manifest_naming_a_file_outside_the_directory_removes_nothing(tmp_path
         out.remove()
     assert victim.read_text() == "precious" and (tmp_path / "sub" / "victim.txt").read_text() == "precious"
     assert (tmp_path / "out" / "report.md").read_text() == "x"
+
+
+def test_only_tubeids_own_temporaries_are_removed_by_their_exact_name(tmp_path):
+    """A write killed before its rename leaves ``.tubeid-tmp-`` + 8 characters of [a-z0-9_] (``mkstemp``'s
+    form): removed. A user's files that merely start with ``.tubeid-tmp-`` (longer, shorter, other
+    characters, a directory of that form) are theirs: kept byte for byte."""
+    import tempfile
+
+    out = OutputDir(tmp_path)
+    out.write_text("report.md", "x")
+    fd, ours = tempfile.mkstemp(prefix=".tubeid-tmp-", dir=tmp_path)  # as _atomic_write makes it
+    os.close(fd)
+    users = [".tubeid-tmp-notes.txt", ".tubeid-tmp-abc", ".tubeid-tmp-ABCDEFGH", ".tubeid-tmp-abcdefgh1"]
+    for name in users:
+        (tmp_path / name).write_text("my notes")
+    (tmp_path / ".tubeid-tmp-dir_1234").mkdir()
+    assert out.remove() == []
+    assert not os.path.exists(ours) and not (tmp_path / "report.md").exists()
+    for name in users:
+        assert (tmp_path / name).read_text() == "my notes", name
+    assert (tmp_path / ".tubeid-tmp-dir_1234").is_dir()
+
+
+def test_removal_is_a_dry_run_of_remove(tmp_path):
+    out = OutputDir(tmp_path)
+    out.write_text("a.md", "a")
+    out.write_text("b.md", "b")
+    (tmp_path / "b.md").write_text("edited")
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    assert out.removal() == (["a.md"], ["b.md"])
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before  # nothing removed or rewritten
+    assert out.remove() == ["b.md"] and not (tmp_path / "a.md").exists()

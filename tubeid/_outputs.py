@@ -11,7 +11,9 @@ and SHA-256. Then:
   anything else is left in place and reported;
 * every write goes to a temporary file in the same directory, then ``os.replace``: a reader sees
   the old file or the new one, never half of one; an interrupted write leaves at most a
-  ``.tubeid-tmp-*`` file (ours by its prefix), which :meth:`OutputDir.remove` clears.
+  temporary file ``.tubeid-tmp-`` + 8 characters of ``[a-z0-9_]`` (``tempfile.mkstemp``'s exact
+  form), which :meth:`OutputDir.remove` clears. A user's file that merely starts with
+  ``.tubeid-tmp-`` (``.tubeid-tmp-notes.txt``) is not of that form and is never removed.
 
 Directories (e.g. a Zarr store) are recorded with :meth:`OutputDir.record_directory`; their
 contents are the business of whoever wrote them (the runner's store carries its own provenance).
@@ -30,6 +32,7 @@ import hashlib
 import json
 import os
 import pathlib
+import re
 import tempfile
 from collections.abc import Iterator
 
@@ -40,6 +43,9 @@ __all__ = ["OutputDir", "MANIFEST_NAME", "file_sha256"]
 MANIFEST_NAME = ".tubeid-manifest.json"
 _LOCK_NAME = ".tubeid-manifest.lock"
 _TMP_PREFIX = ".tubeid-tmp-"
+#: the exact name of a temporary file :meth:`OutputDir._atomic_write` makes (``tempfile.mkstemp`` with
+#: ``prefix=_TMP_PREFIX``: 8 characters of ``[a-z0-9_]``); any other ``.tubeid-tmp-*`` name is the user's
+_TMP_NAME = re.compile(re.escape(_TMP_PREFIX) + r"[a-z0-9_]{8}")
 _VERSION = 1
 
 
@@ -53,12 +59,13 @@ def file_sha256(path: os.PathLike | str, chunk: int = 1 << 20) -> str:
 
 
 def _plain_name(name) -> bool:
-    """A plain file name inside the directory (no separator, ``..`` or absolute path), not tubeid's own files."""
+    """A plain file name inside the directory (no separator, ``..`` or absolute path), not in tubeid's own
+    ``.tubeid-*`` names (the manifest, its lock, temporaries, a run's lock): an output is never named so,
+    and a manifest listing such a name was edited (this only refuses; nothing is removed by prefix)."""
     if not isinstance(name, str) or not name or "\\" in name:
         return False
     p = pathlib.PurePosixPath(name)
-    return not (p.is_absolute() or ".." in p.parts or len(p.parts) != 1 or name in (MANIFEST_NAME, _LOCK_NAME)
-                or name.startswith(_TMP_PREFIX))
+    return not (p.is_absolute() or ".." in p.parts or len(p.parts) != 1 or name.startswith(".tubeid-"))
 
 
 def _now() -> str:
@@ -213,29 +220,48 @@ class OutputDir:
             entries[name] = {"kind": "directory", "written": _now()}
         return target
 
+    def _plan(self, entries: dict, names) -> tuple[list[str], list[str], list[str]]:
+        """``(remove, forget, keep)``: the recorded files of ``names`` (default all) whose content still
+        matches, those that are missing, and those that changed (kept); directories are left out."""
+        remove: list[str] = []
+        forget: list[str] = []
+        keep: list[str] = []
+        for name in list(entries if names is None else names):
+            e = entries.get(name)
+            if e is None or e.get("kind") == "directory":
+                continue
+            target = self.path / name
+            if not (target.exists() or target.is_symlink()):
+                forget.append(name)
+            elif self._owned(entries, name):
+                remove.append(name)
+            else:
+                keep.append(name)
+        return remove, forget, keep
+
+    def removal(self, names=None) -> tuple[list[str], list[str]]:
+        """What :meth:`remove` would do now, without doing it: ``(removed, kept)`` (a dry run; an unreadable
+        manifest is refused here as there)."""
+        remove, _, keep = self._plan(self._read(), names)
+        return remove, keep
+
     def remove(self, names=None) -> list[str]:
         """Remove recorded files (all, or ``names``) whose content still matches; return what was kept.
 
         Directories are only forgotten, not removed (their owner removes them). A recorded file that
-        is missing is forgotten; one that changed is kept (and listed in the result).
+        is missing is forgotten; one that changed is kept (and listed in the result). Temporary files
+        of interrupted writes are removed too: only by their exact name (:data:`_TMP_NAME`), regular
+        files, never a user's file that merely shares the prefix.
         """
-        kept: list[str] = []
         with self._locked() as entries:
-            for name in list(entries if names is None else names):
-                e = entries.get(name)
-                if e is None:
-                    continue
-                target = self.path / name
-                if e.get("kind") == "directory":
-                    continue
-                if not (target.exists() or target.is_symlink()):
-                    del entries[name]
-                elif self._owned(entries, name):
-                    target.unlink()
-                    del entries[name]
-                else:
-                    kept.append(name)
-            for tmp in self.path.glob(_TMP_PREFIX + "*"):  # left by an interrupted write
+            remove, forget, kept = self._plan(entries, names)
+            for name in remove:
+                (self.path / name).unlink()
+            for name in remove + forget:
+                del entries[name]
+            with os.scandir(self.path) as it:  # left by an interrupted write (under this lock no write is in flight)
+                left = [e.path for e in it if _TMP_NAME.fullmatch(e.name) and e.is_file(follow_symlinks=False)]
+            for tmp in left:
                 with contextlib.suppress(OSError):
-                    tmp.unlink()
+                    os.unlink(tmp)
         return kept
