@@ -1237,6 +1237,43 @@ def test_the_records_copy_is_netcdf3_and_an_earlier_netcdf4_copy_is_replaced_on_
     assert data_hash(read_measurements(copy)) == data_hash(data)
 
 
+# ----------------------------------------------------------- the output directory: refusals first, one run at a time
+
+FAST = DiagnoseSettings(**{**CONTROL_SET, "realisations": 9, "false_alarm": 0.1, "max_effects": 0})
+
+
+def _tree(root):
+    """Every entry under ``root`` (links not followed): a file's bytes, a link's target, or "dir"."""
+    import os
+    import pathlib
+
+    tree = {}
+    for where, dirs, files in os.walk(root):
+        for name in dirs + files:
+            p = pathlib.Path(where) / name
+            rel = p.relative_to(root).as_posix()
+            tree[rel] = ("link", os.readlink(p)) if p.is_symlink() else p.read_bytes() if p.is_file() else "dir"
+    return tree
+
+
+def test_out_is_refused_before_anything_is_created_if_it_is_the_record_or_inside_it_or_a_url(tmp_path):
+    """--out that is a Zarr record itself or a directory inside it (the user's data: never written into),
+    or a path zarr reads as a URL ('::'), is refused naming out before anything is created; the record's
+    own directory is fine (the record untouched)."""
+    rec = write_measurements(record(duration=16.0), tmp_path / "rec.zarr")
+    before = _tree(tmp_path)
+    for out, match in ((rec, "is the record being diagnosed"), (rec / "sub", "lies inside the record"),
+                       (tmp_path / "o::x", "local directory path")):
+        with pytest.raises(SpecificationError, match=rf"^out = .*{match}"):
+            diagnose(rec, "paper-reference", FAST, out=out)
+        assert _tree(tmp_path) == before, out
+    assert main(["diagnose", str(rec), "--out", str(rec), "--model", "paper-reference", "--no-progress"]) == 2
+    assert _tree(tmp_path) == before
+    diagnose(rec, "paper-reference", FAST, out=tmp_path)  # the record's directory
+    assert {k: v for k, v in _tree(tmp_path).items() if k.startswith("rec.zarr")} == before
+    assert (tmp_path / "report.json").exists()
+
+
 def _check_named(rep, names):
     assert sorted(e["name"] for e in rep["effects"]) == sorted(names), json.dumps(rep["steps"], indent=1, default=str)[:4000]
     assert rep["detection"]["detected"] and rep["error_after"] < rep["error_before"]

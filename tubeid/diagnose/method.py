@@ -357,6 +357,23 @@ def _check_outputs(outdir: OutputDir, names) -> None:
                                      f"move it or choose another {outdir.field}")
 
 
+def _check_out(out, source: Path | None) -> None:
+    """Refuse ``out`` before anything is created: a path zarr would read as a URL (:func:`local_path`),
+    or the record being diagnosed itself or a directory inside it (a Zarr record is the user's data:
+    tubeid never writes into it). A directory that holds the record (its own directory, ``--out .``)
+    is fine: the record in it is never touched."""
+    from tubeid._paths import local_path
+
+    target = os.path.realpath(local_path(out, field="out"))
+    if source is None:
+        return
+    record = os.path.realpath(source)
+    if target == record or target.startswith(record.rstrip(os.sep) + os.sep):
+        where = "is the record being diagnosed" if target == record else "lies inside the record being diagnosed"
+        raise SpecificationError("out", os.fspath(out), f"{where} ({os.fspath(source)}): tubeid never writes into the "
+                                 "user's record; choose another --out (the record's own directory is fine)")
+
+
 def diagnose(data: xr.Dataset | str | os.PathLike, model: str | BundleSpec = "paper-simplified",
              settings: DiagnoseSettings = DiagnoseSettings(), *, out: str | os.PathLike | None = None,
              workers: int | None = 0, scheduler: str | None = None, overwrite: bool = False,
@@ -409,6 +426,8 @@ def diagnose(data: xr.Dataset | str | os.PathLike, model: str | BundleSpec = "pa
         raise SpecificationError("settings", type(settings).__name__, "must be a DiagnoseSettings")
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 0):
         raise SpecificationError("workers", workers, "must be a non-negative integer")
+    if out is not None:  # before anything is read or created
+        _check_out(out, None if isinstance(data, xr.Dataset) else data)
     spec0 = resolve_spec(model)
     if spec0.effects:
         raise SpecificationError("model.effects", spec0.effects, "diagnose a model without carried effects")
