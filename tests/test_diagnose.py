@@ -16,6 +16,7 @@ import json
 import shutil
 import subprocess
 import sys
+import time
 import unittest.mock
 
 import numpy as np
@@ -1242,6 +1243,15 @@ def test_the_records_copy_is_netcdf3_and_an_earlier_netcdf4_copy_is_replaced_on_
 FAST = DiagnoseSettings(**{**CONTROL_SET, "realisations": 9, "false_alarm": 0.1, "max_effects": 0})
 
 
+@pytest.fixture(scope="module")
+def done(tmp_path_factory):
+    """A completed fast diagnosis (in this process): its record and its output directory (copy it to use it)."""
+    tmp = tmp_path_factory.mktemp("done")
+    path = write_measurements(record(duration=16.0), tmp / "rec.nc")
+    diagnose(path, "paper-reference", FAST, out=tmp / "out")
+    return {"path": path, "out": tmp / "out", "other": write_measurements(record(duration=16.0, seed=12), tmp / "other.nc")}
+
+
 def _tree(root):
     """Every entry under ``root`` (links not followed): a file's bytes, a link's target, or "dir"."""
     import os
@@ -1254,6 +1264,92 @@ def _tree(root):
             rel = p.relative_to(root).as_posix()
             tree[rel] = ("link", os.readlink(p)) if p.is_symlink() else p.read_bytes() if p.is_file() else "dir"
     return tree
+
+
+@pytest.mark.parametrize("case", ["edited report", "linked store", "foreign store"])
+def test_a_refused_overwrite_removes_and_writes_nothing(done, tmp_path, case):
+    """``--overwrite`` of a completed directory that it must refuse (the user edited report.md; diagnose.zarr
+    is a symbolic link; diagnose.zarr was replaced by a Zarr store tubeid has no record of writing) is refused
+    before anything is removed or written: the reports, the record's copy, the store all stay byte for byte,
+    and the message names diagnose's own options (--out), not the runner's."""
+    out = tmp_path / "out"
+    shutil.copytree(done["out"], out, symlinks=True)
+    store = out / "diagnose.zarr"
+    if case == "edited report":
+        with open(out / "report.md", "a") as fh:
+            fh.write("my notes\n")
+        match = r"out/report.md.*changed since"
+    elif case == "linked store":
+        store.rename(tmp_path / "elsewhere.zarr")
+        store.symlink_to(tmp_path / "elsewhere.zarr")
+        match = r"out/diagnose.zarr.*symbolic link"
+    else:
+        shutil.rmtree(store)
+        zarr.open_group(str(store), mode="w", attributes={"mine": 1})
+        match = r"out/diagnose.zarr.*no manifest"
+    before = _tree(tmp_path)
+    with pytest.raises(SpecificationError, match=match) as exc:
+        diagnose(done["path"], "paper-reference", FAST.replace(seed=4), out=out, overwrite=True)
+    assert _tree(tmp_path) == before
+
+
+def test_a_held_store_lock_refuses_before_anything_is_removed(done, tmp_path):
+    """A run holding the store's lock (``tubeid run`` on it, or an earlier tubeid's diagnosis): a diagnosis
+    with ``--overwrite`` is refused naming --out before it removes or writes anything."""
+    from tubeid.runner.lock import StoreLock
+
+    out = tmp_path / "out"
+    shutil.copytree(done["out"], out)
+    with StoreLock(out / "diagnose.zarr"):
+        before = _tree(out)
+        with pytest.raises(SpecificationError, match=r"out/diagnose.zarr.*in use by another tubeid run") as exc:
+            diagnose(done["other"], "paper-reference", FAST, out=out, overwrite=True)
+        assert "choose another --out" in str(exc.value) and "--store" not in str(exc.value)
+        assert _tree(out) == before
+
+
+_PAUSED = """
+import json, pathlib, sys, time
+from tubeid.diagnose import DiagnoseSettings, diagnose
+from tubeid.runner import execute
+record, out, ready, go, settings = sys.argv[1:]
+run = execute.run
+def paused(*args, **kwargs):  # the copy written, the store not yet locked by the runner
+    pathlib.Path(ready).write_text("")
+    while not pathlib.Path(go).exists():
+        time.sleep(0.05)
+    return run(*args, **kwargs)
+execute.run = paused
+diagnose(record, "paper-reference", DiagnoseSettings(**json.loads(settings)), out=out, workers=0)
+"""
+
+
+def test_a_second_run_with_overwrite_leaves_a_running_diagnosis_intact(done, tmp_path):
+    """Run A (another process) is under way in --out (its record's copy written, its store not locked yet);
+    run B on other data with ``--overwrite`` is refused, naming --out, before it removes or writes anything;
+    A then finishes its diagnosis."""
+    out, ready, go = tmp_path / "out", tmp_path / "ready", tmp_path / "go"
+    settings = json.dumps(dataclasses.asdict(FAST), default=list)
+    a = subprocess.Popen([sys.executable, "-c", _PAUSED, str(done["path"]), str(out), str(ready), str(go), settings],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        for _ in range(6000):
+            if ready.exists() or a.poll() is not None:
+                break
+            time.sleep(0.05)
+        assert ready.exists(), a.communicate()[1][-3000:]
+        before = _tree(out)
+        assert any(n.startswith("data-") for n in before)
+        with pytest.raises(SpecificationError, match=r"out = .*in use by another tubeid run") as exc:
+            diagnose(done["other"], "paper-reference", FAST, out=out, overwrite=True)
+        assert "choose another --out" in str(exc.value) and "--store" not in str(exc.value)
+        assert _tree(out) == before
+    finally:
+        go.write_text("")
+        _, err = a.communicate(timeout=600)
+    assert a.returncode == 0, err[-3000:]
+    assert json.loads((out / "report.json").read_text())["runner"]["tasks_computed"] > 0
+    assert [p.name for p in out.glob("data-*.nc")] == [f"data-{data_hash(read_measurements(done['path']))[:16]}.nc"]
 
 
 def test_out_is_refused_before_anything_is_created_if_it_is_the_record_or_inside_it_or_a_url(tmp_path):

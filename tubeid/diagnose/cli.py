@@ -83,8 +83,9 @@ def register(subparsers) -> None:
                    help="embedded LocalCluster worker processes (default: one per core; 0 = sequentially in this process)")
     g.add_argument("--scheduler", default=None, help="address of an existing dask scheduler (default: DASK_SCHEDULER_ADDRESS)")
     p.add_argument("--overwrite", action="store_true",
-                   help="replace the diagnosis --out holds: removes only the files its manifest lists, unchanged "
-                        "(default: resume the same diagnosis, refuse another)")
+                   help="replace the diagnosis --out holds: removes only the files its manifest lists, unchanged, "
+                        "once every check has passed; refused while another tubeid run uses --out (default: resume "
+                        "the same diagnosis, refuse another)")
     p.add_argument("--realisations", type=int, default=None,
                    help="Monte Carlo size of the test (default 39 with the exact model form: exact 5 %%; 159 with "
                         "the simplified one)")

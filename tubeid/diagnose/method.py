@@ -64,6 +64,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -347,14 +348,15 @@ def _is_netcdf3(path: Path) -> bool:
         return fh.read(4) in _NETCDF3_MAGIC
 
 
-def _check_outputs(outdir: OutputDir, names) -> None:
-    """Refuse, before any work, to write over a file tubeid did not write (or that changed since)."""
+def _check_outputs(outdir: OutputDir, names, removed=()) -> None:
+    """Refuse, before any work, to write over a file tubeid did not write (or that changed since);
+    ``removed``: the names an ``--overwrite`` will remove first (they are in the way of nothing)."""
     for name in names:
         p = outdir.path / name
-        if (p.exists() or p.is_symlink()) and not outdir.owned(name):
+        if name not in removed and (p.exists() or p.is_symlink()) and not outdir.owned(name):
             raise SpecificationError(f"{outdir.field}/{name}", str(p),
                                      "exists and was not written by tubeid (or was changed since): it is left untouched; "
-                                     f"move it or choose another {outdir.field}")
+                                     f"move it or choose another --{outdir.field}")
 
 
 def _check_out(out, source: Path | None) -> None:
@@ -372,6 +374,32 @@ def _check_out(out, source: Path | None) -> None:
         where = "is the record being diagnosed" if target == record else "lies inside the record being diagnosed"
         raise SpecificationError("out", os.fspath(out), f"{where} ({os.fspath(source)}): tubeid never writes into the "
                                  "user's record; choose another --out (the record's own directory is fine)")
+
+
+def _refuse_store_in_use(store: Path) -> None:
+    """Refuse a store whose lock a live run holds (a ``tubeid run`` on it, or a diagnosis by an earlier
+    tubeid, which locked only its store), before anything in ``--out`` is removed or written."""
+    import time
+
+    from tubeid.runner.lock import LOCK_NAME, describe_holder, holder_state, read_lock
+
+    if store.is_symlink() or not store.is_dir():
+        return
+    for _ in range(10):
+        rec = read_lock(store / LOCK_NAME)
+        if rec is None:
+            return
+        if rec:
+            break
+        time.sleep(0.05)  # being written (an O_EXCL creator), or damaged
+    else:
+        raise SpecificationError(f"out/{STORE_NAME}", str(store), f"has an unreadable lock file {LOCK_NAME}: if no "
+                                 "tubeid run is using it, remove that file; or choose another --out")
+    state, why = holder_state(rec, store / LOCK_NAME)
+    if state == "alive":
+        raise SpecificationError(f"out/{STORE_NAME}", str(store),
+                                 f"is in use by another tubeid run ({describe_holder(rec)}; {why}): wait for it to "
+                                 f"finish (`tubeid status {store}` shows its progress) or choose another --out")
 
 
 def diagnose(data: xr.Dataset | str | os.PathLike, model: str | BundleSpec = "paper-simplified",
@@ -394,8 +422,13 @@ def diagnose(data: xr.Dataset | str | os.PathLike, model: str | BundleSpec = "pa
         (``data-<sha256[:16]>.nc``, NetCDF-3: the core install writes and reads it) and the report
         files, all recorded in its manifest. Running
         again with the same data, model and settings resumes or reuses the store; other ones are
-        refused unless ``overwrite``, which removes only what the manifest lists (and replaces the
-        store). Default: a temporary directory, removed afterwards (no files written). The report
+        refused unless ``overwrite``, which removes only what the manifest lists, unchanged (and
+        replaces the store), and only once every check has passed: a refused run removes and writes
+        nothing. One diagnosis at a time in a directory (a lock, ``.tubeid-lock``, held from the first
+        check to the last file; a run holding the store's lock counts too): another is refused before
+        it touches anything. Refused before anything is created: a path zarr reads as a URL (``::``,
+        ``://``), the record itself or a directory inside it (a directory holding the record is fine:
+        the record is never touched). Default: a temporary directory, removed afterwards (no files written). The report
         files include figures, which need matplotlib (the ``plot`` extra): without it a given ``out``
         is refused before any work, as ``tubeid diagnose`` is; ``out=None`` does not need it.
     workers : int or None
@@ -434,26 +467,52 @@ def diagnose(data: xr.Dataset | str | os.PathLike, model: str | BundleSpec = "pa
     data, source = _resolve_data(data, spec0)
     ctx = _context(data, spec0, settings)  # everything that can be refused, before any run
     h = data_hash(data)
+    from tubeid import config
+
+    config.check()  # the runner's configuration too, before anything in out is removed or written
 
     tmp = tempfile.TemporaryDirectory(prefix="tubeid-diagnose-") if out is None else None
+    lock = None
     try:
         outdir = OutputDir(tmp.name if tmp is not None else out, field="out")
+        from tubeid.runner.lock import StoreLock
+
+        # one diagnosis at a time in a directory, from its first check to its last file: a second one
+        # (e.g. --overwrite) is refused before it removes or writes anything
+        lock = StoreLock(outdir.path, log=lambda m: None if quiet else print(m, file=sys.stderr), field="out",
+                         advice=f"wait for it to finish (`tubeid status {outdir.path / STORE_NAME}` shows its "
+                                "progress) or choose another --out")
+        lock.acquire()
         from tubeid.diagnose.report import OUTPUT_FILES
 
+        # every refusal first: nothing is removed or written until all of them passed
         copy = f"data-{h[:16]}.nc"
         source_name = source.resolve().name if source is not None and source.resolve().parent == outdir.path.resolve() else None
-        if overwrite:  # only what tubeid wrote, unchanged, and never the record being read
-            outdir.remove([n for n in outdir.entries() if n != source_name])
-        _check_outputs(outdir, (copy, *OUTPUT_FILES))
         store = outdir.path / STORE_NAME
+        if store.is_symlink():
+            raise SpecificationError(f"out/{STORE_NAME}", str(store), f"is a symbolic link (to {os.readlink(store)}): "
+                                     "tubeid does not write through a link; move it or choose another --out")
+        _refuse_store_in_use(store)
+        entries = outdir.entries()
+        if store.exists() and STORE_NAME not in entries:
+            raise SpecificationError(f"out/{STORE_NAME}", str(store), "exists and was not created by tubeid here (not in "
+                                     "the manifest): it is left untouched; move it or choose another --out")
+        # only what tubeid wrote, unchanged, and never the record being read
+        removing = outdir.removal([n for n in entries if n != source_name])[0] if overwrite else []
+        _check_outputs(outdir, (copy, *OUTPUT_FILES), removed=removing)
         data_path = (outdir.path / copy).resolve()
         overrides = {"data": str(data_path), "data_sha256": h, "model": json.dumps(spec_to_dict(spec0), sort_keys=True),
                      "settings": settings.to_json()}
         if not overwrite:
             _check_store(store, study_hash(STAGES_FILE.read_text(), overrides), overrides)
-        if store.exists() and STORE_NAME not in outdir.entries():
-            raise SpecificationError(f"out/{STORE_NAME}", str(store), "exists and was not created by tubeid here (not in "
-                                     "the manifest): it is left untouched; move it or choose another --out")
+        from tubeid.runner.store import prepare_path, remove_store
+
+        # what the runner refuses up front (a store it cannot write; with --overwrite one not tubeid's), now
+        prepare_path(store)
+        if overwrite:
+            remove_store(store, dry_run=True)
+        if overwrite:
+            outdir.remove([n for n in outdir.entries() if n != source_name])
         outdir.record_directory(STORE_NAME)
         # a copy written by an earlier tubeid (NetCDF-4, readable with the io extra only) is rewritten as
         # NetCDF-3, same name and content (the store's parameters hold its path and content hash: it
@@ -476,8 +535,11 @@ def diagnose(data: xr.Dataset | str | os.PathLike, model: str | BundleSpec = "pa
                        for n, r in report.stages.items()}}
         if tmp is None:
             diagnosis.store = store.resolve()
+            lock.check()  # still ours: another run took it over only if this one stopped beating
             diagnosis.write(outdir.path)
         return diagnosis
     finally:
+        if lock is not None:
+            lock.release()
         if tmp is not None:
             tmp.cleanup()

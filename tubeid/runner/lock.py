@@ -305,10 +305,16 @@ class StoreLock:
         The store directory (created if missing; the lock file lives inside it).
     log : callable, optional
         ``log(message)`` for the take-over of a stale lock.
+    field, advice : str, optional
+        How a refusal names the directory (default ``"store"``) and what it tells the user to do when
+        another run holds it (default: wait, ``tubeid status``, or another ``--store``); a command
+        whose options differ (``tubeid diagnose --out``) gives its own.
     """
 
-    def __init__(self, store, log=None):
+    def __init__(self, store, log=None, *, field: str = "store", advice: str | None = None):
         self.store = pathlib.Path(store)
+        self.field = field
+        self.advice = advice
         self.path = self.store / LOCK_NAME
         self.log = log or (lambda msg: None)
         self.record: dict | None = None
@@ -346,20 +352,20 @@ class StoreLock:
                 unreadable += 1
                 if unreadable > 10:
                     raise SpecificationError(
-                        "store", str(self.store),
+                        self.field, str(self.store),
                         f"has an unreadable lock file {self.path}: if no tubeid run is using this store, remove it")
                 time.sleep(0.05)
                 continue
             state, why = holder_state(rec, self.path)
             if state == "alive":
-                raise SpecificationError(
-                    "store", str(self.store),
-                    f"is in use by another tubeid run ({describe_holder(rec)}; {why}): wait for it to finish "
-                    f"(`tubeid status {self.store}` shows its progress) or use another --store")
+                advice = self.advice or (f"wait for it to finish (`tubeid status {self.store}` shows its progress) "
+                                         "or use another --store")
+                raise SpecificationError(self.field, str(self.store),
+                                         f"is in use by another tubeid run ({describe_holder(rec)}; {why}): {advice}")
             self.log(f"tubeid: taking over the stale lock of {describe_holder(rec)} ({why})")
             _break(self.path, rec, me)
             time.sleep(0.01)
-        raise SpecificationError("store", str(self.store), "could not take its lock (too many concurrent runners)")
+        raise SpecificationError(self.field, str(self.store), "could not take its lock (too many concurrent runners)")
 
     def _start_heartbeat(self) -> None:
         self._thread = threading.Thread(target=self._beat, args=(self._period,), name="tubeid-lock-heartbeat", daemon=True)
