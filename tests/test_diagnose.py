@@ -1290,6 +1290,8 @@ def test_a_refused_overwrite_removes_and_writes_nothing(done, tmp_path, case):
     before = _tree(tmp_path)
     with pytest.raises(SpecificationError, match=match) as exc:
         diagnose(done["path"], "paper-reference", FAST.replace(seed=4), out=out, overwrite=True)
+    assert "choose another --out" in str(exc.value)
+    assert "--store" not in str(exc.value) and "--new-store" not in str(exc.value)
     assert _tree(tmp_path) == before
 
 
@@ -1306,6 +1308,21 @@ def test_a_held_store_lock_refuses_before_anything_is_removed(done, tmp_path):
             diagnose(done["other"], "paper-reference", FAST, out=out, overwrite=True)
         assert "choose another --out" in str(exc.value) and "--store" not in str(exc.value)
         assert _tree(out) == before
+
+
+def test_the_runners_refusals_name_diagnoses_options(done, tmp_path, monkeypatch):
+    """A refusal raised inside the runner (here its store lock, taken by another run after diagnose's own
+    checks) names --out, not ``tubeid run``'s --store / --new-store."""
+    from tubeid.diagnose import method
+    from tubeid.runner.lock import StoreLock
+
+    monkeypatch.setattr(method, "_refuse_store_in_use", lambda store: None)  # the holder comes after the checks
+    out = tmp_path / "out"
+    shutil.copytree(done["out"], out)
+    with StoreLock(out / "diagnose.zarr"), pytest.raises(SpecificationError, match="in use") as exc:
+        diagnose(done["path"], "paper-reference", FAST, out=out, overwrite=True)
+    assert exc.value.field == "out/diagnose.zarr" and "choose another --out" in str(exc.value)
+    assert "--store" not in str(exc.value) and "--new-store" not in str(exc.value)
 
 
 _PAUSED = """

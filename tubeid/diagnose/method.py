@@ -376,6 +376,32 @@ def _check_out(out, source: Path | None) -> None:
                                  "user's record; choose another --out (the record's own directory is fine)")
 
 
+#: the runner's advice, in ``tubeid run``'s options, as ``tubeid diagnose``'s (its store is ``--out``'s
+#: ``diagnose.zarr``: no ``--store``, no ``--new-store``); longest first
+_IN_DIAGNOSE_TERMS = (
+    ("or choose another --store, or --new-store to write beside it", "or choose another --out"),
+    ("use --new-store to write a new store beside it or --overwrite", "choose another --out or use --overwrite"),
+    ("use --new-store, or --overwrite", "choose another --out, or use --overwrite"),
+    ("use --new-store or --overwrite", "choose another --out or use --overwrite"),
+    ("use --new-store", "choose another --out"),
+    ("--new-store / --overwrite", "another --out / --overwrite"),
+    ("use another --store", "choose another --out"),
+    ("--new-store", "another --out"),
+    ("--store", "--out"),
+)
+
+
+def _in_diagnose_terms(exc: SpecificationError) -> SpecificationError:
+    """A refusal of the runner (about the store ``--out``/diagnose.zarr) in ``tubeid diagnose``'s options."""
+    rule = str(exc.rule)
+    if "--store" not in rule and "--new-store" not in rule and exc.field != "store":
+        return exc
+    for old, new in _IN_DIAGNOSE_TERMS:
+        rule = rule.replace(old, new)
+    field = f"out/{STORE_NAME}" if exc.field == "store" else exc.field
+    return SpecificationError(field, exc.value, rule)
+
+
 def _refuse_store_in_use(store: Path) -> None:
     """Refuse a store whose lock a live run holds (a ``tubeid run`` on it, or a diagnosis by an earlier
     tubeid, which locked only its store), before anything in ``--out`` is removed or written."""
@@ -507,10 +533,12 @@ def diagnose(data: xr.Dataset | str | os.PathLike, model: str | BundleSpec = "pa
             _check_store(store, study_hash(STAGES_FILE.read_text(), overrides), overrides)
         from tubeid.runner.store import prepare_path, remove_store
 
-        # what the runner refuses up front (a store it cannot write; with --overwrite one not tubeid's), now
-        prepare_path(store)
-        if overwrite:
-            remove_store(store, dry_run=True)
+        try:  # what the runner refuses up front (a store it cannot write; with --overwrite one not tubeid's), now
+            prepare_path(store)
+            if overwrite:
+                remove_store(store, dry_run=True)
+        except SpecificationError as exc:
+            raise _in_diagnose_terms(exc) from None
         if overwrite:
             outdir.remove([n for n in outdir.entries() if n != source_name])
         outdir.record_directory(STORE_NAME)
@@ -522,9 +550,12 @@ def diagnose(data: xr.Dataset | str | os.PathLike, model: str | BundleSpec = "pa
         _CONTEXTS[(overrides["data"], h, overrides["model"], overrides["settings"])] = ctx
         from threadpoolctl import threadpool_limits
 
-        with threadpool_limits(limits=1):  # many small matrices: BLAS threads would only contend
-            report = run(STAGES_FILE, store, workers=workers, scheduler=scheduler, overrides=overrides,
-                         overwrite=overwrite, progress=progress, quiet=quiet)
+        try:
+            with threadpool_limits(limits=1):  # many small matrices: BLAS threads would only contend
+                report = run(STAGES_FILE, store, workers=workers, scheduler=scheduler, overrides=overrides,
+                             overwrite=overwrite, progress=progress, quiet=quiet)
+        except SpecificationError as exc:  # the runner's advice names its own options (--store, --new-store)
+            raise _in_diagnose_terms(exc) from None
         from tubeid.diagnose.report import assemble
 
         diagnosis = assemble(store, ctx)
