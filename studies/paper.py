@@ -61,7 +61,7 @@ from tubeid.mechanics.spec import spec_from_dict, spec_to_dict
 from tubeid.runner.pipeline import Pipeline
 from tubeid.runner.study import Output, Parameter, Study, Warmup
 from tubeid.uncertainty.loads import coherent_forces, force_and_moment
-from tubeid.uncertainty.random_matrices import Dispersion, delta_max
+from tubeid.uncertainty.random_matrices import DELTA_MIN, Dispersion, delta_max
 from tubeid.uncertainty.random_models import germs_from_rngs, random_subsystem
 
 REFERENCE = reduce(builtin_spec("paper-reference"))
@@ -213,11 +213,13 @@ def delta(results, *, size, experiment, simplified):
 
 
 def _admissible(d, simplified):
-    """``d`` if it lies in (0, δ_max) of the simplified model's reduced B, else refused."""
+    """``d`` if it lies in [DELTA_MIN, δ_max) of the simplified model's reduced B (the draws' floor:
+    ``tubeid.uncertainty.random_matrices.DELTA_MIN``), else refused."""
     dmax = delta_max(_model(simplified).subsystem.n)
-    if not 0 < d < dmax:
-        raise SpecificationError("parameters.delta", d, f"must lie in (0, {dmax:.4f}), the admissible set of the "
-                                                        "simplified model's reduced B")
+    if not DELTA_MIN <= d < dmax:
+        raise SpecificationError("parameters.delta", d, f"must lie in [{DELTA_MIN:g}, {dmax:.4f}), the admissible set "
+                                                        "of the simplified model's reduced B (below "
+                                                        f"{DELTA_MIN:g} the draws lose their dispersion to round-off)")
     return d
 
 

@@ -178,11 +178,13 @@ def test_an_inadmissible_delta_is_refused_before_anything_runs(tmp_path, capsys)
     assert main(["run", str(STUDY), "--store", str(store), "--workers", "0", "--set", "size=quick",
                  "--set", "delta=0.8"]) == 2
     err = capsys.readouterr().err
-    assert err == ("tubeid: error: parameters.delta = 0.8: must lie in (0, 0.7746), the admissible set of the "
-                   "simplified model's reduced B\n")
+    assert err == ("tubeid: error: parameters.delta = 0.8: must lie in [1e-12, 0.7746), the admissible set of the "
+                   "simplified model's reduced B (below 1e-12 the draws lose their dispersion to round-off)\n")
     assert not store.exists()
-    with pytest.raises(SpecificationError, match=r"parameters\.delta = 0\.775: must lie in \(0, 0\.7746\)"):
+    with pytest.raises(SpecificationError, match=r"parameters\.delta = 0\.775: must lie in \[1e-12, 0\.7746\)"):
         load_definition(STUDY, overrides={"delta": 0.775})
+    with pytest.raises(SpecificationError, match=r"parameters\.delta = 1e-13: must lie in \[1e-12, "):  # the draws' floor
+        load_definition(STUDY, overrides={"delta": 1e-13})
     assert load_definition(STUDY, overrides={"delta": 0.77})[0].values["delta"] == 0.77
     assert load_definition(STUDY, overrides={"delta": 0.8, "simplified": "paper-reference"})[0].values["delta"] == 0.8
 
