@@ -153,3 +153,32 @@ def test_boolean_duration_and_byte_count():
         with pytest.raises(SpecificationError) as err:
             v.byte_count("n", bad)
         assert str(err.value).startswith(f"n = {shown}") and "must be a size in bytes > 0" in str(err.value)
+
+
+def test_allocation_refuses_beyond_the_machines_memory_share_naming_size_and_purpose():
+    total = v._physical_memory()
+    assert total is not None and total > 2**28  # this machine says how much memory it has
+    v.allocation("x", 1, v.MEMORY_SHARE * total * 0.99, "y")  # within the share: nothing to say
+    with pytest.raises(SpecificationError, match=r"^duration = 1000000000\.0: needs [\d.]+ \w+ for the loads: more than "
+                                                 r"50% of this machine's memory"):
+        v.allocation("duration", 1e9, v.MEMORY_SHARE * total * 1.01, "the loads")
+
+
+def test_huge_requests_are_refused_before_anything_is_allocated():
+    """A record of 1e9 s (TiB of loads) or an output step of 1e-11 s (TiB of series): refused up front,
+    naming the field, not a MemoryError from numpy (or the kernel's OOM killer under overcommit)."""
+    from tubeid.dynamics import ResponseSettings, simulate, simulate_responses
+    from tubeid.mechanics import builtin_spec, reduce
+    from tubeid.uncertainty import gaussian_loads
+    from tubeid.uncertainty.loads import force_and_moment
+
+    load = force_and_moment(1e-2, 1e-2, x=8.0)
+    with pytest.raises(SpecificationError, match=r"^settings\.duration = 1000000000\.0: needs [\d.]+ TiB for the loads of 1 "):
+        simulate_responses(reduce(builtin_spec("paper-simplified")), load, [0], seed=1,
+                           settings=ResponseSettings(duration=1e9, discard=1.0, segment_seconds=2.0))
+    with pytest.raises(SpecificationError, match=r"^duration = 1000000000\.0: needs [\d.]+ TiB for the synthesis of 1 "):
+        gaussian_loads(load, 1e9, 2e-3, [np.random.default_rng(1)])
+    M, K = np.eye(2), np.diag([1e4, 4e4])
+    with pytest.raises(SpecificationError, match=r"^output_dt = 1e-11: needs [\d.]+ \w+ for the series of 1 "):
+        simulate(M, 0.01 * K, K, [], np.eye(2)[:, :1], np.eye(2), np.zeros((1001, 1)), 1e-3, output_dt=1e-11,
+                 keep="series")

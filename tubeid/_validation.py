@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
 from collections.abc import Iterable
 from typing import Any
 
@@ -22,7 +23,8 @@ import numpy as np
 from tubeid.errors import Described, SpecificationError, shown
 
 __all__ = ["real", "positive", "non_negative", "integer", "open_unit", "one_of", "seed", "is_number", "limit",
-           "byte_size", "channel_count", "is_numeric_dtype", "numeric_array", "duration", "byte_count", "boolean"]
+           "byte_size", "channel_count", "is_numeric_dtype", "numeric_array", "duration", "byte_count", "boolean",
+           "allocation", "MEMORY_SHARE"]
 
 
 def _unit(unit: str | None) -> str:
@@ -262,6 +264,29 @@ def byte_size(nbytes: float) -> str:
     from dask.utils import format_bytes
 
     return format_bytes(int(nbytes)) if nbytes < 2**63 else f"{nbytes:.3g} B"
+
+
+#: Largest share of this machine's physical memory one request may ask for (:func:`allocation`).
+MEMORY_SHARE = 0.5
+
+
+def _physical_memory() -> float | None:
+    """This machine's physical memory [bytes], or None where the system does not say."""
+    try:
+        return float(os.sysconf("SC_PAGE_SIZE")) * float(os.sysconf("SC_PHYS_PAGES"))
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def allocation(field: str, value: Any, nbytes: float, what: str) -> None:
+    """Refuse, before anything is allocated, a request whose arrays need more than :data:`MEMORY_SHARE`
+    of this machine's physical memory, naming ``field``, its ``value``, the size and ``what`` it is for
+    (numpy would raise a MemoryError from deep inside, or, with the kernel's overcommit, let the
+    process be killed once the pages are touched)."""
+    total = _physical_memory()
+    if total is not None and nbytes > MEMORY_SHARE * total:
+        raise SpecificationError(field, value, f"needs {byte_size(nbytes)} for {what}: more than "
+                                 f"{MEMORY_SHARE:.0%} of this machine's memory ({byte_size(total)})")
 
 
 #: Frequency bins over which :func:`channel_count` states the memory of the cross-spectra.

@@ -26,7 +26,7 @@ import numpy as np
 import xarray as xr
 from numpy.typing import ArrayLike
 
-from tubeid._validation import non_negative, one_of, positive, real
+from tubeid._validation import allocation, non_negative, one_of, positive, real
 from tubeid._validation import seed as _seed
 from tubeid.dynamics.solver import METHODS, Stop, simulate
 from tubeid.dynamics.spectra import psd_matrix
@@ -250,7 +250,12 @@ def simulate_responses(
     else:
         M, D, K = model.matrices(*random_subsystem(sub, dispersion, 0, realisations, germs=germs))
     m = len(load.names)
-    loads = np.empty((len(realisations), int(round(settings.duration / settings.dt_load)) + 1, m))
+    n_load = int(round(settings.duration / settings.dt_load)) + 1
+    n_out = int(round(settings.duration / settings.output_dt)) + 1
+    per_realisation = 8.0 * (2 * n_load * m + (n_out * len(model.spec.sensors) if settings.keep != "psd" else 0))
+    allocation("settings.duration", settings.duration, len(realisations) * per_realisation,
+               f"the loads{' and series' if settings.keep != 'psd' else ''} of {len(realisations)} realisation(s)")
+    loads = np.empty((len(realisations), n_load, m))
     for i, s in enumerate(streams):
         spectrum = load if load_dispersion == 0.0 else randomised(load, sg_plus(m, load_dispersion, rng=s[1]))
         gaussian_loads(spectrum, settings.duration, settings.dt_load, [s[2]], interpolation="linear",

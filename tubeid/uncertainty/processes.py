@@ -53,7 +53,7 @@ import numpy as np
 import scipy.fft
 
 from tubeid.errors import SpecificationError
-from tubeid._validation import positive
+from tubeid._validation import allocation, positive
 from tubeid.uncertainty.loads import check_psd_matrices, psd_factor
 
 if TYPE_CHECKING:
@@ -149,6 +149,8 @@ def gaussian_loads(spectrum: LoadSpectrum, duration: float, dt: float, rngs: Seq
     df = 1.0 / (N * dt)
     K = int(np.floor(band / df * (1 + 1e-12)))  # bins 0..K lie in |f| <= band
     K = min(K, (N - 1) // 2)  # never the Nyquist bin (1/(2dt) > band makes this a no-op)
+    allocation("duration", duration, R * m * ((N // 2 + 1) * 8.0 + N * 4.0 + (0 if out is not None else n_t * 8.0)),
+               f"the synthesis of {R} realisation(s) of {m} load(s) over {n_t} samples")
     scale = _bin_scale(K, N, dt, interpolation)
     B = _factors(spectrum, K, df, m)  # (m, m): one factor for every in-band bin, or (K + 1, m, m)
 

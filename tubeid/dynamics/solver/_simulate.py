@@ -9,7 +9,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike
 
-from tubeid._validation import one_of
+from tubeid._validation import allocation, one_of
 from tubeid.dynamics.solver._base import Stop, TransientResult, assemble_result
 from tubeid.dynamics.solver._checks import prepare
 from tubeid.dynamics.solver._determinism import one_blas_thread
@@ -127,6 +127,9 @@ def _run(M, D, K, stops, B, C, loads, dt_load, output_dt, dt, method, keep, disc
     P = prepare(M, D, K, stops, B, C, loads, dt_load, output_dt, discard, method, tuple(METHODS), keep, sensor_names)
     integrator = METHODS[method]
     R, n_obs, S = P.R, P.C.shape[0], len(P.stops)
+    if keep == "series":
+        allocation("output_dt", output_dt, 8.0 * R * P.n_keep * n_obs,
+                   f"the series of {R} realisation(s): {P.n_keep} samples of {n_obs} output(s)")
     y_all = np.zeros((R, P.n_keep, n_obs)) if keep == "series" else None
     rms = np.zeros((R, n_obs))
     cf = np.zeros((R, S))
