@@ -673,3 +673,12 @@ def test_delta_f_likelihood_refuses_an_observable_named_like_its_own_variables(n
                      coords={"delta_F": [0.4, 0.5, 0.6]})
     with pytest.raises(SpecificationError, match=rf"^observable = '{name}': must be a non-empty name other than"):
         delta_f_likelihood(S, 1.25, n_bootstrap=0, observable=name)
+
+
+def test_a_fine_grid_beyond_the_machines_memory_is_refused_before_it_is_built():
+    """fine_grid(coarse, 10**9) ended in numpy's MemoryError (a 10^18-point grid)."""
+    from tubeid.identification import fine_grid, identify_r
+
+    coarse = identify_r(_model(3, 0.1, 0), EXP, refine=False)
+    with pytest.raises(SpecificationError, match=r"^n = 1000000000: needs [\d.]+ \w+ for a grid of 1000000000\^2 points"):
+        fine_grid(coarse, 10**9)

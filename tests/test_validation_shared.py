@@ -182,3 +182,14 @@ def test_huge_requests_are_refused_before_anything_is_allocated():
     with pytest.raises(SpecificationError, match=r"^output_dt = 1e-11: needs [\d.]+ \w+ for the series of 1 "):
         simulate(M, 0.01 * K, K, [], np.eye(2)[:, :1], np.eye(2), np.zeros((1001, 1)), 1e-3, output_dt=1e-11,
                  keep="series")
+
+
+def test_sg_plus_beyond_the_machines_memory_is_refused_before_any_draw():
+    from tubeid.uncertainty import sg_plus
+
+    with pytest.raises(SpecificationError, match=r"^n, size = \(1000000, \(\)\): needs [\d.]+ TiB for 1 draw\(s\) of "
+                                                 r"1000000 x 1000000 matrices"):
+        sg_plus(10**6, 0.5, rng=1)
+    with pytest.raises(SpecificationError, match=r"^n, size = \(10, \(1000000000,\)\): needs [\d.]+ TiB for 1000000000 "):
+        sg_plus(10, 0.5, size=10**9, rng=1)
+    assert sg_plus(3, 0.5, size=2, rng=1).shape == (2, 3, 3)

@@ -37,7 +37,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import xarray as xr
 
-from tubeid._validation import integer, is_number, one_of, positive
+from tubeid._validation import allocation, integer, is_number, one_of, positive
 from tubeid.errors import Described as _Desc, SpecificationError
 from tubeid.identification.loads import (distance_map, log_band_distance_map, log_spectral_distance_map,
                                          refine_grid, relative_weight)
@@ -199,6 +199,7 @@ def fine_grid(coarse: xr.Dataset, n: int, *, steps: float = 1.0,
     n = integer("n", n, minimum=2)
     steps = positive("steps", steps)
     dims = list(coarse.attrs["grid_dims"])
+    allocation("n", n, 8.0 * float(n) ** len(dims), f"a grid of {n}^{len(dims)} points (each a trial's simulations)")
     disc = [float(v) for v in coarse.attrs["r_opt_discrete"]]
     if centre is None:
         centre = disc

@@ -23,7 +23,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from tubeid._validation import numeric_array
+from tubeid._validation import allocation, numeric_array
 from tubeid.errors import Described as _Desc, SpecificationError
 from tubeid.seeds import rng_for
 
@@ -153,6 +153,8 @@ def sg_plus_germs(n: int, size: Size = (), *, rng: RngLike) -> tuple[np.ndarray,
     """
     n = _check_size_n(n, "n")
     shape = _check_shape(size)
+    allocation("n, size", (n, shape), 8.0 * math.prod(shape) * (2 * n * n + n * (n + 1) // 2),
+               f"{math.prod(shape)} draw(s) of {n} x {n} matrices (the germs, L and G)")
     gen = _as_rng(rng, "sg_plus_germs")
     return gen.standard_normal(shape + (n * (n - 1) // 2,)), gen.random(shape + (n,))
 
