@@ -28,14 +28,13 @@ def looked_up(path, field: str = "store", kind: str = "directory") -> tuple[path
     p = pathlib.Path(text)
     try:
         p.lstat()
-        resolved = os.path.realpath(p)
     except FileNotFoundError:
-        resolved = os.path.realpath(p)
+        pass
     except (OSError, ValueError) as exc:  # ENAMETOOLONG, ELOOP, EACCES on a parent, a NUL byte
         if getattr(exc, "errno", None) == errno.ENOTDIR:
             raise SpecificationError(field, text, "has a file, not a directory, among its parents") from None
         raise SpecificationError(field, text, f"cannot be looked up: {getattr(exc, 'strerror', None) or exc}") from None
-    return p, text, resolved
+    return p, text, os.path.realpath(p)
 
 
 def local_path(path, field: str = "store", kind: str = "directory") -> pathlib.Path:

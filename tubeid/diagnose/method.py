@@ -405,27 +405,14 @@ def _in_diagnose_terms(exc: SpecificationError) -> SpecificationError:
 def _refuse_store_in_use(store: Path) -> None:
     """Refuse a store whose lock a live run holds (a ``tubeid run`` on it, or a diagnosis by an earlier
     tubeid, which locked only its store), before anything in ``--out`` is removed or written."""
-    import time
+    from tubeid.runner.lock import refuse_if_held
 
-    from tubeid.runner.lock import LOCK_NAME, describe_holder, holder_state, read_lock
+    if store.is_dir() and not store.is_symlink():
+        refuse_if_held(store, field=f"out/{STORE_NAME}", advice=_WAIT.format(store=store))
 
-    if store.is_symlink() or not store.is_dir():
-        return
-    for _ in range(10):
-        rec = read_lock(store / LOCK_NAME)
-        if rec is None:
-            return
-        if rec:
-            break
-        time.sleep(0.05)  # being written (an O_EXCL creator), or damaged
-    else:
-        raise SpecificationError(f"out/{STORE_NAME}", str(store), f"has an unreadable lock file {LOCK_NAME}: if no "
-                                 "tubeid run is using it, remove that file; or choose another --out")
-    state, why = holder_state(rec, store / LOCK_NAME)
-    if state == "alive":
-        raise SpecificationError(f"out/{STORE_NAME}", str(store),
-                                 f"is in use by another tubeid run ({describe_holder(rec)}; {why}): wait for it to "
-                                 f"finish (`tubeid status {store}` shows its progress) or choose another --out")
+
+#: what to do about a diagnosis directory (or its store) another run holds
+_WAIT = "wait for it to finish (`tubeid status {store}` shows its progress) or choose another --out"
 
 
 def diagnose(data: xr.Dataset | str | os.PathLike, model: str | BundleSpec = "paper-simplified",
@@ -506,8 +493,7 @@ def diagnose(data: xr.Dataset | str | os.PathLike, model: str | BundleSpec = "pa
         # one diagnosis at a time in a directory, from its first check to its last file: a second one
         # (e.g. --overwrite) is refused before it removes or writes anything
         lock = StoreLock(outdir.path, log=lambda m: None if quiet else print(m, file=sys.stderr), field="out",
-                         advice=f"wait for it to finish (`tubeid status {outdir.path / STORE_NAME}` shows its "
-                                "progress) or choose another --out")
+                         advice=_WAIT.format(store=outdir.path / STORE_NAME))
         lock.acquire()
         from tubeid.diagnose.report import OUTPUT_FILES
 

@@ -63,7 +63,7 @@ import time
 from tubeid.errors import SpecificationError
 
 __all__ = ["StoreLock", "LOCK_NAME", "read_lock", "describe_holder", "holder_state", "LockLost", "lock_settings",
-           "remove_leftovers"]
+           "remove_leftovers", "refuse_if_held"]
 
 LOCK_NAME = ".tubeid-lock"
 _MAX_BREAK_DEPTH = 3
@@ -296,6 +296,35 @@ def remove_leftovers(store: pathlib.Path, current_token: str) -> list[str]:
     return sorted(removed)
 
 
+def _unreadable(path: pathlib.Path) -> str:
+    return f"has an unreadable lock file {path}: if no tubeid run is using this store, remove it"
+
+
+def _in_use(store: pathlib.Path, rec: dict, why: str, advice: str | None) -> str:
+    advice = advice or f"wait for it to finish (`tubeid status {store}` shows its progress) or use another --store"
+    return f"is in use by another tubeid run ({describe_holder(rec)}; {why}): {advice}"
+
+
+def refuse_if_held(store, *, field: str = "store", advice: str | None = None) -> None:
+    """Refuse (``SpecificationError`` naming ``field``), without taking it, a store whose lock a live run
+    holds or whose lock file stays unreadable, as :meth:`StoreLock.acquire` would; a free or stale lock
+    passes (the run that takes it breaks a stale one)."""
+    store = pathlib.Path(store)
+    path = store / LOCK_NAME
+    for _ in range(11):
+        rec = read_lock(path)
+        if rec is None:
+            return
+        if rec:
+            break
+        time.sleep(0.05)  # being written by an O_EXCL creator, or damaged
+    else:
+        raise SpecificationError(field, str(store), _unreadable(path))
+    state, why = holder_state(rec, path)
+    if state == "alive":
+        raise SpecificationError(field, str(store), _in_use(store, rec, why, advice))
+
+
 class StoreLock:
     """The lock of one store directory (see the module docstring). Use as a context manager.
 
@@ -351,17 +380,12 @@ class StoreLock:
             if not rec:  # being written by an O_EXCL creator, or damaged
                 unreadable += 1
                 if unreadable > 10:
-                    raise SpecificationError(
-                        self.field, str(self.store),
-                        f"has an unreadable lock file {self.path}: if no tubeid run is using this store, remove it")
+                    raise SpecificationError(self.field, str(self.store), _unreadable(self.path))
                 time.sleep(0.05)
                 continue
             state, why = holder_state(rec, self.path)
             if state == "alive":
-                advice = self.advice or (f"wait for it to finish (`tubeid status {self.store}` shows its progress) "
-                                         "or use another --store")
-                raise SpecificationError(self.field, str(self.store),
-                                         f"is in use by another tubeid run ({describe_holder(rec)}; {why}): {advice}")
+                raise SpecificationError(self.field, str(self.store), _in_use(self.store, rec, why, self.advice))
             self.log(f"tubeid: taking over the stale lock of {describe_holder(rec)} ({why})")
             _break(self.path, rec, me)
             time.sleep(0.01)
