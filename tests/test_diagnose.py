@@ -1325,6 +1325,94 @@ def test_the_runners_refusals_name_diagnoses_options(done, tmp_path, monkeypatch
     assert "--store" not in str(exc.value) and "--new-store" not in str(exc.value)
 
 
+
+def _options(command: str) -> set[str]:
+    """The long options of ``tubeid COMMAND`` (its parser, as the command line builds it)."""
+    from tubeid.cli import build_parser
+
+    sub = next(a for a in build_parser(command)._actions if a.dest == "command").choices[command]
+    return {o for a in sub._actions for o in a.option_strings if o.startswith("--")}
+
+
+def _strings(module_path):
+    """Every string literal of a module's code (f-string pieces included), docstrings left out."""
+    import ast
+
+    tree = ast.parse(module_path.read_text())
+    docs = {id(node.body[0].value) for node in ast.walk(tree)
+            if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and node.body
+            and isinstance(node.body[0], ast.Expr) and isinstance(node.body[0].value, ast.Constant)}
+    return [(n.lineno, n.value) for n in ast.walk(tree)
+            if isinstance(n, ast.Constant) and isinstance(n.value, str) and id(n) not in docs]
+
+
+def test_no_runner_message_names_an_option_diagnose_lacks():
+    """The runner's messages (everything diagnose runs: the runner but its commands' own modules, the path
+    checks, the errors) spell no option of ``tubeid run`` that ``tubeid diagnose`` lacks (--store,
+    --new-store, --no-verify, ...): such advice comes from the terms in force (tubeid.runner._terms), which
+    diagnose says in its own options; and diagnose's terms name only options it has, every one of them."""
+    import pathlib
+    import re
+
+    import tubeid
+    from tubeid.diagnose.method import _TERMS
+    from tubeid.runner import _terms
+
+    run_only = _options("run") - _options("diagnose")
+    assert {"--store", "--new-store", "--no-verify"} <= run_only
+    src = pathlib.Path(tubeid.__file__).parent
+    runner_only = {"cli.py", "bench.py", "testing.py", "_terms.py", "_embedded_worker.py"}  # tubeid run's own words
+    modules = [f for f in sorted((src / "runner").glob("*.py")) if f.name not in runner_only]
+    modules += [src / "_paths.py", src / "errors.py", src / "_validation.py"]
+    found = [(f.name, line, option) for f in modules for line, text in _strings(f)
+             for option in re.findall(r"--[a-z][a-z-]*", text) if option in run_only]
+    assert found == []
+    assert {f.name for f in dataclasses.fields(_terms.Terms)} == set(vars(_TERMS))
+    for name, words in vars(_TERMS).items():
+        assert words and set(re.findall(r"--[a-z][a-z-]*", words)) <= _options("diagnose"), (name, words)
+
+
+def test_the_runners_store_refusals_in_diagnoses_terms(tmp_path):
+    """The runner's refusals about a store, raised while diagnose speaks its terms (as it does around its
+    calls into the runner), name the store ``out/diagnose.zarr`` and advise --out / --overwrite, never
+    ``tubeid run``'s --store, --new-store or --no-verify; outside, the same refusals keep ``tubeid run``'s."""
+    from tubeid.diagnose.method import _TERMS
+    from tubeid.runner import store as st
+    from tubeid.runner._terms import speaking
+    from tubeid.runner.execute import _failed
+
+    other = tmp_path / "other.zarr"  # another study's store
+    zarr.open_group(str(other), mode="w", attributes={"format": st.FORMAT, "study_hash": "b" * 64})
+    legacy = tmp_path / "legacy.zarr"
+    zarr.open_group(str(legacy), mode="w", attributes={"format": sorted(st.LEGACY_FORMATS)[0]})
+    foreign = tmp_path / "foreign.zarr"  # a Zarr store tubeid has no record of writing
+    zarr.open_group(str(foreign), mode="w", attributes={"mine": 1})
+    stage = tmp_path / "stage.zarr"
+    zarr.open_group(str(stage), mode="w").create_group("fit", attributes={"stage_hash": "c" * 64})
+    (tmp_path / "file").write_text("")
+    refusals = {
+        "another study": lambda: st.check_store(other, "a" * 64),
+        "older layout": lambda: st.check_store(legacy, "a" * 64),
+        "no manifest": lambda: st.remove_store(foreign, dry_run=True),
+        "a file": lambda: st.prepare_path(tmp_path / "file"),
+        "other stage": lambda: st.check_stage(stage, "fit", "d" * 64),
+        "no flags": lambda: st.block_flags(stage, "fit"),
+        "block failed": lambda: (_ for _ in ()).throw(_failed(ZeroDivisionError("x"), "block (1,)")),
+    }
+    for case, refuse in refusals.items():
+        with speaking(_TERMS), pytest.raises((SpecificationError, RuntimeError)) as exc:
+            refuse()
+        said = str(exc.value)
+        for option in ("--store", "--new-store", "--no-verify", "tubeid run"):
+            assert option not in said, (case, said)
+        assert "--out" in said or "--overwrite" in said, (case, said)
+        if isinstance(exc.value, SpecificationError):
+            assert exc.value.field == "out/diagnose.zarr", (case, said)
+        with pytest.raises((SpecificationError, RuntimeError)) as exc:  # tubeid run's own words
+            refuse()
+        assert "--store" in str(exc.value) or "--new-store" in str(exc.value) or "--no-verify" in str(exc.value), case
+
+
 _PAUSED = """
 import json, pathlib, sys, time
 from tubeid.diagnose import DiagnoseSettings, diagnose

@@ -585,7 +585,7 @@ def test_new_store_resumes_its_own_store_and_diverts_beside_dot(defs, tmp_path, 
     link.symlink_to(store)
     beside = run(defs["study"], link, workers=0, quiet=True, new_store=True)
     assert beside.store.parent == tmp_path.resolve() and beside.store.name.startswith("link-") and beside.computed == 4
-    with pytest.raises(SpecificationError, match="root directory: --new-store has no name"):
+    with pytest.raises(SpecificationError, match="root directory: a new store has no name"):
         run(defs["summed"], "/", workers=0, quiet=True, new_store=True)
 
 

@@ -141,16 +141,18 @@ class BlockFailed(RuntimeError):
         The study (or pipeline stage) and the block, e.g. ``"study 'bad', block (1,) (r = 2 … 3)"``.
     cause : str
         The task's exception as ``"Type: message"``.
+    changed : str, optional
+        What to do if what the store was made from changes instead, in the user's command's options
+        (the runner says it: for ``tubeid run``, "for a changed study definition: use --new-store ...").
     """
 
-    def __init__(self, where: str, cause: str) -> None:
-        self.where, self.cause = where, cause
+    def __init__(self, where: str, cause: str, changed: str = "") -> None:
+        self.where, self.cause, self.changed = where, cause, changed
         super().__init__(f"{where} failed: {_clip(cause, 4 * VALUE_CHARS)}; the blocks finished so far are stored: "
-                         "once the cause is fixed, the same command resumes (a changed study definition needs "
-                         "--new-store or --overwrite)")
+                         "once the cause is fixed, the same command resumes" + (f" ({changed})" if changed else ""))
 
     def __reduce__(self):
-        return type(self), (self.where, self.cause)
+        return type(self), (self.where, self.cause, self.changed)
 
 
 class Described(str):

@@ -81,6 +81,7 @@ from tubeid.errors import SpecificationError
 from tubeid.mechanics.effects import effect_from_dict, effect_to_dict
 from tubeid.mechanics.library import resolve_spec
 from tubeid.mechanics.spec import BundleSpec, spec_from_dict, spec_to_dict
+from tubeid.runner._terms import Terms, speaking
 from tubeid.uncertainty.random_matrices import delta_max
 
 __all__ = ["DiagnoseContext", "Diagnosis", "diagnose", "load_context", "data_hash", "effects_to_json",
@@ -376,30 +377,10 @@ def _check_out(out, source: Path | None) -> None:
                                  "user's record; choose another --out (the record's own directory is fine)")
 
 
-#: the runner's advice, in ``tubeid run``'s options, as ``tubeid diagnose``'s (its store is ``--out``'s
-#: ``diagnose.zarr``: no ``--store``, no ``--new-store``); longest first
-_IN_DIAGNOSE_TERMS = (
-    ("or choose another --store, or --new-store to write beside it", "or choose another --out"),
-    ("use --new-store to write a new store beside it or --overwrite", "choose another --out or use --overwrite"),
-    ("use --new-store, or --overwrite", "choose another --out, or use --overwrite"),
-    ("use --new-store or --overwrite", "choose another --out or use --overwrite"),
-    ("use --new-store", "choose another --out"),
-    ("--new-store / --overwrite", "another --out / --overwrite"),
-    ("use another --store", "choose another --out"),
-    ("--new-store", "another --out"),
-    ("--store", "--out"),
-)
-
-
-def _in_diagnose_terms(exc: SpecificationError) -> SpecificationError:
-    """A refusal of the runner (about the store ``--out``/diagnose.zarr) in ``tubeid diagnose``'s options."""
-    rule = str(exc.rule)
-    if "--store" not in rule and "--new-store" not in rule and exc.field != "store":
-        return exc
-    for old, new in _IN_DIAGNOSE_TERMS:
-        rule = rule.replace(old, new)
-    field = f"out/{STORE_NAME}" if exc.field == "store" else exc.field
-    return SpecificationError(field, exc.value, rule)
+#: the runner's refusals about the store, worded in ``tubeid diagnose``'s options: its store is ``--out``'s
+#: ``diagnose.zarr`` (no ``--store``, no ``--new-store``: a new store is another ``--out``)
+_TERMS = Terms(store=f"out/{STORE_NAME}", option="--out", elsewhere="choose another --out", beside="choose another --out",
+               rebuild="`tubeid diagnose` with the same --out", changed="other data, model or settings")
 
 
 def _refuse_store_in_use(store: Path) -> None:
@@ -519,12 +500,11 @@ def diagnose(data: xr.Dataset | str | os.PathLike, model: str | BundleSpec = "pa
             _check_store(store, study_hash(STAGES_FILE.read_text(), overrides), overrides)
         from tubeid.runner.store import prepare_path, remove_store
 
-        try:  # what the runner refuses up front (a store it cannot write; with --overwrite one not tubeid's), now
+        # what the runner refuses up front (a store it cannot write; with --overwrite one not tubeid's), now
+        with speaking(_TERMS):
             prepare_path(store)
             if overwrite:
                 remove_store(store, dry_run=True)
-        except SpecificationError as exc:
-            raise _in_diagnose_terms(exc) from None
         if overwrite:
             outdir.remove([n for n in outdir.entries() if n != source_name])
         outdir.record_directory(STORE_NAME)
@@ -536,15 +516,13 @@ def diagnose(data: xr.Dataset | str | os.PathLike, model: str | BundleSpec = "pa
         _CONTEXTS[(overrides["data"], h, overrides["model"], overrides["settings"])] = ctx
         from threadpoolctl import threadpool_limits
 
-        try:
-            with threadpool_limits(limits=1):  # many small matrices: BLAS threads would only contend
-                report = run(STAGES_FILE, store, workers=workers, scheduler=scheduler, overrides=overrides,
-                             overwrite=overwrite, progress=progress, quiet=quiet)
-        except SpecificationError as exc:  # the runner's advice names its own options (--store, --new-store)
-            raise _in_diagnose_terms(exc) from None
-        from tubeid.diagnose.report import assemble
+        # the runner's refusals name diagnose's options (--out), not its own (--store, --new-store)
+        with threadpool_limits(limits=1), speaking(_TERMS):  # many small matrices: BLAS threads would only contend
+            report = run(STAGES_FILE, store, workers=workers, scheduler=scheduler, overrides=overrides,
+                         overwrite=overwrite, progress=progress, quiet=quiet)
+            from tubeid.diagnose.report import assemble
 
-        diagnosis = assemble(store, ctx)
+            diagnosis = assemble(store, ctx)
         diagnosis.report["runner"] = {
             "store": str(store.resolve()) if tmp is None else None, "workers": report.workers,
             "tasks_computed": report.computed, "tasks_reused": report.skipped,

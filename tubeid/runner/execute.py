@@ -33,6 +33,7 @@ from tubeid.errors import BlockFailed, SpecificationError
 from tubeid.runner.integrity import repair_structure, verify
 from tubeid.runner.lock import StoreLock
 from tubeid._paths import local_path
+from tubeid.runner._terms import current as _terms
 from tubeid.runner.pipeline import End, Pipeline, stage_hash
 from tubeid.runner.status import NOT_NEEDED
 from tubeid.runner.store import (append_history, block_flags, check_blocks, check_stage, check_store, history_line,
@@ -735,15 +736,16 @@ def run(study_path: str | os.PathLike, store: str | os.PathLike | None = None, *
     scheduler = scheduler_address(scheduler) if workers is None and client is None else scheduler
     if scheduler and workers is not None:
         raise SpecificationError("workers", workers, "give either --workers or --scheduler, not both")
+    terms = _terms()
     if store is None:
-        path = local_path(default_store(study.name), field=f"store (the default one, named after study {study.name!r}: "
-                                                           "give --store, or rename the study)")
+        path = local_path(default_store(study.name), field=f"{terms.store} (the default one, named after study "
+                                                           f"{study.name!r}: give {terms.option}, or rename the study)")
     else:
-        path = local_path(store)
+        path = local_path(store, field=terms.store)
     if new_store and _holds_another(path, key):
         path = pathlib.Path(os.path.abspath(path))  # "." and ".." name no directory to write beside
         if not path.name:
-            raise SpecificationError("store", str(store), "is the root directory: --new-store has no name to write "
+            raise SpecificationError(terms.store, str(store), "is the root directory: a new store has no name to write "
                                      "<store>-<hash8>.zarr beside it; give the store's own path")
         path = path.with_name(f"{path.name.removesuffix('.zarr')}-{key[:8]}.zarr")
     path = prepare_path(path).resolve()
@@ -1089,7 +1091,8 @@ def _failed(exc: Exception, label) -> BaseException:
     else becomes :class:`~tubeid.errors.BlockFailed` naming the block."""
     if isinstance(exc, SpecificationError):
         return SpecificationError(exc.field, exc.value, f"{exc.rule} (in {label})")
-    return BlockFailed(label, f"{type(exc).__name__}: {exc}")
+    t = _terms()
+    return BlockFailed(label, f"{type(exc).__name__}: {exc}", f"for {t.changed}: {t.beside}, or use --overwrite")
 
 
 def _run_here(fn, todo, report, progress, desc=None, lock=None, label=lambda index: f"block {index}"):

@@ -61,6 +61,7 @@ import threading
 import time
 
 from tubeid.errors import SpecificationError
+from tubeid.runner._terms import current as _terms
 
 __all__ = ["StoreLock", "LOCK_NAME", "read_lock", "describe_holder", "holder_state", "LockLost", "lock_settings",
            "remove_leftovers", "refuse_if_held"]
@@ -300,16 +301,18 @@ def _unreadable(path: pathlib.Path) -> str:
     return f"has an unreadable lock file {path}: if no tubeid run is using this store, remove it"
 
 
-def _in_use(store: pathlib.Path, rec: dict, why: str, advice: str | None) -> str:
-    advice = advice or f"wait for it to finish (`tubeid status {store}` shows its progress) or use another --store"
+def _in_use(store: pathlib.Path, rec: dict, why: str, advice: str | None, terms=None) -> str:
+    advice = advice or f"wait for it to finish (`tubeid status {store}` shows its progress) or {(terms or _terms()).elsewhere}"
     return f"is in use by another tubeid run ({describe_holder(rec)}; {why}): {advice}"
 
 
-def refuse_if_held(store, *, field: str = "store", advice: str | None = None) -> None:
+def refuse_if_held(store, *, field: str | None = None, advice: str | None = None) -> None:
     """Refuse (``SpecificationError`` naming ``field``), without taking it, a store whose lock a live run
     holds or whose lock file stays unreadable, as :meth:`StoreLock.acquire` would; a free or stale lock
-    passes (the run that takes it breaks a stale one)."""
+    passes (the run that takes it breaks a stale one). ``field`` and ``advice`` default to the runner's
+    terms in force (:mod:`tubeid.runner._terms`)."""
     store = pathlib.Path(store)
+    field = _terms().store if field is None else field
     path = store / LOCK_NAME
     for _ in range(11):
         rec = read_lock(path)
@@ -335,14 +338,15 @@ class StoreLock:
     log : callable, optional
         ``log(message)`` for the take-over of a stale lock.
     field, advice : str, optional
-        How a refusal names the directory (default ``"store"``) and what it tells the user to do when
-        another run holds it (default: wait, ``tubeid status``, or another ``--store``); a command
-        whose options differ (``tubeid diagnose --out``) gives its own.
+        How a refusal names the directory and what it tells the user to do when another run holds it
+        (default: wait, ``tubeid status``, or another store, in the runner's terms in force when the
+        lock is made, :mod:`tubeid.runner._terms`: ``"store"`` and ``--store`` for ``tubeid run``).
     """
 
-    def __init__(self, store, log=None, *, field: str = "store", advice: str | None = None):
+    def __init__(self, store, log=None, *, field: str | None = None, advice: str | None = None):
         self.store = pathlib.Path(store)
-        self.field = field
+        self.terms = _terms()
+        self.field = self.terms.store if field is None else field
         self.advice = advice
         self.path = self.store / LOCK_NAME
         self.log = log or (lambda msg: None)
@@ -385,7 +389,7 @@ class StoreLock:
                 continue
             state, why = holder_state(rec, self.path)
             if state == "alive":
-                raise SpecificationError(self.field, str(self.store), _in_use(self.store, rec, why, self.advice))
+                raise SpecificationError(self.field, str(self.store), _in_use(self.store, rec, why, self.advice, self.terms))
             self.log(f"tubeid: taking over the stale lock of {describe_holder(rec)} ({why})")
             _break(self.path, rec, me)
             time.sleep(0.01)

@@ -20,6 +20,7 @@ import numpy as np
 
 from tubeid.errors import SpecificationError, shown
 from tubeid._paths import local_path
+from tubeid.runner._terms import current as _terms
 from tubeid.runner.study import RESERVED
 
 __all__ = ["store_status", "pipeline_status", "FLAG", "BOOKKEEPING", "FORMAT", "PIPELINE_FORMAT", "LEGACY_FORMATS",
@@ -57,7 +58,7 @@ def _stage_names(attrs: dict, path) -> list[str]:
     """A pipeline store's ``stages`` attribute, refused in one line if it is not a list of names (damaged)."""
     stages = attrs.get("stages", [])
     if not isinstance(stages, list) or not all(isinstance(n, str) and n for n in stages):
-        raise SpecificationError("store", str(path), f"has a damaged attribute stages = {shown(stages)} (not a list "
+        raise SpecificationError(_terms().store, str(path), f"has a damaged attribute stages = {shown(stages)} (not a list "
                                  "of stage names): it cannot be read as a pipeline store")
     return stages
 
@@ -130,16 +131,16 @@ def store_status(path: str | os.PathLike, group: str | None = None) -> dict:
     """
     from tubeid.runner.lock import LOCK_NAME, read_lock
 
-    p = local_path(path)
+    p = local_path(path, field=_terms().store)
     if not p.is_dir():
-        raise SpecificationError("store", str(path), "no such store")
+        raise SpecificationError(_terms().store, str(path), "no such store")
     try:
         root = _attrs(p)
     except Exception as exc:
         _refuse_if_being_created(p)
-        raise SpecificationError("store", str(path), f"is not a readable tubeid study store ({type(exc).__name__}: {exc})") from exc
+        raise SpecificationError(_terms().store, str(path), f"is not a readable tubeid study store ({type(exc).__name__}: {exc})") from exc
     if root.get("format") in LEGACY_FORMATS:
-        raise SpecificationError("store", str(path), f"was written by an older tubeid (layout {root.get('format')}): "
+        raise SpecificationError(_terms().store, str(path), f"was written by an older tubeid (layout {root.get('format')}): "
                                  "xarray.open_zarr still reads it; rerun its study with --overwrite for the current layout")
     if group is None and root.get("format") == PIPELINE_FORMAT:
         return pipeline_status(p)
@@ -152,11 +153,11 @@ def store_status(path: str | os.PathLike, group: str | None = None) -> dict:
             raise SpecificationError("group", group, f"stage not started yet in {path}")
     elif root.get("format") != FORMAT:
         _refuse_if_being_created(p)
-        raise SpecificationError("store", str(path), "is not a tubeid study store")
+        raise SpecificationError(_terms().store, str(path), "is not a tubeid study store")
     try:
         attrs = _attrs(p, group) if group else root
     except Exception as exc:
-        raise SpecificationError("store", f"{path} (stage {group})", f"has unreadable group metadata ({type(exc).__name__}): "
+        raise SpecificationError(_terms().store, f"{path} (stage {group})", f"has unreadable group metadata ({type(exc).__name__}): "
                                  "`tubeid run` rebuilds the stage") from exc
     damaged = ""
     try:
@@ -197,16 +198,16 @@ def _refuse_if_being_created(p: pathlib.Path) -> None:
     _read_manifest(p)  # an unreadable one is refused by `tubeid run` too: say that instead
     rec = read_lock(p / LOCK_NAME)
     if rec == {}:
-        raise SpecificationError("store", str(p), f"has no results yet and an unreadable lock file {p / LOCK_NAME} (a "
+        raise SpecificationError(_terms().store, str(p), f"has no results yet and an unreadable lock file {p / LOCK_NAME} (a "
                                  "run writing it now, or one killed while writing it): if no tubeid run is using this "
                                  "store, remove it")
     if rec and holder_state(rec, p / LOCK_NAME)[0] == "alive":
-        raise SpecificationError("store", str(p), f"is being created by a run in progress ({describe_holder(rec)}); "
+        raise SpecificationError(_terms().store, str(p), f"is being created by a run in progress ({describe_holder(rec)}); "
                                  "it has no block yet")
     if emptied and not own_only:
-        raise SpecificationError("store", str(p), "holds no results: an --overwrite emptied it (the files tubeid did not "
+        raise SpecificationError(_terms().store, str(p), "holds no results: an --overwrite emptied it (the files tubeid did not "
                                  "write are kept) and stopped before it wrote the new store; `tubeid run` makes it anew")
-    raise SpecificationError("store", str(p), "holds only the start of a run that stopped before its first block (no "
+    raise SpecificationError(_terms().store, str(p), "holds only the start of a run that stopped before its first block (no "
                              "result): `tubeid run` with the same study makes it again")
 
 
@@ -234,7 +235,7 @@ def pipeline_status(path: str | os.PathLike) -> dict:
     names = _stage_names(attrs, path)
     status = attrs.get("stage_status", {})
     if not isinstance(status, dict):
-        raise SpecificationError("store", str(path), f"has a damaged attribute stage_status = {shown(status)} (not "
+        raise SpecificationError(_terms().store, str(path), f"has a damaged attribute stage_status = {shown(status)} (not "
                                  "a mapping of stage names to states)")
     stages = {}
     for name in names:

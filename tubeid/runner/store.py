@@ -54,6 +54,7 @@ import zarr
 
 from tubeid.errors import SpecificationError
 from tubeid._paths import local_path
+from tubeid.runner._terms import current as _terms
 from tubeid.runner.status import BOOKKEEPING, FLAG, FORMAT, LEGACY_FORMATS, PIPELINE_FORMAT, pipeline_status, store_status
 
 if TYPE_CHECKING:  # imported where used: `tubeid status` needs no xarray
@@ -129,7 +130,7 @@ def _system_error(exc: BaseException) -> OSError | None:
 def cannot_write(path, exc: OSError) -> SpecificationError:
     """``cannot write <file>: <strerror>``: a write the file system refused (the store stays resumable)."""
     where = exc.filename or path
-    return SpecificationError("store", str(path), f"cannot write {where}: {exc.strerror or os.strerror(exc.errno)} "
+    return SpecificationError(_terms().store, str(path), f"cannot write {where}: {exc.strerror or os.strerror(exc.errno)} "
                               "(the store is left as it is: rerun once that is fixed, and it resumes)")
 
 
@@ -147,7 +148,7 @@ def _zarr_writes(path):
         if system is not None:
             raise cannot_write(path, system) from exc
         raise SpecificationError(
-            "store", str(path),
+            _terms().store, str(path),
             f"cannot be written by zarr ({type(exc).__name__}: {str(exc)[:200]}): something in it that tubeid did "
             "not write (e.g. a directory holding a zarr.json that is not Zarr metadata) confuses zarr; tubeid "
             "left it in place: move it out of the store and rerun") from exc
@@ -183,12 +184,13 @@ def prepare_path(path) -> pathlib.Path:
     would read as a URL (:func:`local_path`), or that is a symbolic link (also a dangling one): tubeid
     would create, write and with ``--overwrite`` replace what it points to, somewhere else than the path
     given. Links among its parent directories are followed as usual."""
-    p = local_path(path)
+    t = _terms()
+    p = local_path(path, field=t.store)
     if p.is_symlink():
-        raise SpecificationError("store", str(p), f"is a symbolic link (to {os.readlink(p)}): tubeid does not write "
-                                 "through a link; give the directory it points to, or another path")
+        raise SpecificationError(t.store, str(p), f"is a symbolic link (to {os.readlink(p)}): tubeid does not write "
+                                 f"through a link; give the directory it points to, or {t.elsewhere}")
     if p.exists() and not p.is_dir():
-        raise SpecificationError("store", str(p), "exists and is not a directory (Zarr store)")
+        raise SpecificationError(t.store, str(p), f"exists and is not a directory (Zarr store): {t.elsewhere}")
     target = p if p.exists() else p.parent
     while not target.exists():  # the nearest existing ancestor must let us create the rest
         target = target.parent
@@ -197,7 +199,7 @@ def prepare_path(path) -> pathlib.Path:
         os.close(fd)
         os.unlink(probe)
     except OSError as exc:
-        raise SpecificationError("store", str(p), f"is not writable ({exc.strerror} in {target})") from exc
+        raise SpecificationError(t.store, str(p), f"is not writable ({exc.strerror} in {target})") from exc
     return p
 
 
@@ -295,7 +297,7 @@ def creation_interrupted(path, group: str | None = None) -> bool:
 def check_store(path, study_hash: str) -> str:
     """``"new"`` if there is no store at ``path`` (or only tubeid's own creation of it, interrupted:
     :func:`creation_interrupted`, made again by the run); ``"resume"`` if it holds this study; else refuse."""
-    p = pathlib.Path(path)
+    p, t = pathlib.Path(path), _terms()
     if not p.exists() or (p.is_dir() and not (p / "zarr.json").exists() and all(_own_file(c.name) for c in p.iterdir())):
         return "new"
     if p.is_dir() and creation_interrupted(p):
@@ -309,30 +311,30 @@ def check_store(path, study_hash: str) -> str:
             return "new"
         ours = bool(recorded) and recorded.get("") == "group"
         if ours:  # tubeid made it, and blocks were written in it (else: an interrupted creation, made again)
-            raise SpecificationError("store", str(p), "exists and is not a tubeid study store any more: its root "
+            raise SpecificationError(t.store, str(p), "exists and is not a tubeid study store any more: its root "
                                      "metadata (zarr.json) is missing, yet it holds blocks tubeid wrote (an --overwrite "
                                      "that was interrupted, or damage), of a study it cannot name; rerun with "
-                                     "--overwrite (which removes only what tubeid wrote) or choose another path")
-        raise SpecificationError("store", str(p), "exists and is not a tubeid study store (it holds files tubeid did not "
-                                 "write); choose another path")
+                                     f"--overwrite (which removes only what tubeid wrote) or {t.elsewhere}")
+        raise SpecificationError(t.store, str(p), "exists and is not a tubeid study store (it holds files tubeid did not "
+                                 f"write); {t.elsewhere}")
     try:
         attrs = read_attrs(p)
     except Exception as exc:
-        raise SpecificationError("store", str(p), f"exists but is not a readable Zarr store ({type(exc).__name__}: "
-                                 f"{exc}); choose another path or --overwrite") from exc
+        raise SpecificationError(t.store, str(p), f"exists but is not a readable Zarr store ({type(exc).__name__}: "
+                                 f"{exc}); {t.elsewhere} or use --overwrite") from exc
     fmt = attrs.get("format")
     if fmt in LEGACY_FORMATS:
-        raise SpecificationError("store", str(p), f"was written by an older tubeid (layout {fmt}): xarray.open_zarr "
-                                 "still reads it; to run, use --new-store (it kept no record of what it wrote, so "
+        raise SpecificationError(t.store, str(p), f"was written by an older tubeid (layout {fmt}): xarray.open_zarr "
+                                 f"still reads it; to run, {t.beside} (it kept no record of what it wrote, so "
                                  "tubeid does not replace it: remove it yourself to reuse the path)")
     if fmt not in (FORMAT, PIPELINE_FORMAT):
-        raise SpecificationError("store", str(p), "exists but is not a tubeid study store; choose another path or --overwrite")
+        raise SpecificationError(t.store, str(p), f"exists but is not a tubeid study store; {t.elsewhere} or use --overwrite")
     if attrs.get("study_hash") != study_hash:
         raise SpecificationError(
-            "store", str(p),
+            t.store, str(p),
             f"was made by a different study definition (study {attrs.get('study_name')!r}, hash "
             f"{str(attrs.get('study_hash'))[:12]} here vs {study_hash[:12]} now); refusing to mix them: "
-            "use --new-store to write a new store beside it or --overwrite to replace it")
+            f"{t.beside} or use --overwrite to replace it")
     return "resume"
 
 
@@ -348,7 +350,7 @@ def _read_manifest(p: pathlib.Path) -> dict:
             raise TypeError
         return nodes
     except (ValueError, KeyError, TypeError, OSError):
-        raise SpecificationError("store", str(p), f"has an unreadable manifest {MANIFEST_NAME}: tubeid cannot tell "
+        raise SpecificationError(_terms().store, str(p), f"has an unreadable manifest {MANIFEST_NAME}: tubeid cannot tell "
                                  "what it wrote there and will not delete or replace anything in it") from None
 
 
@@ -469,9 +471,10 @@ def _check_nodes(p: pathlib.Path, nodes: dict) -> None:
 
     outside = [n for n in nodes if not inside(n)]
     if outside:
-        raise SpecificationError("store", str(p), f"its manifest {MANIFEST_NAME} lists {outside[:3]} outside the store: "
+        t = _terms()
+        raise SpecificationError(t.store, str(p), f"its manifest {MANIFEST_NAME} lists {outside[:3]} outside the store: "
                                  "tubeid never writes there, so it deletes nothing (the manifest was edited or damaged; "
-                                 "remove the store yourself, or choose another --store)")
+                                 f"remove the store yourself, or {t.elsewhere})")
 
 
 def _remove_nodes(p: pathlib.Path, nodes: dict) -> None:
@@ -497,11 +500,11 @@ def remove_store(path, *, keep_lock: bool = True, dry_run: bool = False) -> list
     new. A directory that holds no tubeid store is refused (``SpecificationError``), as is a store
     whose manifest is unreadable. ``dry_run``: only the refusals, nothing removed.
     """
-    p = pathlib.Path(path)
+    p, t = pathlib.Path(path), _terms()
     if not p.exists():
         return []
     if not p.is_dir():
-        raise SpecificationError("store", str(p), "is a file, not a store directory")
+        raise SpecificationError(t.store, str(p), "is a file, not a store directory")
     manifest = (p / MANIFEST_NAME).exists()
     nodes = _read_manifest(p)  # {} without a manifest, or for a store an earlier --overwrite emptied
     if nodes:
@@ -513,10 +516,10 @@ def remove_store(path, *, keep_lock: bool = True, dry_run: bool = False) -> list
             fmt = None
         why = (f"was written by an older tubeid (layout {fmt}), which kept no record of what it wrote"
                if fmt in LEGACY_FORMATS else f"has no manifest ({MANIFEST_NAME}) of what tubeid wrote")
-        raise SpecificationError("store", str(p), f"{why}: refusing to delete anything in it (remove it yourself, "
-                                 "or choose another --store, or --new-store to write beside it)")
+        raise SpecificationError(t.store, str(p), f"{why}: refusing to delete anything in it (remove it yourself, "
+                                 f"or {t.elsewhere_or_beside})")
     elif not (manifest or all(_own_file(c.name) for c in p.iterdir())):
-        raise SpecificationError("store", str(p), "exists and is not a tubeid store: refusing to delete it (choose another --store)")
+        raise SpecificationError(t.store, str(p), f"exists and is not a tubeid store: refusing to delete it ({t.elsewhere})")
     _check_nodes(p, nodes)
     if dry_run:
         return []
@@ -686,16 +689,16 @@ def check_stage(path, name: str, stage_hash: str) -> str:
     if "format" not in attrs and "stage_hash" not in attrs:
         if creation_interrupted(path, name):
             return "new"
-        raise SpecificationError("store", f"{path} (stage {name})", f"holds a group {name!r} without stage provenance "
+        raise SpecificationError(_terms().store, f"{path} (stage {name})", f"holds a group {name!r} without stage provenance "
                                  "(its attributes were lost, or tubeid did not write it): tubeid cannot tell which "
-                                 "stage it holds and leaves it in place; use --new-store, or --overwrite (which "
+                                 f"stage it holds and leaves it in place; {_terms().beside}, or use --overwrite (which "
                                  "removes only what tubeid wrote)")
     if attrs.get("stage_hash") != stage_hash:
         raise SpecificationError(
-            "store", f"{path} (stage {name})",
+            _terms().store, f"{path} (stage {name})",
             f"holds stage {name!r} built from different inputs (hash {str(attrs.get('stage_hash'))[:12]} here vs "
             f"{stage_hash[:12]} now: an earlier stage's result or the code that derives this stage from it changed); "
-            "refusing to mix them: use --new-store or --overwrite")
+            f"refusing to mix them: {_terms().beside}, or use --overwrite")
     return "resume"
 
 
@@ -773,9 +776,9 @@ def block_flags(path, group=None) -> np.ndarray:
         flags = read_flags(path, group)[0]
     except KeyError:
         where = f"{path}" + (f" (stage {group})" if group else "")
-        raise SpecificationError("store", where, f"has no block flags ({_node(group, f'{BOOKKEEPING}/{FLAG}')} is "
+        raise SpecificationError(_terms().store, where, f"has no block flags ({_node(group, f'{BOOKKEEPING}/{FLAG}')} is "
                                  "missing: the store was damaged, or an earlier tubeid was stopped while creating it); "
-                                 "`tubeid run` without --no-verify rebuilds them (the blocks it cannot prove are "
+                                 f"{_terms().rebuild} rebuilds them (the blocks it cannot prove are "
                                  "recomputed)") from None
     return (flags != 0).astype(np.uint8)
 
@@ -796,7 +799,7 @@ def _check_blocks(path, study, chunks, group=None) -> None:
             "chunks", dict(zip(study.axes, now_)),
             f"{where} was written in blocks of {dict(zip(study.axes, stored))}; a block layout that differs "
             "(e.g. another tubeid.runner.default-chunk / TUBEID_RUNNER__DEFAULT_CHUNK here or on a worker) "
-            "would write the wrong regions: use the store's configuration, or --new-store / --overwrite")
+            f"would write the wrong regions: use the store's configuration, or {_terms().beside}, or use --overwrite")
 
 
 def _stored_chunks(path, group, study) -> list[int] | None:
@@ -934,5 +937,5 @@ def open_pipeline(path: str | os.PathLike) -> dict[str, xr.Dataset]:
     """
     st = store_status(path)
     if "stages" not in st:
-        raise SpecificationError("store", str(path), "is a single-study store, not a pipeline (use open_results)")
+        raise SpecificationError(_terms().store, str(path), "is a single-study store, not a pipeline (use open_results)")
     return {name: open_results(path, name) for name, s in st["stages"].items() if s["started"]}
