@@ -1326,6 +1326,18 @@ def test_the_runners_refusals_name_diagnoses_options(done, tmp_path, monkeypatch
 
 
 
+@pytest.mark.parametrize("reference, rule", [("no-such-model", "unknown built-in model"),
+                                             ("missing.yaml", "does not exist or is not a file")])
+def test_an_unknown_delta_reference_is_refused_naming_the_setting(tmp_path, reference, rule):
+    """An unknown reference model (a name or a missing file) is refused naming settings.delta_reference, the
+    option the user gave (it said ``model = 'no-such-model'`` beside the declared --model, or ``specification
+    file = ...``), before any run."""
+    with pytest.raises(SpecificationError, match=rule) as exc:
+        diagnose(record(duration=24.0), "paper-reference", DiagnoseSettings(delta_reference=str(tmp_path / reference)
+                                                                            if reference.endswith(".yaml") else reference))
+    assert exc.value.field == "settings.delta_reference" and reference in str(exc.value.value)
+
+
 def _options(command: str) -> set[str]:
     """The long options of ``tubeid COMMAND`` (its parser, as the command line builds it)."""
     from tubeid.cli import build_parser

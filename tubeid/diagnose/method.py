@@ -177,8 +177,12 @@ def _context(data: xr.Dataset, spec0: BundleSpec, settings: DiagnoseSettings) ->
     if max(grid) >= dmax:
         raise SpecificationError("settings.delta_f_grid", grid, f"must lie in (0, {dmax:.4f}) for the {settings.load} load "
                                  f"(m = {m})")
-    if settings.delta_reference is not None:
-        resolve_spec(settings.delta_reference)  # refused here if unknown
+    if settings.delta_reference is not None:  # refused here if unknown, naming the setting (not the declared model)
+        try:
+            resolve_spec(settings.delta_reference)
+        except SpecificationError as exc:
+            rule = exc.rule if exc.value == settings.delta_reference else str(exc)  # a field inside its file: kept
+            raise SpecificationError("settings.delta_reference", settings.delta_reference, rule) from None
     if settings.form == "simplified" and meas.fine_seconds < settings.segment_seconds - meas.dt:
         raise SpecificationError("settings.fine_segment_seconds", settings.fine_segment_seconds,
                                  f"half a block of this record is {meas.fine_seconds:.4g} s, shorter than segment_seconds = "
