@@ -4,7 +4,8 @@
 
 Every case with every seed, or with ``--paired`` the i-th case with the i-th seed. Each record is made by ``tubeid.diagnose.testing.make_record`` (the reference model with the case's
 effects written by hand, ``studies/diagnose_effects.py``'s ``CASES``; ``added_mass_xF``: the centre
-tube's density × F, 7 sensors), written to NetCDF in DIR, then
+tube's density × F, 7 sensors), written to NetCDF-3 in DIR (scipy: the core install writes it, as
+diagnose's own copy of a record; the same values as NetCDF-4, float64), then
 diagnosed by the command line of this interpreter (``python -m tubeid diagnose REC.nc --model NAME --out DIR/... --workers 2``).
 Printed per record: case, seed, wall time of the diagnosis, p-value, named effects and their
 parameters, whether exactly the true effects are named, whether explained after.
@@ -45,6 +46,7 @@ def main() -> None:
     p.add_argument("--dir", default="diagnose-records", help="where records and diagnoses are written")
     args = p.parse_args()
     from tubeid.diagnose.testing import make_record
+    from tubeid.measured import write_measurements
 
     cases = _cases()
     out = pathlib.Path(args.dir)
@@ -62,7 +64,7 @@ def main() -> None:
         else:
             effects, truth, xs, _ = cases[name]
         record = out / f"{name}-{seed}.nc"
-        make_record("paper-reference", effects, xs=xs, seed=seed).to_netcdf(record, engine="h5netcdf")
+        write_measurements(make_record("paper-reference", effects, xs=xs, seed=seed), record, format="netcdf3")
         where = out / f"{name}-{seed}-{args.model}"
         cmd = [sys.executable, "-m", "tubeid", "diagnose", str(record), "--model", args.model, "--out", str(where), "--workers", "2",
                "--no-progress", *[a for s in args.set for a in ("--set", s)]]
