@@ -193,3 +193,26 @@ def test_sg_plus_beyond_the_machines_memory_is_refused_before_any_draw():
     with pytest.raises(SpecificationError, match=r"^n, size = \(10, \(1000000000,\)\): needs [\d.]+ TiB for 1000000000 "):
         sg_plus(10, 0.5, size=10**9, rng=1)
     assert sg_plus(3, 0.5, size=2, rng=1).shape == (2, 3, 3)
+
+
+def test_on_tube_is_the_one_check_of_a_point_on_a_tube():
+    """The specification, the FE model's load and sensor matrices and ``simulate_responses`` share one
+    check of a point on a tube (``_validation.on_tube``), not a private method of the FE model."""
+    import inspect
+    from types import SimpleNamespace
+
+    import tubeid.dynamics.response as response
+    from tubeid.mechanics.assembly import FEModel
+
+    tube = SimpleNamespace(name="centre", length=16.0)
+    assert v.on_tube("x", tube, 16.0 + 5e-10) == 16.0 + 5e-10  # within the node tolerance
+    assert v.on_tube("x", tube, 0) == 0.0 and type(v.on_tube("x", tube, 0)) is float
+    with pytest.raises(SpecificationError, match=r"^x = 16.5: the point is off tube 'centre' of length 16 m: "
+                                                 r"must be in \[0, 16\] m$"):
+        v.on_tube("x", tube, 16.5, "the point")
+    with pytest.raises(SpecificationError, match=r"^stops\[0\]\.x = -1.0: is off tube 'centre': must be in \[0, 16.0\] m$"):
+        v.on_tube("stops[0].x", tube, -1.0)
+    with pytest.raises(SpecificationError, match=r"^x = nan: must be a finite number \(m\)$"):
+        v.on_tube("x", tube, math.nan, "the point")
+    assert not hasattr(FEModel, "_check_on_tube")
+    assert "fe._" not in inspect.getsource(response)  # no private member of the FE model

@@ -24,7 +24,7 @@ from tubeid.errors import Described, SpecificationError, shown
 
 __all__ = ["real", "positive", "non_negative", "integer", "open_unit", "one_of", "seed", "is_number", "limit",
            "byte_size", "channel_count", "is_numeric_dtype", "numeric_array", "duration", "byte_count", "boolean",
-           "allocation", "MEMORY_SHARE"]
+           "allocation", "MEMORY_SHARE", "on_tube"]
 
 
 def _unit(unit: str | None) -> str:
@@ -199,6 +199,23 @@ def numeric_array(field: str, value: Any, *, complex_ok: bool = False, finite: b
         raise SpecificationError(field, Described(f"{int(np.sum(~np.isfinite(arr)))} NaN or infinite value(s)"
                                                   f"{where}"), "must be finite")
     return arr
+
+
+def on_tube(field: str, tube: Any, x: Any, what: str | None = None) -> float:
+    """``x`` [m] as ``float`` when it lies on ``tube`` (anything with ``name`` and ``length``): a finite
+    number in [0, length], to the specification's node tolerance (``tubeid.mechanics.spec``: 1e-9 m).
+
+    ``what`` names the point in the rule (``"load 'T'"``: "load 'T' is off tube 'centre' of length
+    16 m: ..."); without it the rule is "is off tube 'centre': must be in [0, 16.0] m".
+    """
+    from tubeid.mechanics.spec import _NODE_TOL
+
+    xv = real(field, x, unit="m")
+    if not (-_NODE_TOL <= xv <= tube.length + _NODE_TOL):
+        rule = (f"{what} is off tube {tube.name!r} of length {tube.length:g} m: must be in [0, {tube.length:g}] m"
+                if what else f"is off tube {tube.name!r}: must be in [0, {tube.length}] m")
+        raise SpecificationError(field, x, rule)
+    return xv
 
 
 def seed(field: str, value: Any) -> int:

@@ -26,7 +26,7 @@ import numpy as np
 import xarray as xr
 from numpy.typing import ArrayLike
 
-from tubeid._validation import allocation, non_negative, one_of, positive, real
+from tubeid._validation import allocation, non_negative, on_tube, one_of, positive, real
 from tubeid._validation import seed as _seed
 from tubeid.dynamics.solver import METHODS, Stop, simulate
 from tubeid.dynamics.spectra import psd_matrix
@@ -226,7 +226,7 @@ def simulate_responses(
     if load.tube not in tube_names:
         raise SpecificationError("load.tube", load.tube, f"no such tube in model {model.spec.name!r}; tubes are {tube_names}")
     for i, (name, x) in enumerate(zip(load.names, load.x)):
-        model.fe._check_on_tube(f"load.x[{i}]", model.spec.tube(load.tube), x, f"load {name!r}")
+        on_tube(f"load.x[{i}]", model.spec.tube(load.tube), x, f"load {name!r}")
     if not isinstance(dispersion, Dispersion):
         raise SpecificationError("dispersion", dispersion, "must be a tubeid.uncertainty.Dispersion "
                                  "(e.g. Dispersion(stiffness=0.1))")

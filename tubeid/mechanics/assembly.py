@@ -19,9 +19,9 @@ from functools import cached_property
 import numpy as np
 import scipy.linalg
 
-from tubeid._validation import real
+from tubeid._validation import on_tube
 from tubeid.errors import SpecificationError
-from tubeid.mechanics.spec import _NODE_TOL, BundleSpec, LoadPoint, SensorSpec, TubeSpec
+from tubeid.mechanics.spec import BundleSpec, LoadPoint, SensorSpec, TubeSpec
 
 __all__ = ["beam_element", "hermite_shape", "FEModel", "assemble", "tube_matrices"]
 
@@ -162,7 +162,7 @@ class FEModel:
             Shape (n_dof,).
         """
         t = self.spec.tube(tube)
-        self._check_on_tube("x", t, x)
+        on_tube("x", t, x, "the point")
         le = t.length / t.n_elements
         e = min(int(np.floor(x / le)), t.n_elements - 1)
         e = max(e, 0)
@@ -173,14 +173,6 @@ class FEModel:
             if i is not None:
                 v[i] += shape[local]
         return v
-
-    @staticmethod
-    def _check_on_tube(field: str, tube: TubeSpec, x, what: str = "the point") -> None:
-        """``x`` [m] lies on ``tube``, within [0, length] (to the specification's node tolerance)."""
-        rule = f"{what} is off tube {tube.name!r} of length {tube.length:g} m: must be in [0, {tube.length:g}] m"
-        xv = real(field, x, unit="m")
-        if not (-_NODE_TOL <= xv <= tube.length + _NODE_TOL):
-            raise SpecificationError(field, x, rule)
 
     def load_matrix(self, points: tuple[LoadPoint, ...] | None = None) -> np.ndarray:
         """Influence matrix of load points (force → y, moment → θ).
@@ -197,7 +189,7 @@ class FEModel:
         """
         pts = self.spec.loads if points is None else points
         for i, p in enumerate(pts):
-            self._check_on_tube(f"points[{i}].x", self.spec.tube(p.tube), p.x, f"load point {p.name!r}")
+            on_tube(f"points[{i}].x", self.spec.tube(p.tube), p.x, f"load point {p.name!r}")
         cols = [self.point_vector(p.tube, p.x, 1 if p.kind == "moment" else 0) for p in pts]
         return np.stack(cols, axis=1) if cols else np.zeros((self.n_dof, 0))
 
@@ -216,7 +208,7 @@ class FEModel:
         """
         ss = self.spec.sensors if sensors is None else sensors
         for i, p in enumerate(ss):
-            self._check_on_tube(f"sensors[{i}].x", self.spec.tube(p.tube), p.x, f"sensor {p.name!r}")
+            on_tube(f"sensors[{i}].x", self.spec.tube(p.tube), p.x, f"sensor {p.name!r}")
         rows = [self.point_vector(s.tube, s.x) for s in ss]
         return np.stack(rows) if rows else np.zeros((0, self.n_dof))
 

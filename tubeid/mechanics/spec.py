@@ -33,7 +33,7 @@ import re
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
-from tubeid._validation import byte_size, channel_count, integer, limit, non_negative, positive, real
+from tubeid._validation import byte_size, channel_count, integer, limit, non_negative, on_tube, positive, real
 from tubeid.errors import Described, SpecificationError
 
 __all__ = [
@@ -448,11 +448,6 @@ class BundleSpec:
             if name not in names:
                 raise SpecificationError(where, name, f"no such tube; tubes are {names}")
             return self.tubes[names.index(name)]
-
-        def on_tube(where: str, tube: TubeSpec, x) -> None:
-            xv = real(where, x, unit="m")
-            if not (-_NODE_TOL <= xv <= tube.length + _NODE_TOL):
-                raise SpecificationError(where, x, f"is off tube {tube.name!r}: must be in [0, {tube.length}] m")
 
         for i, link in enumerate(self.links):
             w = f"links[{i}]"
