@@ -717,3 +717,57 @@ def test_random_j_and_j_monte_carlo_check_the_band():
         j_monte_carlo(sub, [0.1], 1, [0, 1], -100.0)
     with pytest.raises(SpecificationError, match=r"^band_hz = nan: must be a finite number > 0"):
         random_j(sub, Dispersion(stiffness=0.1), 1, [0, 1], float("nan"))
+
+
+def _element_stiffness(E, outer, wall, length, n_elements):
+    """12 EI/Le³ of a hollow circular section, written out (N/m)."""
+    inner = outer - wall
+    return 12.0 * E * math.pi / 4.0 * (outer**4 - inner**4) / (length / n_elements) ** 3
+
+
+def test_link_and_stop_stiffness_within_1e8_of_the_tubes_element_stiffness():
+    """A grid link of 1e300 N/m was refused as an undamped pole of B ('damping = D_B'), 1e-300 as 'keep
+    fewer fixed-interface modes', 1e21 (5e13 times the tubes' element stiffness) silently moved the first
+    eigenfrequency by 9 %, and StopSpec(stiffness=1e24) was accepted. Each is now refused up front
+    naming the field and value, the tube's element stiffness 12 EI/Le³ and the range."""
+    import dataclasses
+
+    spec = builtin_spec("paper-simplified")
+    ke_equivalent = _element_stiffness(2.55e9, 0.5, 0.2, 16.0, 4)  # the softer end of the grid links
+    ke_centre = _element_stiffness(7.5e8, 0.5, 0.2, 16.0, 8)
+
+    def links(k):
+        return spec.replace(links=tuple(dataclasses.replace(link, stiffness=k) for link in spec.links))
+
+    for k in (1e300, 1e21, 1.001e8 * ke_equivalent, 1e-300, 0.999e-8 * ke_equivalent):
+        with pytest.raises(SpecificationError, match=r"^links\[0\]\.stiffness = .*: is .* times the element stiffness "
+                                                     r"12 EI/Le³ = 2\.043e\+07 N/m of tube 'equivalent': must be "
+                                                     r"within 1e-8 to 1e8 times it, \[0\.204, 2\.04e\+15\] N/m"):
+            links(k)
+    for k in (1e24, 1.001e8 * ke_centre):
+        with pytest.raises(SpecificationError, match=r"^stops\[0\]\.stiffness = .*: is .* times the element stiffness "
+                                                     r"12 EI/Le³ = 4\.807e\+07 N/m of tube 'centre'"):
+            spec.replace(stops=(StopSpec("centre", 6.0, 1.5e-6, k),))
+    # at the bound the tubes keep their digits: the first eigenfrequencies agree with a 1e6-times link's
+    f_bound = assemble(links(0.999e8 * ke_equivalent)).eigenfrequencies(6)
+    f_rigid = assemble(links(1e6 * ke_equivalent)).eigenfrequencies(6)
+    np.testing.assert_allclose(f_bound, f_rigid, rtol=1e-5, atol=0)
+    spec.replace(stops=(StopSpec("centre", 6.0, 1.5e-6, 1.001e-8 * ke_centre),))  # the lower bound, accepted
+
+
+@pytest.mark.parametrize("ends, x, end", [
+    (("clamped", "clamped"), 0.0, "clamped end x = 0.0 m"), (("clamped", "clamped"), 16.0 - 1e-10, "clamped end x = 16.0 m"),
+    (("pinned", "clamped"), 1e-300, "pinned end x = 0.0 m"),
+])
+def test_a_stop_at_a_clamped_or_pinned_end_is_refused(ends, x, end):
+    """Such a stop never acts (the tube does not move there): it was accepted by the specification and
+    refused only by the solver as 'stop.b = (0.0, ...): must be a finite, non-zero vector'."""
+    spec = builtin_spec("paper-simplified")
+    tubes = tuple(t if t.name != "centre" else TubeSpec(**{**t.__dict__, "ends": ends}) for t in spec.tubes)
+    with pytest.raises(SpecificationError, match=rf"^stops\[0\]\.x = {x!r}: the stop is at the {end} of tube "
+                                                 r"'centre', which does not move: it would never act"):
+        spec.replace(tubes=tubes, stops=(StopSpec("centre", x, 1.5e-6, 1e8),))
+    free = tuple(t if t.name != "centre" else TubeSpec(**{**t.__dict__, "ends": ("clamped", "free")}) for t in spec.tubes)
+    model = reduce(spec.replace(tubes=free, stops=(StopSpec("centre", 16.0, 1.5e-6, 1e8),)))  # a free end moves
+    assert np.any(model.stop_vectors() != 0)
+

@@ -52,6 +52,14 @@ __all__ = [
 END_CONDITIONS = ("clamped", "pinned", "free")
 LOAD_KINDS = ("force", "moment")
 _NODE_TOL = 1e-9  # m: a position closer than this to a node is that node
+#: A link's or stop's stiffness k must lie within [1/STIFFNESS_RATIO, STIFFNESS_RATIO] times the element
+#: stiffness 12 EI/Le³ of the tube(s) it acts on (the softer one): the assembled stiffness matrix adds k to
+#: the tube's own diagonal entries (24 EI/Le³ at an inner node), so outside this range the smaller of the
+#: two keeps fewer than 8 of the 16 digits of a double. Beyond the upper bound the tubes' stiffness is
+#: lost to round-off (measured on the paper's simplified model: its grid links at 5e8 times the element
+#: stiffness move the first eigenfrequency by 6e-7, at 5e12 times by 9 %, silently); below the lower bound
+#: the spring itself is lost. The paper's springs and stop are 1.4 to 8 times the element stiffness.
+STIFFNESS_RATIO = 1e8
 
 
 
@@ -162,6 +170,11 @@ class TubeSpec:
         """Second moment of area [m⁴]."""
         ri = self.outer_radius - self.wall
         return math.pi / 4.0 * (self.outer_radius**4 - ri**4)
+
+    @property
+    def element_stiffness(self) -> float:
+        """Transverse stiffness scale of one element, 12 EI/Le³ [N/m] (the y–y entry of its stiffness matrix)."""
+        return 12.0 * self.youngs_modulus * self.inertia / (self.length / self.n_elements) ** 3
 
     @property
     def nodes(self) -> tuple[float, ...]:
@@ -449,6 +462,17 @@ class BundleSpec:
                 raise SpecificationError(where, name, f"no such tube; tubes are {names}")
             return self.tubes[names.index(name)]
 
+        def stiffness_in_range(where: str, k: float, tubes: tuple[TubeSpec, ...], what: str) -> None:
+            soft = min(tubes, key=lambda t: t.element_stiffness)
+            ke = soft.element_stiffness
+            if not (ke / STIFFNESS_RATIO <= k <= ke * STIFFNESS_RATIO):
+                raise SpecificationError(
+                    where, k, f"is {k / ke:.3g} times the element stiffness 12 EI/Le³ = {ke:.4g} N/m of tube "
+                    f"{soft.name!r}: must be within 1e-8 to 1e8 times it, [{ke / STIFFNESS_RATIO:.3g}, "
+                    f"{ke * STIFFNESS_RATIO:.3g}] N/m (beyond, the assembled stiffness keeps fewer than 8 of the 16 "
+                    f"digits of the tube's own stiffness, below, of the {what}'s: results would be silently wrong; "
+                    f"1e3 times it models a rigid {what}, on the paper's model within 0.06 % of rigid)")
+
         for i, link in enumerate(self.links):
             w = f"links[{i}]"
             t = tube_of(f"{w}.tube", link.tube)
@@ -465,6 +489,8 @@ class BundleSpec:
                     raise SpecificationError(f"{w}.to_x", link.other_x, f"must be a node of tube {o.name!r}")
                 if o.name == t.name and abs(link.other_x - link.x) < _NODE_TOL:
                     raise SpecificationError(f"{w}.to_tube", link.to_tube, "a link cannot join a point to itself")
+            stiffness_in_range(f"{w}.stiffness", link.stiffness,
+                               (t,) if link.to_tube is None else (t, tube_of(f"{w}.to_tube", link.to_tube)), "link")
         for i, s in enumerate(self.stops):
             w = f"stops[{i}]"
             t = tube_of(f"{w}.tube", s.tube)
@@ -474,6 +500,11 @@ class BundleSpec:
             if k <= 0:
                 rule = "must be > 0 (a stop pushes back; with a zero gap a negative stiffness would make the tube unstable)"
                 raise SpecificationError(f"{w}.stiffness", s.stiffness, rule)
+            stiffness_in_range(f"{w}.stiffness", k, (t,), "stop")
+            if t.held_end(s.x) is not None:
+                raise SpecificationError(f"{w}.x", s.x, f"the stop is at the {t.held_end(s.x)} of tube {t.name!r}, "
+                                         "which does not move: it would never act; a stop must lie inside the tube "
+                                         f"(0 < x < {t.length!r} m) or at a free end")
         for what, items in (("loads", self.loads), ("sensors", self.sensors)):
             seen: set[str] = set()
             for i, p in enumerate(items):
