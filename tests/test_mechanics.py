@@ -771,3 +771,18 @@ def test_a_stop_at_a_clamped_or_pinned_end_is_refused(ends, x, end):
     model = reduce(spec.replace(tubes=free, stops=(StopSpec("centre", 16.0, 1.5e-6, 1e8),)))  # a free end moves
     assert np.any(model.stop_vectors() != 0)
 
+
+def test_a_weak_link_to_b_is_named_as_the_cause_of_a_singular_reduced_mass():
+    """Grid links of 1 N/m (5e-8 times the tubes' element stiffness, within the specification's range)
+    leave B's interface coordinates almost without mass: J's refusal said 'keep fewer fixed-interface
+    modes', which is not the cause; it now names the links. Every mode kept still gets that advice."""
+    import dataclasses
+
+    spec = builtin_spec("paper-simplified")
+    weak = reduce(spec.replace(links=tuple(dataclasses.replace(link, stiffness=1.0) for link in spec.links))).subsystem
+    with pytest.raises(SpecificationError, match=r"^M_B = .*an interface coordinate of B carries only .* of its largest "
+                                                 r"reduced mass, so the links joining B to A there are far softer"):
+        j_functional(weak.M, weak.D, weak.K, weak.n_c, 100.0)
+    every = reduce(spec.replace(reduction=ReductionSpec(b_modes=None, b_cutoff_hz=None))).subsystem
+    with pytest.raises(SpecificationError, match=r"keep fewer fixed-interface modes of B"):
+        j_functional(every.M, every.D, every.K, every.n_c, 100.0)

@@ -331,14 +331,23 @@ def condensed_stiffness(M: np.ndarray, D: np.ndarray, K: np.ndarray, n_c: int, o
     return Acc - Acy @ np.linalg.solve(Ayy, Ayc)
 
 
-def _check_mass(M: np.ndarray) -> None:
+def _check_mass(M: np.ndarray, n_c: int) -> None:
+    """M positive definite (its least eigenvalue above 1e-12 of its largest), else refused naming the
+    cause: interface coordinates that carry almost no mass (below 1e-6 of the largest eigenvalue: the
+    links joining B to A are far softer than B, whose static modes then hardly move it), or else
+    fixed-interface modes that, with the static modes, span more than B's DOFs."""
     ev = np.linalg.eigvalsh(M)
     if np.any(ev[..., 0] <= 1e-12 * ev[..., -1]):
-        raise SpecificationError(
-            "M_B", f"min eigenvalue {float(np.min(ev[..., 0])):.3g}",
-            "the reduced mass must be positive definite: keep fewer fixed-interface modes of B "
-            "(reduction.b_modes / b_cutoff_hz); with every mode kept the massless interface makes M_B singular",
-        )
+        share = np.diagonal(M, axis1=-2, axis2=-1)[..., M.shape[-1] - n_c:] / ev[..., -1:]
+        if float(np.min(share)) < 1e-6:
+            rule = (f"the reduced mass must be positive definite: an interface coordinate of B carries only "
+                    f"{float(np.min(share)):.2g} of its largest reduced mass, so the links joining B to A there are "
+                    "far softer than B (B is hardly coupled: Z -> 0 and J grows without bound as the links soften): "
+                    "stiffen the links (links[*].stiffness) or remove them")
+        else:
+            rule = ("the reduced mass must be positive definite: keep fewer fixed-interface modes of B "
+                    "(reduction.b_modes / b_cutoff_hz); with every mode kept the massless interface makes M_B singular")
+        raise SpecificationError("M_B", f"min eigenvalue {float(np.min(ev[..., 0])):.3g}", rule)
 
 
 def _log_integral(a: np.ndarray, Omega: float) -> np.ndarray:
@@ -368,7 +377,7 @@ def j_functional(M: np.ndarray, D: np.ndarray, K: np.ndarray, n_c: int, band_hz:
     M, D, K, n_c = _check_functional_inputs(M, D, K, n_c)
     band_hz = positive("band_hz", band_hz, "Hz")
     n = M.shape[-1]
-    _check_mass(M)
+    _check_mass(M, n_c)
     Omega = 2 * np.pi * band_hz
     MinvK = np.linalg.solve(M, K)
     MinvD = np.linalg.solve(M, D)
