@@ -174,6 +174,8 @@ BAD = [  # (variable, value as set, value as shown, rule): each setting of tubei
     ("TUBEID_IO__MAX_DOF", "True", "True", "must be an integer >= 1"),
     ("TUBEID_IO__MAX_SPECIFICATION_BYTES", "'1 MiBs'", "'1 MiBs'", "must be a size in bytes > 0"),
     ("TUBEID_IO__MAX_SPECIFICATION_BYTES", "None", "None", "must be a size in bytes > 0"),
+    ("TUBEID_IO__MAX_SUBSTEPS", "0", "0", "must be a finite number >= 1"),
+    ("TUBEID_IO__MAX_SUBSTEPS", "'many'", "'many'", "must be a finite number >= 1"),
     ("TUBEID_RUNNER", "5", "5", "must be a mapping of the settings workers"),
 ]
 
@@ -207,6 +209,7 @@ def test_every_setting_refuses_a_wrong_type_or_value_from_the_environment(enviro
     ({"TUBEID_IO__MAX_BYTES": "8 GiB"}, ("io.max-bytes", 8 * 2**30)),
     ({"TUBEID_IO__MAX_BYTES": "1000"}, ("io.max-bytes", 1000.0)),
     ({"TUBEID_IO": '{"max-dof": 10}'}, ("io.max-dof", 10)),  # a mapping merges into the section
+    ({"TUBEID_IO__MAX_SUBSTEPS": "1e10"}, ("io.max-substeps", 1e10)),
     ({"TUBEID_TEST_ANYTHING": "1"}, ("io.max-dof", 4000)),  # a plain TUBEID_ variable is no setting
 ])
 def test_good_values_from_the_environment_are_taken(environment, env, value):

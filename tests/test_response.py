@@ -408,3 +408,27 @@ def test_an_output_step_whose_nyquist_frequency_is_below_the_load_band_is_refuse
                            settings=settings)
     # a caller that estimates its own spectra from the series may subsample
     assert ResponseSettings(duration=3.0, discard=0.5, segment_seconds=0.004, output_dt=0.01, keep="series-only")
+
+
+def test_a_costly_stop_is_refused_before_the_loads_are_drawn(monkeypatch):
+    """simulate_responses refuses by the sub-step limit (here lowered to 1e5) naming the specification's
+    stop, before any load is drawn (the loads of 220 s were drawn before the solver refused)."""
+    import dask.config
+
+    import tubeid.dynamics.response as response
+
+    def no_loads(*args, **kwargs):
+        raise AssertionError("loads drawn before the refusal")
+
+    monkeypatch.setattr(response, "gaussian_loads", no_loads)
+    spec = builtin_spec("paper-simplified")
+    model = reduce(spec.replace(stops=(StopSpec("centre", 6.0, gap=1.5e-6, stiffness=1e10),)))
+    with dask.config.set({"tubeid.io.max-substeps": 1e5}):
+        with pytest.raises(SpecificationError, match=r"^stops\[0\]\.stiffness = 10000000000\.0: .* sub-steps per "
+                                                     r"realisation for 20 s, more than 1e\+05"):
+            simulate_responses(model, coherent_forces(), [0], seed=1,
+                               settings=ResponseSettings(duration=20.0, discard=0.0, segment_seconds=2.0))
+        with pytest.raises(SpecificationError, match=r"^settings\.duration = 40\.0: .* 1\.6e\+05 sub-steps per "
+                                                     r"realisation for 40 s"):
+            simulate_responses(reduce(spec), coherent_forces(), [0], seed=1,
+                               settings=ResponseSettings(duration=40.0, discard=0.0, segment_seconds=2.0))

@@ -647,3 +647,77 @@ def test_an_output_step_longer_than_the_record_is_refused():
                                                  r"\(n_t − 1\) dt_load = 1 s"):
         simulate(*args, output_dt=5.0)
     assert simulate(*args, output_dt=1.0).observations.sizes["time"] == 2  # the whole record still allowed
+
+
+def _stiff_stop_problem(k, n_t):
+    """The paper's simplified model with its stop of stiffness ``k`` (gap 1.5 µm), zero loads of n_t samples."""
+    from tubeid.mechanics import builtin_spec, reduce
+
+    model = reduce(builtin_spec("paper-simplified"))
+    M, D, K = model.mean_matrices
+    stop = Stop(b=tuple(model.stop_vectors()[0]), gap=1.5e-6, stiffness=k)
+    return M, D, K, stop, model.load_matrix(), model.sensor_matrix(), np.zeros((n_t, model.load_matrix().shape[1]))
+
+
+_STIFF_STOP_SCRIPT = """
+import numpy as np
+from tubeid.dynamics.solver import Stop, simulate
+from tubeid.errors import SpecificationError
+from tubeid.mechanics import builtin_spec, reduce
+model = reduce(builtin_spec("paper-simplified"))
+M, D, K = model.mean_matrices
+stop = Stop(b=tuple(model.stop_vectors()[0]), gap=1.5e-6, stiffness=1e24)
+try:
+    simulate(M, D, K, [stop], model.load_matrix(), model.sensor_matrix(), np.zeros((110001, 7)), 2e-3)
+except SpecificationError as exc:
+    print(exc)
+"""
+
+
+def test_a_stop_far_too_stiff_is_refused_by_the_sub_steps_it_would_take_before_any_integration():
+    """A 1e24 N/m stop makes f_max 1.3e10 Hz: the step rule's 1.9e-11 s step takes 1.15e13 sub-steps for
+    220 s (measured at ~23 ns each: about 73 hours per realisation). It ran; it is now refused at once,
+    naming the stop's stiffness, with the count the public step functions give. (In a process of its
+    own: the kernels hold the interpreter, so a hang could not be ended from inside.)"""
+    import re
+
+    M, D, K, stop, B, C, F = _stiff_stop_problem(1e24, 2)
+    n = math.ceil(220.0 / choose_step(highest_frequency(M, K, [stop]), 2e-3, 3e-3) - 1e-9)
+    assert 1.1e13 < n < 1.2e13
+    try:
+        res = subprocess.run([sys.executable, "-c", _STIFF_STOP_SCRIPT], capture_output=True, text=True, timeout=60)
+    except subprocess.TimeoutExpired:
+        pytest.fail("simulate with a 1e24 N/m stop still ran after 60 s instead of refusing")
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert re.match(rf"^stops\[0\]\.stiffness = 1e\+24: with the stops closed the highest frequency is f_max = "
+                    rf"1\.303e\+10 Hz \(open: 940\.5 Hz\), and the exact method's step rule .* "
+                    rf"{re.escape(f'{n:.3g}')} sub-steps per realisation for 220 s, more than 1e\+09 \(configuration "
+                    r"tubeid\.io\.max-substeps", res.stdout), res.stdout
+
+
+def test_the_sub_step_limit_names_the_stop_or_the_duration_and_the_value_that_keeps_within_it():
+    """With the limit lowered to 1e4 (the configuration's tubeid.io.max-substeps): a 1e12 N/m stop for
+    0.2 s takes ~1.04e4 sub-steps and is refused naming it, and the stiffness the message says keeps
+    within the limit runs; the paper's stop for 4 s (16 000 sub-steps) is refused naming the duration."""
+    import re
+
+    import dask.config
+
+    M, D, K, stop, B, C, F = _stiff_stop_problem(1e12, 201)  # 0.2 s at 1 ms
+    n = math.ceil(0.2 / choose_step(highest_frequency(M, K, [stop]), 1e-3, 1e-3) - 1e-9)
+    assert n > 1e4
+    with dask.config.set({"tubeid.io.max-substeps": 1e4}):
+        with pytest.raises(SpecificationError, match=rf"^stops\[0\]\.stiffness = 1000000000000\.0: .* {re.escape(f'{n:.3g}')} sub-steps "
+                                                     r"per realisation for 0\.2 s, more than 1e\+04 .*; a stiffness of at "
+                                                     r"most about .* N/m keeps within the limit$") as err:
+            simulate(M, D, K, [stop], B, C, F, 1e-3, output_dt=1e-3)
+        k_ok = float(re.search(r"at most about (\S+) N/m", str(err.value)).group(1))
+        assert 1e11 < k_ok < 1e12
+        ok = Stop(stop.b, stop.gap, k_ok)
+        assert math.ceil(0.2 / choose_step(highest_frequency(M, K, [ok]), 1e-3, 1e-3) - 1e-9) <= 1e4
+        simulate(M, D, K, [ok], B, C, F, 1e-3, output_dt=1e-3)
+        _, _, _, paper, _, _, F4 = _stiff_stop_problem(1e8, 4001)  # 4 s: 16 000 sub-steps of 0.25 ms
+        with pytest.raises(SpecificationError, match=r"^loads = 4001 samples at dt_load = 0\.001 s: .* 1\.6e\+04 "
+                                                     r"sub-steps per realisation for 4 s, .*; at most about 2\.5 s keeps "
+                                                     r"within the limit at this f_max$"):
+            simulate(M, D, K, [paper], B, C, F4, 1e-3, output_dt=1e-3)

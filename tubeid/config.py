@@ -245,6 +245,7 @@ def schema() -> dict[str, dict[str, Callable]]:
             "max-sensors": count(1),
             "max-dof": count(1),
             "max-specification-bytes": v.byte_count,
+            "max-substeps": lambda field, value: v.real(field, value, low=1.0),
         },
     }
 

@@ -28,7 +28,7 @@ from numpy.typing import ArrayLike
 
 from tubeid._validation import allocation, non_negative, on_tube, one_of, positive, real
 from tubeid._validation import seed as _seed
-from tubeid.dynamics.solver import METHODS, Stop, simulate
+from tubeid.dynamics.solver import METHODS, Stop, check_substeps, simulate
 from tubeid.dynamics.spectra import psd_matrix
 from tubeid.errors import Described, SpecificationError
 from tubeid.mechanics.reduction import ReducedModel
@@ -255,6 +255,11 @@ def simulate_responses(
     per_realisation = 8.0 * (2 * n_load * m + (n_out * len(model.spec.sensors) if settings.keep != "psd" else 0))
     allocation("settings.duration", settings.duration, len(realisations) * per_realisation,
                f"the loads{' and series' if settings.keep != 'psd' else ''} of {len(realisations)} realisation(s)")
+    stops = [Stop(b=tuple(b), gap=s.gap, stiffness=s.stiffness, name=f"stop{i}")
+             for i, (b, s) in enumerate(zip(model.stop_vectors(), model.spec.stops))]
+    # the mean model's cost, before the loads are drawn (simulate checks every realisation's own again)
+    check_substeps(model.mean_matrices[0], model.mean_matrices[2], stops, settings.duration, settings.dt_load,
+                   settings.output_dt, settings.method, duration_field="settings.duration")
     loads = np.empty((len(realisations), n_load, m))
     for i, s in enumerate(streams):
         spectrum = load if load_dispersion == 0.0 else randomised(load, sg_plus(m, load_dispersion, rng=s[1]))
@@ -280,7 +285,6 @@ def simulate_responses(
         loads = np.concatenate([loads, extra], axis=2)
     B = model.load_matrix(points)
     C = model.sensor_matrix()
-    stops = [Stop(b=tuple(b), gap=s.gap, stiffness=s.stiffness, name=f"stop{i}") for i, (b, s) in enumerate(zip(model.stop_vectors(), model.spec.stops))]
     names = [s.name for s in model.spec.sensors]
     res = simulate(M, D, K, stops, B, C, loads, settings.dt_load, output_dt=settings.output_dt, method=settings.method,
                    keep="series", discard=settings.discard, sensor_names=names)

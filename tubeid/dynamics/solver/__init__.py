@@ -51,10 +51,10 @@ Module map (private modules behind this API):
 from tubeid.dynamics.solver import _events, _fastpath, _modal, _symplectic
 from tubeid.dynamics.solver._base import Stop, TransientResult
 from tubeid.dynamics.solver._kernel_cache import cached_kernels, key_on_sources, sources_fingerprint
-from tubeid.dynamics.solver._simulate import METHODS, choose_step, simulate
+from tubeid.dynamics.solver._simulate import METHODS, check_substeps, choose_step, simulate
 from tubeid.dynamics.solver._step import highest_frequency
 
 # before any kernel is called: a cached kernel is recompiled when any of the solver's sources changed
 key_on_sources(cached_kernels([_modal, _events, _fastpath, _symplectic]), sources_fingerprint())
 
-__all__ = ["Stop", "TransientResult", "simulate", "choose_step", "highest_frequency", "METHODS"]
+__all__ = ["Stop", "TransientResult", "simulate", "choose_step", "check_substeps", "highest_frequency", "METHODS"]

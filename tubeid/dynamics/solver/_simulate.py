@@ -9,15 +9,17 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike
 
-from tubeid._validation import allocation, one_of
+from tubeid._validation import allocation, one_of, positive
 from tubeid.dynamics.solver._base import Stop, TransientResult, assemble_result
 from tubeid.dynamics.solver._checks import prepare
 from tubeid.dynamics.solver._determinism import one_blas_thread
 from tubeid.dynamics.solver._exact import integrate_exact
-from tubeid.dynamics.solver._step import EXACT_RULE, SYMPLECTIC_EULER_RULE, StepRule, highest_frequency, step_for
+from tubeid.dynamics.solver._step import (EXACT_RULE, SYMPLECTIC_EULER_RULE, StepRule, highest_frequency,
+                                          refuse_substeps, step_for)
 from tubeid.dynamics.solver._symplectic import integrate_symplectic
+from tubeid.errors import Described
 
-__all__ = ["Method", "METHODS", "choose_step", "simulate", "simulate_with_diagnostics"]
+__all__ = ["Method", "METHODS", "choose_step", "check_substeps", "simulate", "simulate_with_diagnostics"]
 
 
 class Method(NamedTuple):
@@ -61,6 +63,41 @@ def choose_step(f_max: float, dt_load: float, output_dt: float = 3e-3, method: s
     """
     one_of("method", method, METHODS)
     return step_for(METHODS[method].step_rule, f_max, dt_load, output_dt, dt)
+
+
+def check_substeps(M: ArrayLike, K: ArrayLike, stops: Sequence[Stop], duration: float, dt_load: float,
+                   output_dt: float = 3e-3, method: str = "exact", dt: float | None = None,
+                   duration_field: str = "duration") -> int:
+    """The sub-steps one realisation of ``duration`` takes; refused beyond ``tubeid.io.max-substeps``.
+
+    ``simulate`` makes this check itself, for every realisation before any is integrated; a caller
+    calls it to refuse before preparing the loads.
+
+    Parameters
+    ----------
+    M, K : array (N, N)
+        Mass and stiffness without the stops (symmetric, SI units).
+    stops : sequence of Stop
+        The stops, as ``simulate`` takes them (a refusal names ``stops[i].stiffness``).
+    duration : float
+        Integrated time [s] of one realisation.
+    dt_load, output_dt, method, dt
+        As for :func:`simulate`.
+    duration_field : str
+        How a refusal names the duration (e.g. ``"settings.duration"``).
+
+    Returns
+    -------
+    int
+        ceil(duration / step) with the step of :func:`choose_step`.
+    """
+    one_of("method", method, METHODS)
+    stops = tuple(stops)
+    f_max = highest_frequency(M, K, stops)
+    rule = METHODS[method].step_rule
+    h = step_for(rule, f_max, dt_load, output_dt, dt)
+    return refuse_substeps(rule, method, h, f_max, positive("duration", duration, "s"), np.asarray(M, dtype=float),
+                           np.asarray(K, dtype=float), stops, duration_field)
 
 
 def simulate(M: ArrayLike, D: ArrayLike, K: ArrayLike, stops: Sequence[Stop], B: ArrayLike, C: ArrayLike,
@@ -136,15 +173,22 @@ def _run(M, D, K, stops, B, C, loads, dt_load, output_dt, dt, method, keep, disc
     ne = np.zeros((R, S), dtype=np.int64)
     dts = np.zeros(R)
     t_count = P.duration - P.j0 * P.output_dt  # counted time window
-    f_cache, diagnostics = {}, []
-    for r in range(R):
+    f_cache, diagnostics, steps = {}, [], []
+    for r in range(R):  # every realisation's step first: a refused cost is refused before any integration
         Mr, _, Kr = P.matrices(r)
         key = (r % len(P.M), r % len(P.K))
         if key not in f_cache:
             with one_blas_thread():
-                f_cache[key] = highest_frequency(Mr, Kr, P.gapped)
-        f_max = f_cache[key]
-        h = step_for(integrator.step_rule, f_max, P.dt_load, P.output_dt, dt)
+                f_max = highest_frequency(Mr, Kr, P.gapped)
+            h = step_for(integrator.step_rule, f_max, P.dt_load, P.output_dt, dt)
+            structure = Kr - sum((P.stops[i].stiffness * np.outer(P.stops[i].vector, P.stops[i].vector)
+                                  for i in P.linear_index), np.zeros_like(Kr))  # K without the zero-gap stops
+            refuse_substeps(integrator.step_rule, method, h, f_max, P.duration, Mr, structure, P.stops, "loads",
+                            Described(f"{P.loads.shape[1]} samples at dt_load = {P.dt_load:g} s"))
+            f_cache[key] = f_max, h
+        steps.append(f_cache[key])
+    for r in range(R):
+        f_max, h = steps[r]
         y_buf = y_all[r] if y_all is not None else np.zeros((0, n_obs))
         sumsq = np.zeros(n_obs)
         ct = np.zeros(len(P.gapped))

@@ -19,12 +19,13 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import ArrayLike
 
-from tubeid._validation import positive
+from tubeid._validation import limit, positive
 from tubeid.dynamics.solver._base import Stop
 from tubeid.dynamics.solver._checks import check_stops, matrix_stack
-from tubeid.errors import SpecificationError
+from tubeid.errors import Described, SpecificationError
 
-__all__ = ["StepRule", "EXACT_RULE", "SYMPLECTIC_EULER_RULE", "highest_frequency", "step_for", "check_step"]
+__all__ = ["StepRule", "EXACT_RULE", "SYMPLECTIC_EULER_RULE", "highest_frequency", "step_for", "check_step",
+           "refuse_substeps", "SUBSTEP_SECONDS"]
 
 _TWO_PI = 2.0 * math.pi
 _PAPER_NOTE = (" Note: the paper's 3 ms is the output sampling of the response, not an integration step "
@@ -143,3 +144,58 @@ def step_for(rule: StepRule, f_max, dt_load, output_dt, dt=None) -> float:
         raise SpecificationError("output_dt", output_dt, f"must be commensurate with dt_load = {dt_load} s")
     n = max(1, math.ceil(base_f * f_max / rule.default - 1e-9))
     return base_f / n
+
+
+#: Time of one sub-step of the exact method's event-free path [s] (the README's "Performance": 880 000
+#: sub-steps in 0.016 s); contacts add to it. Only used to state what a refused run would have cost.
+SUBSTEP_SECONDS = 18e-9
+
+
+def refuse_substeps(rule: StepRule, method: str, h: float, f_max: float, duration: float, M: np.ndarray,
+                    K: np.ndarray, stops: Sequence[Stop], duration_field: str = "duration", duration_value=None) -> int:
+    """The sub-steps ceil(duration / h) of one realisation; refused beyond ``tubeid.io.max-substeps``.
+
+    The refusal names the cause: the stop whose closed stiffness raises f_max (``stops[i].stiffness``,
+    with the stiffness that keeps within the limit) when the model with its stops open would keep
+    within it, else the duration (``duration_field``, with the duration that keeps within it at this
+    f_max). It states f_max with the stops closed and open, the step, the count and the time they would
+    take at :data:`SUBSTEP_SECONDS` each.
+
+    Parameters
+    ----------
+    rule : StepRule
+        The method's step rule (its ``default`` limit of dt·f_max estimates the allowed f_max).
+    method : str
+        The method's name, for the message.
+    h : float
+        The integration step [s] (chosen or given).
+    f_max : float
+        The highest frequency with every stop closed [Hz].
+    duration : float
+        The integrated time of one realisation [s].
+    M, K : numpy.ndarray (N, N)
+        Mass and the structure's stiffness without any stop.
+    stops : sequence of Stop
+        Every stop (those with a zero gap too), indexed as the caller's ``stops``.
+    duration_field, duration_value : str, object
+        How the caller's duration is named and shown (default: ``duration`` and its value).
+    """
+    n = math.ceil(duration / h - 1e-9)
+    bound = limit("max-substeps")
+    if n <= bound:
+        return n
+    f_open = highest_frequency(M, K) if stops else f_max
+    cost = (f"with the stops closed the highest frequency is f_max = {f_max:.4g} Hz (open: {f_open:.4g} Hz), and the "
+            f"{method} method's step rule (dt·f_max <= {rule.default:.3g}) takes dt = {h:.3g} s: {n:.3g} sub-steps "
+            f"per realisation for {duration:g} s, more than {bound:.3g} (configuration tubeid.io.max-substeps; at "
+            f"{SUBSTEP_SECONDS * 1e9:g} ns per sub-step or more, {n * SUBSTEP_SECONDS:.3g} s or more per realisation)")
+    if stops and math.ceil(duration * f_open / rule.default) <= bound:
+        # a closed stop adds its stiffness on u = bᵀq: the highest eigenvalue grows as k bᵀM⁻¹b
+        f_allowed = bound * rule.default / duration  # the f_max whose default step gives the limit's count
+        mobility = [float(s.vector @ np.linalg.solve(M, s.vector)) for s in stops]
+        i = max(range(len(stops)), key=lambda j: stops[j].stiffness * mobility[j])
+        k_allowed = ((_TWO_PI * f_allowed) ** 2 - (_TWO_PI * f_open) ** 2) / mobility[i]
+        raise SpecificationError(f"stops[{i}].stiffness", stops[i].stiffness,
+                                 f"{cost}; a stiffness of at most about {k_allowed:.2g} N/m keeps within the limit")
+    raise SpecificationError(duration_field, duration if duration_value is None else duration_value,
+                             f"{cost}; at most about {h * bound:.3g} s keeps within the limit at this f_max")
