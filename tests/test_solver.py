@@ -721,3 +721,40 @@ def test_the_sub_step_limit_names_the_stop_or_the_duration_and_the_value_that_ke
                                                      r"sub-steps per realisation for 4 s, .*; at most about 2\.5 s keeps "
                                                      r"within the limit at this f_max$"):
             simulate(M, D, K, [paper], B, C, F4, 1e-3, output_dt=1e-3)
+
+
+def test_a_counter_added_to_stats_gets_a_slot_inside_the_array():
+    """``_work.STATS`` is the one list of the kernels' counters: N_STATS and every slot derive from
+    it. The kernels do not check bounds, so a slot past a hard-coded N_STATS writes outside the
+    ``stats`` array silently (no error, no diagnostics key). Checked by growing STATS in a copy of
+    ``_work``'s source."""
+    import inspect
+
+    from tubeid.dynamics.solver import _work
+
+    src = inspect.getsource(_work)
+    line = "STATS = (" + ", ".join(f'"{name}"' for name in _work.STATS) + ")"
+    assert src.count(line) == 1
+    ns = {"__name__": "grown_work"}
+    exec(compile(src.replace(line, line[:-1] + ', "new_counter")'), "grown_work", "exec"), ns)
+    assert ns["STATS"][-1] == "new_counter"
+    assert ns["N_STATS"] == len(_work.STATS) + 1
+    slots = {name: ns[name.upper()] for name in _work.STATS}
+    assert sorted(slots.values()) == list(range(len(_work.STATS)))  # distinct, inside the array
+    assert {name: getattr(_work, name.upper()) for name in _work.STATS} == slots
+
+
+def test_the_diagnostics_report_every_counter_of_stats(monkeypatch):
+    """``_exact`` reports each name of ``STATS`` from its slot (a counter added there needs no second
+    list): with one more name (an extra slot nothing increments) the report gains that key, 0,
+    and the other counters are unchanged."""
+    from tubeid.dynamics.solver import _exact, _work
+
+    M, D, K, stop, B, C, F = contact_setup()
+    before = simulate_with_diagnostics(M, D, K, [stop], B, C, F, DT_LOAD, output_dt=DT_LOAD)[1][0]
+    assert set(_work.STATS) <= set(before) and before["switches"] > 0
+    monkeypatch.setattr(_exact, "STATS", _work.STATS + ("new_counter",))
+    monkeypatch.setattr(_exact, "N_STATS", _work.N_STATS + 1)
+    after = simulate_with_diagnostics(M, D, K, [stop], B, C, F, DT_LOAD, output_dt=DT_LOAD)[1][0]
+    assert after.pop("new_counter") == 0
+    assert after == before

@@ -15,7 +15,7 @@ import numpy as np
 
 from tubeid.dynamics.solver._fastpath import run_exact
 from tubeid.dynamics.solver._regimes import cached_tables, initial_state
-from tubeid.dynamics.solver._work import EVALUATIONS, FLAGGED_STEPS, N_STATS, RESCANS, SWITCHES, XL, make_work
+from tubeid.dynamics.solver._work import N_STATS, STATS, XL, make_work
 
 __all__ = ["integrate_exact"]
 
@@ -38,8 +38,7 @@ def integrate_exact(problem, r: int, h: float, f_max: float, y_out, sumsq, conta
     stats = np.zeros(N_STATS, dtype=np.int64)
     steps = run_exact(loads, problem.dt_load, ns, int(round(problem.output_dt / h)), problem.j0, np.int64(0), T, W,
                       y_out, sumsq, contact_time, n_events, bool(refine_all), stats)
-    out = {"steps": int(steps), "flagged_steps": int(stats[FLAGGED_STEPS]), "switches": int(stats[SWITCHES]),
-           "rescans": int(stats[RESCANS]), "evaluations": int(stats[EVALUATIONS])}
+    out = {"steps": int(steps), **{name: int(stats[slot]) for slot, name in enumerate(STATS)}}
     if diagnose:
         out.update(cond_V=max(float(np.linalg.cond(V)) for V in info["V"]), half_modes=info["half_modes"],
                    n_modes=info["n_modes"])

@@ -14,7 +14,7 @@ import numpy as np
 from tubeid.dynamics.solver._regimes import ExactTables, aligned
 
 __all__ = ["Work", "make_work", "XL", "X0", "XE", "XS", "F0", "F1", "FS", "DF", "FN", "U_START", "UD_START", "U_END",
-           "UD_END", "U_CROSS", "UD_CROSS", "N_STATS", "FLAGGED_STEPS", "SWITCHES", "RESCANS", "EVALUATIONS",
+           "UD_END", "U_CROSS", "UD_CROSS", "STATS", "N_STATS", "FLAGGED_STEPS", "SWITCHES", "RESCANS", "EVALUATIONS",
            "MAX_SWITCHES"]
 
 #: Rows of Work.X (extended inputs):
@@ -36,12 +36,22 @@ UD_END = 3  # u'
 U_CROSS = 4  # u at the earliest crossing found in the segment
 UD_CROSS = 5  # u'
 
-#: Slots of the int64 ``stats`` counters of one realisation:
-FLAGGED_STEPS = 0  # sub-steps the pre-check sent to the event path
-SWITCHES = 1  # regime switches (two per contact)
-RESCANS = 2  # segments rescanned exactly on 8 pieces (the Hermite check allowed an earlier dip)
-EVALUATIONS = 3  # exact evaluations of u, u', u'' inside sub-steps (crossing and minimum searches)
-N_STATS = 4
+#: The int64 ``stats`` counters of one realisation (an array of N_STATS, zeroed by ``_exact``), in
+#: slot order. A name here is the counter's key in the diagnostics of ``simulate_with_diagnostics``
+#: (``_exact`` reports every one); its slot is the constant below, ``STATS.index(name)``. To add a
+#: counter: append its name, add its slot constant the same way, increment ``stats[SLOT]`` in the
+#: kernel (``_fastpath``, ``_events``). The kernels do not check bounds: a slot must come from
+#: ``STATS``, never a literal.
+STATS = ("flagged_steps", "switches", "rescans", "evaluations")
+FLAGGED_STEPS = STATS.index("flagged_steps")  # sub-steps the pre-check sent to the event path
+SWITCHES = STATS.index("switches")  # regime switches, in the whole run (two per contact)
+#: boundary searches of a segment rescanned exactly on ``_events._PIECES`` pieces (the Hermite check on
+#: [0, t_c] allowed an earlier dip; with ``refine_all``, every search whose end point is not crossed)
+RESCANS = STATS.index("rescans")
+#: exact evaluations of u, u', u'' inside sub-steps (``_events.evaluate`` through ``_eval``: crossing
+#: and minimum searches, rescans)
+EVALUATIONS = STATS.index("evaluations")
+N_STATS = len(STATS)
 #: More switches than this within one sub-step is an error (chattering or a bad model).
 MAX_SWITCHES = 200
 
