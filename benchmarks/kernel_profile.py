@@ -5,7 +5,7 @@
 
 Needs Linux ``perf`` (its software event ``cpu-clock``: it works in virtual machines without hardware
 counters) and binutils' ``objdump``. A child process runs under ``perf record``: it compiles the
-kernels with ``NUMBA_DEBUGINFO=1`` into an empty numba cache (a temporary directory; about 25 s), then
+kernels with ``NUMBA_DEBUGINFO=1`` into an empty numba cache (a temporary directory), then
 calls ``simulate`` ``--calls`` times on realisation 0 of the bench model (``paper-simplified``,
 δ = 0.45, δ_F = 0.04, 220 s, the load sampled at 2 ms; ``--model paper-reference``: the mean
 reference model, N = 50, under the mean coherent load drawn from that realisation's load stream;
@@ -22,8 +22,8 @@ the normal build's: it keeps numba's ``min``, ``max`` and ``int`` as calls (``bu
 which the normal build inlines; the split, not the total, is the point.
 
 ``--split`` profiles nothing: it times the normal build (``split``) with the stop active and with
-the gap opened, and prints the events' cost per switch and the realisation's counters as JSON (a
-few seconds per model); ``--dt`` sets its integration step.
+the gap opened, and prints the events' cost per switch and the realisation's counters as JSON;
+``--dt`` sets its integration step.
 """
 
 from __future__ import annotations

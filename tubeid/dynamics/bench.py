@@ -22,7 +22,7 @@ import numpy as np
 from tubeid._validation import integer, positive
 from tubeid.dynamics.solver import Stop, choose_step, highest_frequency, simulate
 from tubeid.dynamics.solver._checks import prepare
-from tubeid.dynamics.solver._regimes import forget_tables
+from tubeid.dynamics.solver._regimes import BLOCK_MAX, forget_tables
 from tubeid.dynamics.solver._simulate import METHODS, simulate_with_diagnostics
 
 __all__ = ["bench_transient", "measure_flop_rate", "simulate_baseline", "exact_step_flops", "compile_seconds"]
@@ -293,7 +293,8 @@ def bench_transient(duration: float = 220.0, delta: float = 0.45, delta_f: float
     simd, _ = measure_flop_rate()
     steps = int(round(duration / h))
     ns = int(round(st.dt_load / h))
-    flops = exact_step_flops(M.shape[1], len(stops), B.shape[1], min(ns, 16), C.shape[0], int(round(st.output_dt / h)), ns)
+    flops = exact_step_flops(M.shape[1], len(stops), B.shape[1], min(ns, BLOCK_MAX), C.shape[0],
+                             int(round(st.output_dt / h)), ns)
     per_real = best.sum() / n
     t_load, t_int, t_psd = best / n
     out = {

@@ -11,11 +11,11 @@ piecewise-linear interpolant.
 Method ``"exact"`` (default). The system is piecewise linear: each stop is open or in contact on
 one side, 3**S regimes. In each regime the modal equations are integrated exactly for the
 piecewise-linear load; nothing is approximated between regimes except the location of the
-switching instants, found by safeguarded Halley iterations on the exact closed form (tolerance
-``_regimes.CROSSING_TOL`` = 1e-5 of the step: 2.5 ns at the default 250 µs step), and a switch
-keeps the state continuous. A cubic-Hermite pre-check with a margin (4x the Hermite error of the
-highest mode) decides which sub-steps can contain a switch; the only approximation left is to miss
-a grazing excursion shallower than that margin.
+switching instants, found by safeguarded Halley iterations on the exact closed form (tolerance:
+the fraction ``_regimes.CROSSING_TOL`` of the step), and a switch keeps the state continuous. A
+cubic-Hermite pre-check with a margin (``_regimes.MARGIN_SAFETY`` times the Hermite error bound of
+the highest mode) decides which sub-steps can contain a switch; the only approximation left is to
+miss a grazing excursion shallower than that margin.
 
 Method ``"symplectic-euler"`` (the semi-implicit Euler of industrial modal codes):
 v += dt M⁻¹ (B F - D v - K q - f); q += dt v. First order.
@@ -37,8 +37,8 @@ Module map (private modules behind this API):
 ``_step``           :func:`highest_frequency` and the methods' step rules
 ``_simulate``       :func:`simulate`, :func:`choose_step` and the registry :data:`METHODS`
 ``_exact``          method "exact": tables, scratch and kernel call of one realisation
-``_regimes``        the regimes' modal tables (numpy)
-``_work``           scratch arrays and counters of the exact kernels
+``_regimes``        the regimes' modal tables (numpy) and the exact method's constants
+``_work``           named rows of the exact kernels' scratch, and their counters (``STATS``)
 ``_modal``          numba primitives on the modal state (row products, e^{λτ}, block advance)
 ``_fastpath``       numba: the main loop (blocks of sub-steps, the event pre-check, outputs)
 ``_events``         numba: a flagged sub-step integrated exactly (crossing search, switches)
@@ -46,6 +46,25 @@ Module map (private modules behind this API):
 ``_determinism``    one BLAS thread for the tables: bit-identical results on any worker
 ``_kernel_cache``   numba's on-disk cache of the kernels keyed on all the solver's sources
 ==================  ===========================================================================
+
+Where to make a change:
+
+- the crossing tolerance: ``_regimes.CROSSING_TOL`` (a fraction of the step; the tables carry it
+  as ``xtol``, read by ``_events._crossing_in`` for the root and for the Newton search of a minimum);
+- the pre-check margin's safety factor: ``_regimes.MARGIN_SAFETY`` (the tables carry it in
+  ``mcoef``, read by the checks of ``_fastpath`` and ``_events``); the step limits it is tied to:
+  ``_step.EXACT_RULE``;
+- a counter of the exact kernels (in ``simulate_with_diagnostics``' diagnostics): ``_work.STATS``
+  (its comment says how), incremented in ``_fastpath`` or ``_events``; ``_exact`` reports it;
+- an output kind (another observed quantity than y = C q): the rows ``output_rows`` built in
+  ``_regimes`` (exact method), their evaluation at the output instants in ``_fastpath.run_exact``
+  (outputs at accepted sub-step ends, and after a flagged sub-step), ``_symplectic._kernel`` (y at
+  step ends), the arrays and statistics of ``_simulate._run`` and the labels of ``_base``
+  (``TransientResult``, ``assemble_result``);
+- an input check: ``_checks.prepare`` (scalar rules from ``tubeid._validation``);
+- a method: a :class:`~tubeid.dynamics.solver._simulate.Method` in ``_simulate.METHODS``.
+
+An edit of any of these files recompiles the cached kernels on the next import (``_kernel_cache``).
 """
 
 from tubeid.dynamics.solver import _events, _fastpath, _modal, _symplectic

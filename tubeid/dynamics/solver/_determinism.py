@@ -3,7 +3,7 @@
 The tables of a realisation (eigenvectors, their inverse, products with the load matrix) come
 from LAPACK/BLAS, and OpenBLAS's results for the model sizes here depend on its thread count: on
 paper-reference's 50 coordinates, 1 and 2 threads give inverse eigenvectors that differ in the
-last bits (measured: 1e-12 relative in the slope and transition tables), which the chaotic stop
+last bits (about 1e-12 relative in the slope and transition tables), which the chaotic stop
 amplifies into visibly different series after a few seconds. Dask workers run with one BLAS
 thread (their nanny sets it) while a Python session or a ``--workers 0`` run may use several, so
 every table is computed under :func:`one_blas_thread`: the runner's promise (bit-identical stores on
@@ -25,7 +25,7 @@ _controller = None
 
 
 def one_blas_thread():
-    """Context manager limiting every loaded BLAS library to one thread (0.1 ms per use)."""
+    """Context manager limiting every loaded BLAS library to one thread."""
     global _controller
     try:
         from threadpoolctl import ThreadpoolController

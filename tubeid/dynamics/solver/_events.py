@@ -4,15 +4,16 @@ Pre-check (also used by the fast path). The distance d to a boundary of the curr
 (g - u and u + g when open, u - g in contact on the + side, -g - u on the - side) is known with
 its derivative at both ends of a (sub)step. The (sub)step is flagged when d changes sign, or when
 the cubic Hermite interpolant of (d, d') has an interior minimum that comes within a margin of
-the boundary: margin = mcoef (σ/h)⁴ max|d'|, mcoef = 4 (w h)⁴/(384 w), w = 2π f_max (the
-Hermite error of a component at the highest frequency, safety factor 4). The only approximation
-of the method is to miss a grazing excursion shallower than that bound.
+the boundary: margin = mcoef (σ/h)⁴ max|d'|, mcoef = MARGIN_SAFETY (w h)⁴/(384 w), w = 2π f_max
+(``_regimes.MARGIN_SAFETY`` times the Hermite error bound of a component at the highest frequency).
+The only approximation of the method is to miss a grazing excursion shallower than that bound.
 
 A flagged sub-step is integrated exactly. Every evaluation of u, u', u'' inside it is exact
-(e^{λτ} from the table at τ = k h/64 times the series of the rest, then one row product);
+(e^{λτ} from the table at τ = k h/FINE times the series of the rest, then one row product);
 interior minima are located by Newton on d' = 0, the first crossing by safeguarded Halley
 iterations (tolerance T.xtol = CROSSING_TOL h) from the root of the Hermite cubic; if the Hermite
-check on [0, t_c] still allows an earlier dip, [0, t_c] is rescanned exactly on 8 pieces. A switch maps
+check on [0, t_c] still allows an earlier dip, [0, t_c] is rescanned exactly on _PIECES pieces. A
+sub-step reaching MAX_SWITCHES switches before its end raises RuntimeError. A switch maps
 xl(t_c) through the basis-to-basis transform (x continuous); u and u' continue from their values
 at the crossing; the end state of the remaining segment is propagated and its u, u' pre-checked,
 and a crossing is searched only if that check flags the segment.
@@ -30,11 +31,11 @@ from tubeid.dynamics.solver._work import (EVALUATIONS, F1, FS, MAX_SWITCHES, RES
 
 __all__ = ["distance", "cubic_min", "hermite_flag", "cubic_first_root", "segment_coefficients", "evaluate", "event_step"]
 
-_PIECES = 8  # exact rescan of a segment on this many pieces
+_PIECES = 8  # exact rescan of a segment on this many pieces (the RESCANS counter)
 
 # The scalar helpers below are inlined by LLVM (``forceinline``: the same instructions, so the same
 # values) into the main loop, which calls them per pre-checked sub-step and per crossing search;
-# ``evaluate`` stays a call (inlined at its several call sites it made the kernel slower).
+# ``evaluate`` stays a call (inlined at its several call sites it makes the kernel slower).
 
 
 @numba.njit(cache=True, forceinline=True)
@@ -99,10 +100,11 @@ def hermite_flag(d0, dd0, d1, dd1, sigma, margin):
 
 @numba.njit(cache=True, forceinline=True)
 def cubic_first_root(d0, dd0, d1, dd1, sigma, smax):
-    """First s in (0, smax] where the cubic Hermite interpolant becomes negative (-1 if none): a
-    Newton guess. If the cubic is monotone on [0, smax] and changes sign, its only root is refined
-    from the secant guess by 4 safeguarded Newton steps; otherwise the sign change is located on
-    16 points and refined by 4 Illinois steps."""
+    """First s in (0, smax] (s: position in units of sigma, smax <= 1) where the cubic Hermite
+    interpolant of (d, d') becomes negative (-1 if none): the starting guess of the exact search.
+    If the cubic is monotone on [0, smax] and changes sign, its only root is refined from the
+    secant guess by 4 safeguarded Newton steps; otherwise the sign change is located on 16 points
+    and refined by 4 Illinois steps."""
     a = 2 * d0 + sigma * dd0 - 2 * d1 + sigma * dd1
     b = -3 * d0 - 2 * sigma * dd0 + 3 * d1 - sigma * dd1
     c = sigma * dd0
@@ -246,9 +248,10 @@ def _eval(T, W, r, m, t0, tau, s, code, side, stats):
 @numba.njit(cache=True, _nrt=False, fastmath=_FM, inline="always")
 def _crossing_in(T, W, r, m, t0, ta, tb, da, dda, db, ddb, code, side, s, margin, stats):
     """First crossing (d < 0) in (ta, tb] of the exact solution, given d and d' at the ends; -1 if
-    none. Cubic Hermite guess, exact Newton on d' = 0 for an interior minimum, then safeguarded
-    Halley iterations on d for the root (tolerance T.xtol). With a root, W.ev holds u, u', u''
-    at the returned instant (see ``evaluate``)."""
+    none; ta, tb and the result in s from the segment start). Cubic Hermite guess, exact Newton on
+    d' = 0 for an interior minimum (at most 12 steps, step tolerance T.xtol), then safeguarded
+    Halley iterations on d for the root (at most 100, tolerance T.xtol). With a root, W.ev holds
+    u, u', u'' at the returned instant (see ``evaluate``)."""
     h = T.h
     sig = tb - ta
     da = max(da, 0.0)
@@ -303,9 +306,10 @@ def _crossing_in(T, W, r, m, t0, ta, tb, da, dda, db, ddb, code, side, s, margin
 @numba.njit(cache=True, _nrt=False, fastmath=_FM, inline="always")
 def _first_crossing(T, W, r, m, t0, code, side, s, sigma, d0, dd0, d1, dd1, scan, stats):
     """Earliest crossing in (0, sigma] of one boundary (-1 if none). The candidate is verified: if
-    the cubic Hermite check on [0, t_c] allows an earlier dip, [0, t_c] is rescanned exactly on 8
-    pieces. scan=True scans the whole segment exactly on 8 pieces (test hook). With a crossing,
-    W.ev holds u, u', u'' there (within the T.xtol tolerance)."""
+    the cubic Hermite check on [0, t_c] allows an earlier dip, [0, t_c] is rescanned exactly on
+    _PIECES pieces. scan=True scans the whole segment exactly on _PIECES pieces (test hook). Each
+    rescan counts in stats[RESCANS]. With a crossing, W.ev holds u, u', u'' there (within the
+    T.xtol tolerance)."""
     h = T.h
     mcoef = T.mcoef
     tc = sigma
@@ -345,8 +349,10 @@ def event_step(T, W, r, m, count, contact_time, n_events, refine_all, stats):
     returns the final regime and leaves ζ at h in W.X[XL, :nx]. The load over the sub-step is
     W.L[FS] + W.L[F1] t (m loads). On entry W.U holds u, u' at 0 (rows U_START, UD_START) and at h
     (U_END, UD_END, from the fast path's rows); on return U_END, UD_END hold u, u' at h. ``count``:
-    add contact time and contact events (the sub-step is inside the kept window). Inlined into the
-    main loop: a call would pass every table and scratch array of T and W."""
+    add contact time and contact events (the sub-step is inside the kept window). stats: the
+    counters of ``_work.STATS`` (switches, rescans, evaluations counted here). Raises RuntimeError
+    when the sub-step reaches MAX_SWITCHES switches before its end. Inlined into the main loop: a
+    call would pass every table and scratch array of T and W."""
     S = T.gaps.shape[0]
     h = T.h
     nx = 2 * T.lam_re.shape[1]

@@ -5,9 +5,10 @@ slope update, then blocks of up to nb sub-steps are taken. For a block, u and u'
 at its nb sub-step ends are one product of the block rows with xl = [ζ; f; f'; 1] (f the load at
 the block start); if every sub-step is clear of every boundary of the current regime by more
 than the Hermite margin (a sufficient test on the block's values, branch-free), the block is
-accepted at once and ζ advanced by the diagonal e^{λ nb h}. Otherwise the sub-steps are checked
-one by one with the Hermite pre-check (``_events.hermite_flag``); the sub-steps before the first
-flagged one are accepted, and the flagged one is integrated exactly by ``_events.event_step``.
+accepted at once and ζ advanced by the diagonal e^{λ n h} (n <= nb the block's sub-steps).
+Otherwise the sub-steps are checked one by one with the Hermite pre-check
+(``_events.hermite_flag``); the sub-steps before the first flagged one are accepted, and the
+flagged one is integrated exactly by ``_events.event_step``.
 Outputs falling on accepted sub-step ends are rows of the same kind.
 """
 
@@ -31,8 +32,9 @@ def run_exact(loads, dt_load, ns, out_every, j0, r0, T, W, y_out, sumsq, contact
     (n_keep, n_obs) (or not stored if y_out has no rows) and summed as squares into sumsq; contact
     time and open -> contact events counted from output sample j0 on. r0: initial regime (0: every
     stop open), W.X[XL, :nx]: initial ζ. refine_all: send every sub-step to the exact event path (test
-    hook). T: ``ExactTables``, W: ``Work``. No two array arguments may share memory (compiled with
-    ``NO_ALIAS``).
+    hook). T: ``ExactTables``, W: ``Work``. stats: the int64 counters of ``_work.STATS`` (length
+    N_STATS), incremented (flagged sub-steps here, the others in ``_events.event_step``). No two
+    array arguments may share memory (compiled with ``NO_ALIAS``).
     """
     n_int = loads.shape[0] - 1
     m = loads.shape[1]

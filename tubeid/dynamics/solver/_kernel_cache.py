@@ -4,7 +4,7 @@ numba keys a cached kernel on its own file's stamp (modification time and size) 
 main loop (``_fastpath``) compiles its callees from ``_events`` and ``_modal`` into its own code, and
 bakes in constants of ``_work`` and ``_regimes``: with numba's key alone, an edit of one of those
 files (a ``git pull`` into an editable install, say) leaves the cached main loop running the old
-code, silently (measured: ``_modal.py`` edited, the cached ``run_exact`` unchanged). Every cached
+code, silently (an edit of ``_modal.py`` alone does not reach a cached ``run_exact``). Every cached
 kernel of the solver is therefore keyed on one fingerprint of all the solver's sources
 (:func:`sources_fingerprint`): any edit recompiles them all, once. This uses numba's internal
 cache attributes; where they are missing (another numba), numba's own key stays in force.

@@ -59,8 +59,9 @@ def _no_alias_compiler() -> type | None:
 #: pipeline with LLVM ``noalias`` on every pointer argument (numba's internal ``noalias`` flag, the
 #: one its parfor lowering sets; :func:`_no_alias_compiler`). LLVM then drops the run-time overlap
 #: checks in front of every vectorisable loop (executed per call, and on these short loops often as
-#: long as the loop). The arithmetic is unchanged: results are bit-identical (checked against the
-#: previous kernels). Empty (numba's default pipeline) on a numba whose internal compiler API differs.
+#: long as the loop). The arithmetic is unchanged: the results are those of numba's default pipeline,
+#: bit for bit. On a numba whose internal compiler API differs, numba's own ``Compiler`` (its default
+#: pipeline, no ``noalias``); empty on a numba without that class.
 NO_ALIAS: dict = {} if (_pipeline := _no_alias_compiler()) is None else {"pipeline_class": _pipeline}
 
 
@@ -120,8 +121,9 @@ def rows(A, r, g, count, x, n, out, o):
 @numba.njit(cache=True, _nrt=False, fastmath=_FM, inline="always")
 def exp_modes(lam_re, lam_im, fine_re, fine_im, q, h, tau, E):
     """E[0] + i E[1] = e^{λ τ} of every mode of basis q, 0 <= τ <= h: e^{λ k h/FINE} from the table
-    times the degree-9 series of e^{λ δ}, δ = τ - k h/FINE in [0, h/FINE) (|λ δ| <= 0.05 for any
-    accepted step: truncation < 1e-19 relative)."""
+    times the degree-9 series of e^{λ δ}, δ = τ - k h/FINE in [0, h/FINE). A complex λ has
+    |λ| <= 2π f_max, so |λ δ| < π/FINE (0.05) for any accepted step (h <= 1/(2 f_max)):
+    truncation < 1e-19 relative (a real λ of an overdamped mode can exceed 2π f_max)."""
     n2p = lam_re.shape[1]
     k = int(tau * (FINE / h))
     if k > FINE:

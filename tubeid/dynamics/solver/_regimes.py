@@ -7,13 +7,13 @@ eigen-decomposition: a *basis* (2**S of them, index ``basis[r]``); they differ o
 equilibrium q_eq = K_r⁻¹ Σ_closed k g code b.
 
 In a basis the first-order system x = [q; q'] is diagonalised, x = x_eq + Σ_i w_i Re(V_i z_i)
-(one mode of each complex-conjugate pair kept, w_i = 2; with any real eigenvalue every mode is
-kept, w_i = 1), and z_i' = λ_i z_i + W_i F(t). On a load interval F(t) = f + f' t, the particular
-solution z_p = α F(t) + β f' (α = -W/λ, β = -W/λ²) is exact, so the homogeneous part
-ζ = z - z_p (stored as [Re; Im], modes padded to n2p, a multiple of 8) obeys ζ(t + s) = e^{λ s} ζ(t);
-at a load sample ζ += [Re β; Im β] (f'_old - f'_new). Every observable is a row over the
-extended input xl = [ζ; f; f'; 1; 0...] (length nxl, a multiple of 8), f the load at the row's
-reference time: its homogeneous part plus the quasi-static part a·f + b·f' + c.
+(one mode of each complex-conjugate pair kept, w_i = 2; with a real eigenvalue in any basis, every
+mode of every basis is kept, w_i = 1), and z_i' = λ_i z_i + W_i F(t). On a load interval
+F(t) = f + f' t, the particular solution z_p = α F(t) + β f' (α = -W/λ, β = -W/λ²) is exact, so
+the homogeneous part ζ = z - z_p (stored as [Re; Im], modes padded to n2p, a multiple of 8) obeys
+ζ(t + s) = e^{λ s} ζ(t); at a load sample ζ += [Re β; Im β] (f'_old - f'_new). Every observable is
+a row over the extended input xl = [ζ; f; f'; 1; 0...] (length nxl, a multiple of 8), f the load
+at the row's reference time: its homogeneous part plus the quasi-static part a·f + b·f' + c.
 
 A switch between regimes at time t keeps x continuous: ζ_new = T_{b→b'} xl(t) + c_{r→r'}, with
 T depending only on the two bases and c on the two equilibria. The particular part can exceed z
@@ -40,17 +40,23 @@ __all__ = ["FINE", "BLOCK_MAX", "MARGIN_SAFETY", "ALIGN", "TABLE_CACHE_BYTES", "
 FINE = 64
 #: At most this many sub-steps are advanced as one block (size of the block tables).
 BLOCK_MAX = 16
-#: Tolerance of the crossing search (Halley on the exact closed form), relative to the sub-step:
-#: a switch instant is located within CROSSING_TOL h (2.5 ns at h = 250 µs: u is then off the
-#: boundary by about |u'| 2.5 ns, ~1e-6 of a µm gap); the state x stays continuous across the switch.
+#: Tolerance of the crossing search (Halley on the exact closed form), relative to the sub-step h:
+#: ``ExactTables.xtol`` = CROSSING_TOL h (s). The search stops when its bracket is narrower than
+#: that or its last step shorter; a switch instant is then located within about CROSSING_TOL h
+#: (2.5 ns at h = 250 µs), u off the boundary by about |u'| CROSSING_TOL h; the state x stays
+#: continuous across the switch. Also the step tolerance of the Newton search for an interior
+#: minimum of the distance (``_events._crossing_in``).
 CROSSING_TOL = 1e-5
-#: Safety factor on the Hermite-error margin of the event pre-check.
+#: Safety factor of the event pre-check's margin: margin = MARGIN_SAFETY times the cubic-Hermite
+#: error bound (w h)⁴/(384 w) max|d'| of a component at w = 2π f_max (``ExactTables.mcoef``; the
+#: margin comments of ``_step.EXACT_RULE`` and ``_events`` follow it).
 MARGIN_SAFETY = 4.0
 #: Byte alignment of every array the kernels read or write: the rows they load as vectors are
 #: multiples of 8 doubles, so a 512-bit load of such a row never spans two cache lines.
 ALIGN = 64
-#: Tables kept per process by :func:`cached_tables` (bytes, least recently used dropped first). A
-#: realisation's tables at N = 16 with one stop are ~0.1 MB, at N = 50 ~0.45 MB.
+#: Tables kept per process by :func:`cached_tables` (bytes, least recently used dropped first). An
+#: entry counts the tables and the eigenvector matrices V (2N x 2N complex per basis): 0.13 MiB for
+#: ``paper-simplified`` (N = 16, one stop), 0.76 MiB for ``paper-reference`` (N = 50) at h = 250 µs.
 TABLE_CACHE_BYTES = 64 * 2**20
 
 
@@ -94,7 +100,7 @@ class ExactTables(NamedTuple):
     # step data
     h: float  # sub-step (s)
     nb: int  # sub-steps per block
-    mcoef: float  # Hermite margin coefficient: margin = mcoef (σ/h)⁴ max|d'| on a segment σ
+    mcoef: float  # margin coefficient (s), MARGIN_SAFETY (w h)⁴/(384 w): margin = mcoef (σ/h)⁴ max|d'| on σ
     xtol: float  # crossing search tolerance (s): CROSSING_TOL h
 
 
@@ -188,9 +194,8 @@ def cached_tables(M, D, K, stops, B, C, h: float, ns: int, omega_max: float) -> 
     """:func:`build_tables`, kept per process under a digest of every input's bytes: a system met
     again (another call with the same matrices, as the trial grids of a study simulate each
     realisation's structure at every grid point) gets the same tables without the eigen-
-    decompositions (~2 ms at N = 16, ~13 ms at N = 50). The tables are read-only for the kernels;
-    at most :data:`TABLE_CACHE_BYTES` are kept (least recently used dropped first; a system whose
-    tables alone exceed it is not kept)."""
+    decompositions. The tables are read-only for the kernels; at most :data:`TABLE_CACHE_BYTES` are
+    kept (least recently used dropped first; a system whose tables alone exceed it is not kept)."""
     key = _table_key(M, D, K, stops, B, C, h, ns, omega_max)
     with _CACHE_LOCK:
         hit = _CACHE.get(key)

@@ -50,9 +50,10 @@ class StepRule:
     warn_message: str
 
 
-#: Exact method: 4 points per shortest period by default (the Hermite pre-check's error bound is
-#: then 1.6 % of the highest mode's amplitude, its margin 4x that); beyond 1/(2 f_max) a whole
-#: contact oscillation can fall inside one step unseen; beyond 1/(3 f_max) the bound exceeds 5 %.
+#: Exact method: 4 points per shortest period by default (the Hermite pre-check's error bound
+#: (w h)⁴/384 is then 1.6 % of the highest mode's amplitude, its margin ``_regimes.MARGIN_SAFETY``
+#: times that); beyond 1/(2 f_max) a whole contact oscillation can fall inside one step unseen;
+#: beyond 1/(3 f_max) the bound exceeds 5 %.
 EXACT_RULE = StepRule(
     default=1 / 4, warn=1 / 3, refuse=1 / 2, refuse_at_limit=False,
     refuse_message=("exact method needs dt <= 1/(2 f_max) = {refuse_dt:.4g} s (f_max = {f_max:.4g} Hz, highest "

@@ -21,7 +21,7 @@ __all__ = ["Work", "make_work", "XL", "X0", "XE", "XS", "F0", "F1", "FS", "DF", 
 XL = 0  # fast path: the running state ζ and the load at the current block start
 X0 = 1  # event path: at the start of the current segment
 XE = 2  # ... at the end of the sub-step
-XS = 3  # ... at the last exact evaluation
+XS = 3  # ... at a switch instant (the input of the basis-to-basis transform)
 #: Rows of Work.L (load vectors, zero beyond m):
 F0 = 0  # load at the start of the current load interval
 F1 = 1  # its slope
@@ -46,13 +46,15 @@ STATS = ("flagged_steps", "switches", "rescans", "evaluations")
 FLAGGED_STEPS = STATS.index("flagged_steps")  # sub-steps the pre-check sent to the event path
 SWITCHES = STATS.index("switches")  # regime switches, in the whole run (two per contact)
 #: boundary searches of a segment rescanned exactly on ``_events._PIECES`` pieces (the Hermite check on
-#: [0, t_c] allowed an earlier dip; with ``refine_all``, every search whose end point is not crossed)
+#: [0, t_c] allowed an earlier dip; with ``refine_all``, also every search whose boundary is not
+#: crossed at the segment's end)
 RESCANS = STATS.index("rescans")
 #: exact evaluations of u, u', u'' inside sub-steps (``_events.evaluate`` through ``_eval``: crossing
 #: and minimum searches, rescans)
 EVALUATIONS = STATS.index("evaluations")
 N_STATS = len(STATS)
-#: More switches than this within one sub-step is an error (chattering or a bad model).
+#: A sub-step reaching this many switches before its end raises RuntimeError in ``_events.event_step``
+#: (chattering or a bad model); the message there states the number as a literal.
 MAX_SWITCHES = 200
 
 
@@ -64,7 +66,7 @@ class Work(NamedTuple):
     U: np.ndarray  # (6, S) u and u' of every stop, rows U_START ... UD_CROSS
     col: np.ndarray  # (ncp,) block rows · X[XL]: u, u' of every stop at the block's sub-step ends
     y: np.ndarray  # (n_obs,) outputs
-    ev: np.ndarray  # (3S rounded up to 4,) stop rows · x: u, u', u'' of stop s at 3s, 3s + 1, 3s + 2
+    ev: np.ndarray  # (3S rounded up to 4, at least 4) stop rows · x: u, u', u'' of stop s at 3s, 3s + 1, 3s + 2
     eval_tau: np.ndarray  # (1,) time of the last exact evaluation (from the segment start)
     E: np.ndarray  # (2, n2p) e^{λ τ} (real and imaginary parts) of the last exp_modes
     A: np.ndarray  # (S, 6, n2p) event search, per stop: Re, Im of a = cu ζ0, λ a, λ² a (segment start ζ0)
