@@ -20,15 +20,22 @@ class Stop:
     Parameters
     ----------
     b : sequence of float, length N
-        Direction of the stop in the model's coordinates q (stored as a tuple); real, finite, not
-        zero.
+        The stop's row in the model's coordinates q: u = bᵀq is the displacement at the stop (m).
+        Real, finite, not all zero; flattened and stored as a tuple of float. Its length must be
+        the N of the matrices it is used with (checked by ``simulate``, ``highest_frequency``).
     gap : float
-        g >= 0 (m).
+        g (m), finite, >= 0.
     stiffness : float
-        k >= 0 (N/m).
+        k (N/m), finite, >= 0.
     name : str
         Label of the stop in results (default ``stop<i>``, i its index); the labels of the stops of
         one ``simulate`` call must be distinct.
+
+    Raises
+    ------
+    tubeid.errors.SpecificationError
+        Naming ``stop.b``, ``stop.gap``, ``stop.stiffness`` or ``stop.name`` when it breaks the rule
+        above (complex values, bools and strings are not numbers).
 
     Notes
     -----
@@ -68,17 +75,24 @@ def stop_labels(stops) -> list[str]:
 class TransientResult:
     """Output of :func:`tubeid.dynamics.solver.simulate` (immutable).
 
+    The kept window is [t0, T]: t0 = j0 output_dt the first output sample at or after
+    ``discard``, T = (n_t - 1) dt_load the record's end. Coordinates: ``realisation`` (0 ... R-1),
+    ``time`` (s), ``sensor`` (the sensor names), ``stop`` (the stop labels, every stop given).
+
     Parameters
     ----------
     observations : xarray.DataArray (realisation, time, sensor) or None
-        y = C q at t = j output_dt >= discard, in the units of C q (None with ``keep="stats"``).
+        y = C q at t = j output_dt, t0 <= t <= T, in the units of C q (None with ``keep="stats"``).
     rms : xarray.DataArray (realisation, sensor)
-        Root mean square (not centred) of the observation samples at output_dt, t >= discard.
+        Root mean square (not centred) of the observation samples at output_dt in [t0, T], in the
+        units of C q.
     contact_fraction : xarray.DataArray (realisation, stop)
-        Fraction of [discard, T] with |u| > g (event-exact for the exact method, per step for
+        Fraction of [t0, T] with |u| > g (event-exact for the exact method, per step for
         symplectic Euler); 1 for a stop with zero gap.
     contact_events : xarray.DataArray (realisation, stop)
-        Number of open -> contact transitions in [discard, T].
+        Number (int64) of open -> contact transitions in [t0, T] (exact method: located in
+        sub-steps starting at or after t0; symplectic Euler: steps ending in contact after a step
+        ending open); 0 for a stop with zero gap.
     dt : xarray.DataArray (realisation,)
         Integration step used (s).
     method : str

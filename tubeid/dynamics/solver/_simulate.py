@@ -46,20 +46,35 @@ def choose_step(f_max: float, dt_load: float, output_dt: float = 3e-3, method: s
     Parameters
     ----------
     f_max : float
-        Highest frequency with every stop closed (Hz, see :func:`highest_frequency`).
+        Highest frequency with every stop closed (Hz, finite, > 0; see :func:`highest_frequency`).
     dt_load, output_dt : float
-        Load and output sampling (s); the step divides both.
+        Load and output sampling (s, finite, > 0); the step divides both.
     method : str
-        A key of :data:`METHODS`.
+        A key of :data:`METHODS` (``"exact"`` or ``"symplectic-euler"``).
     dt : float, optional
-        A user step: checked (must divide dt_load and output_dt; refused when unstable or able to
-        hide contacts, warned when inaccurate) and returned.
+        A user step (s, finite, > 0): checked (it must divide dt_load and output_dt within 1e-9
+        relative; refused when it can hide contacts or is unstable, warned when inaccurate, see
+        Raises and Warns) and returned as given.
 
     Returns
     -------
     float
         dt=None: the largest step dividing dt_load and output_dt within the method's default
         rule (exact: dt <= 1/(4 f_max); symplectic Euler: 2π f_max dt <= 0.25).
+
+    Raises
+    ------
+    tubeid.errors.SpecificationError
+        Naming the field: an unknown method; f_max, dt_load, output_dt or dt not a finite number
+        > 0; a dt that does not divide dt_load or output_dt, or above the method's limit (exact:
+        dt > 1/(2 f_max); symplectic Euler: 2π f_max dt >= 2); with dt=None, output_dt and dt_load
+        without a common step.
+
+    Warns
+    -----
+    UserWarning
+        A dt above the method's accuracy limit (exact: dt > 1/(3 f_max); symplectic Euler:
+        2π f_max dt > 0.5).
     """
     one_of("method", method, METHODS)
     return step_for(METHODS[method].step_rule, f_max, dt_load, output_dt, dt)
@@ -109,38 +124,59 @@ def simulate(M: ArrayLike, D: ArrayLike, K: ArrayLike, stops: Sequence[Stop], B:
     Parameters
     ----------
     M, D, K : array (N, N) or (R, N, N)
-        Mass, damping, stiffness (real, symmetric; M and K positive definite, D semi-definite; SI
-        units). A stack is realisation-wise; a single matrix is shared by every realisation.
+        Mass, damping, stiffness in the coordinates q (SI units): real, finite, symmetric (a
+        relative asymmetry up to 1e-10 is taken as round-off and symmetrised); M and K positive
+        definite, D positive semi-definite. A stack is realisation-wise (its R that of ``loads``);
+        a single matrix, or a stack of one, is shared by every realisation.
     stops : sequence of Stop
-        f_s(u) = k_s (|u| - g_s) sign(u) for |u| > g_s, else 0. At most 3 with a gap > 0. Their
-        labels (the name, default ``stop<i>``) must be distinct.
-    B : array (N, m)
-        Load matrix (real).
-    C : array (n_obs, N)
-        Observation matrix (real).
+        f_s(u) = k_s (|u| - g_s) sign(u) for |u| > g_s, else 0, u = b_sᵀ q; each b_s of length N.
+        At most 3 with a gap > 0 (``_checks.MAX_STOPS``: their 3**S regimes are tabulated); a stop
+        with a zero gap is a linear spring added to K. Their labels (the name, default ``stop<i>``)
+        must be distinct.
+    B : array (N, m) or (N,)
+        Load matrix (real, finite); (N,) is one load (m = 1).
+    C : array (n_obs, N) or (N,)
+        Observation matrix (real, finite); (N,) is one output (n_obs = 1).
     loads : array (R, n_t, m) or (n_t, m)
-        Samples of F at t = i dt_load (real), read as their continuous piecewise-linear interpolant.
-        Complex arrays are refused (never truncated to their real part); bools and strings are not
-        numbers.
+        Samples of F at t = i dt_load, n_t >= 2 (real, finite; SI units, N for forces), read as
+        their continuous piecewise-linear interpolant; (n_t, m) is one realisation. Complex arrays
+        are refused (never truncated to their real part); bools and strings are not numbers.
     dt_load : float
-        Load sampling (s).
+        Load sampling (s), finite, > 0. The record lasts T = (n_t - 1) dt_load.
     output_dt : float
-        Observation sampling (s), default 3 ms; at most the record's duration (n_t − 1) dt_load.
+        Observation sampling (s), finite, > 0, default 3 ms; at most T, and commensurate with
+        dt_load (the integration step divides both).
     dt : float, optional
-        Integration step (s); None: per realisation from :func:`choose_step`.
+        Integration step (s), checked as by :func:`choose_step` (it must divide dt_load and
+        output_dt; refused above the method's limit, warned above its accuracy limit); None: per
+        realisation from :func:`choose_step`.
     method : {"exact", "symplectic-euler"}
         See :data:`METHODS` and the package docstring.
     keep : {"series", "stats"}
         Store the observation series, or only the statistics.
     discard : float
-        Transient (s) removed from the series and the statistics (rounded up to the output grid).
+        Transient (s) removed from the series and the statistics, in [0, T): the kept window
+        starts at the first output sample at or after it, t0 = j0 output_dt, and must hold one.
     sensor_names : sequence of str, optional
-        Labels of the n_obs outputs, distinct strings (default y0, y1, ...).
+        Labels of the n_obs outputs, distinct strings (default y0, y1, ...); one string is refused.
 
     Returns
     -------
     TransientResult
-        Outputs at t = j output_dt, discard <= t <= T = (n_t - 1) dt_load.
+        Outputs at t = j output_dt, t0 <= t <= T; the statistics over [t0, T].
+
+    Raises
+    ------
+    tubeid.errors.SpecificationError
+        Before any integration, naming the field, its value and the rule, for an argument outside
+        what is stated above (shapes, finiteness, symmetry, definiteness, realisation axes, stops,
+        samplings, step, discard, labels, unknown method or keep), and for a series that would need
+        more than a share of this machine's memory (``output_dt`` named).
+
+    Warns
+    -----
+    UserWarning
+        A given ``dt`` above the method's accuracy limit (see :func:`choose_step`).
     """
     return _run(M, D, K, stops, B, C, loads, dt_load, output_dt, dt, method, keep, discard, sensor_names, False,
                 False)[0]

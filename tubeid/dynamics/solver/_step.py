@@ -78,14 +78,24 @@ def highest_frequency(M: ArrayLike, K: ArrayLike, stops: Sequence[Stop] = ()) ->
     Parameters
     ----------
     M, K : array (N, N) or (R, N, N)
-        Mass and stiffness (symmetric, SI units).
+        Mass and stiffness in the coordinates q (SI units): real, finite, symmetric (relative
+        asymmetry up to 1e-10 symmetrised). Stacks are realisation-wise; their R must be equal, or
+        one of them a single matrix (shared).
     stops : sequence of Stop
-        Their stiffness k b bᵀ is added to K.
+        Stops whose b has length N and whose labels are distinct; their stiffness k b bᵀ is added
+        to K whatever their gap.
 
     Returns
     -------
     float or numpy.ndarray
-        f_max (Hz): a float for (N, N) matrices, else an array (R,).
+        f_max (Hz): a float when M and K are both (N, N), else an array (R,).
+
+    Raises
+    ------
+    tubeid.errors.SpecificationError
+        Naming the field: M or K not (N, N) or (R, N, N) alike, not finite or not symmetric;
+        realisation axes that do not match; a stop that is not a Stop, whose b is not of length N,
+        or whose label repeats another's.
     """
     Ms = matrix_stack("M", M)
     Ks = matrix_stack("K", K, Ms.shape[1])
