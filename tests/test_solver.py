@@ -312,6 +312,20 @@ def test_highest_frequency_and_choose_step():
     assert abs(0.7e-3 / dt2 - round(0.7e-3 / dt2)) < 1e-9 and abs(3e-3 / dt2 - round(3e-3 / dt2)) < 1e-9
 
 
+@pytest.mark.parametrize("M, K, field", [
+    (-np.eye(2), np.eye(2), "M"),  # numpy's LinAlgError from inside scipy's eigh without the check
+    (np.diag([1.0, 0.0]), np.eye(2), "M"),
+    (np.eye(2), -np.eye(2), "K"),  # silently 0 Hz without the check (sqrt of max(w2, 0))
+])
+def test_highest_frequency_refuses_matrices_simulate_refuses(M, K, field):
+    """M and K must be positive definite, as ``simulate`` asks: a clear refusal naming the field,
+    not a LinAlgError from inside scipy nor a silent 0 Hz."""
+    with pytest.raises(SpecificationError, match=rf"^{field} = .*must be positive definite"):
+        highest_frequency(M, K)
+    with pytest.raises(SpecificationError, match=rf"^{field} = .*must be positive definite"):
+        simulate(M, 0 * np.eye(2), K, [], np.ones(2), np.eye(2), np.ones((3, 1)), 1e-3, output_dt=1e-3)
+
+
 def test_step_refusals_and_warnings():
     M, D, K, stop, B, C, F = contact_setup(n_t=31)
     fmax = highest_frequency(M, K, [stop])

@@ -21,7 +21,7 @@ from numpy.typing import ArrayLike
 
 from tubeid._validation import limit, positive
 from tubeid.dynamics.solver._base import Stop
-from tubeid.dynamics.solver._checks import check_stops, matrix_stack
+from tubeid.dynamics.solver._checks import check_definite, check_stops, matrix_stack
 from tubeid.errors import Described, SpecificationError
 
 __all__ = ["StepRule", "EXACT_RULE", "SYMPLECTIC_EULER_RULE", "highest_frequency", "step_for", "check_step",
@@ -79,8 +79,8 @@ def highest_frequency(M: ArrayLike, K: ArrayLike, stops: Sequence[Stop] = ()) ->
     ----------
     M, K : array (N, N) or (R, N, N)
         Mass and stiffness in the coordinates q (SI units): real, finite, symmetric (relative
-        asymmetry up to 1e-10 symmetrised). Stacks are realisation-wise; their R must be equal, or
-        one of them a single matrix (shared).
+        asymmetry up to 1e-10 symmetrised), positive definite. Stacks are realisation-wise; their
+        R must be equal, or one of them a single matrix (shared).
     stops : sequence of Stop
         Stops whose b has length N and whose labels are distinct; their stiffness k b bᵀ is added
         to K whatever their gap.
@@ -93,12 +93,14 @@ def highest_frequency(M: ArrayLike, K: ArrayLike, stops: Sequence[Stop] = ()) ->
     Raises
     ------
     tubeid.errors.SpecificationError
-        Naming the field: M or K not (N, N) or (R, N, N) alike, not finite or not symmetric;
-        realisation axes that do not match; a stop that is not a Stop, whose b is not of length N,
-        or whose label repeats another's.
+        Naming the field: M or K not (N, N) or (R, N, N) alike, not finite, not symmetric or not
+        positive definite (as ``simulate`` asks); realisation axes that do not match; a stop that
+        is not a Stop, whose b is not of length N, or whose label repeats another's.
     """
     Ms = matrix_stack("M", M)
     Ks = matrix_stack("K", K, Ms.shape[1])
+    check_definite("M", Ms, True)  # the generalized eigenproblem needs M > 0; K > 0 as simulate asks
+    check_definite("K", Ks, True)
     stops = check_stops(stops, Ms.shape[1])
     R = max(len(Ms), len(Ks))
     if len(Ms) not in (1, R) or len(Ks) not in (1, R):
