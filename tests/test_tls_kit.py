@@ -89,3 +89,66 @@ def test_an_openssl_failure_is_reported_and_leaves_no_request_files(tmp_path):
     run = _make(tmp_path / "tls", "not-a-subject-alt-name", check=False)
     assert run.returncode == 1 and "openssl failed" in run.stderr and "subjectAltName" in run.stderr
     assert not list((tmp_path / "tls").glob("*.csr")) and not list((tmp_path / "tls").glob("*.ext"))
+
+
+def _tree(folder: Path) -> dict:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_files_in_output_dir_it_did_not_write_are_never_deleted_nor_overwritten(tmp_path):
+    """OUTPUT_DIR an existing directory holding the user's files: ``*.csr`` and ``*.ext`` of the user's used to be
+    deleted by the script's clean-up (``rm -f OUT/*.csr OUT/*.ext``) and a ``client.pem`` of the user's overwritten.
+    A file the script would write is now refused before anything is written; other files are kept."""
+    out = tmp_path / "home"
+    out.mkdir()
+    (out / "mine.csr").write_text("the user's own request\n")
+    (out / "notes.ext").write_text("the user's notes\n")
+    (out / "client.pem").write_text("the user's own certificate\n")
+    before = _tree(out)
+    run = _make(out, "DNS:localhost", tmp_path / "ca", check=False)
+    assert run.returncode == 2 and "already holds client.pem" in run.stderr and "never overwrites" in run.stderr
+    assert _tree(out) == before
+    (out / "client.pem").unlink()
+    _make(out, "DNS:localhost", tmp_path / "ca")  # no clash left: the certificates are written beside the user's files
+    assert (out / "mine.csr").read_text() == "the user's own request\n"
+    assert (out / "notes.ext").read_text() == "the user's notes\n"
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        ["mine.csr", "notes.ext", "ca.pem", "dask-tls.yaml"] + [f"{r}{s}" for r in ("scheduler", "worker", "client")
+                                                               for s in (".pem", "-key.pem")])
+
+
+def test_a_second_run_into_the_same_output_dir_is_refused_and_changes_nothing(tmp_path):
+    """Running the script again with the same OUTPUT_DIR used to replace every key and certificate of a
+    cluster already set up (and, with another CA_DIR, its ca.pem: the other machines' certificates then
+    no longer verify)."""
+    out = tmp_path / "tls"
+    _make(out)
+    before = _tree(out)
+    for ca in (None, tmp_path / "another-ca"):
+        run = _make(out, "DNS:localhost", *([ca] if ca else []), check=False)
+        assert run.returncode == 2 and "already holds ca.pem" in run.stderr, run.stderr
+        assert _tree(out) == before
+    assert not (tmp_path / "another-ca").exists()
+
+
+def test_a_ca_dir_with_a_certificate_but_no_key_is_refused(tmp_path):
+    ca = tmp_path / "ca"
+    ca.mkdir()
+    (ca / "ca.pem").write_text("the certificate of a CA whose key is elsewhere\n")
+    run = _make(tmp_path / "tls", "DNS:localhost", ca, check=False)
+    assert run.returncode == 2 and "holds ca.pem but no ca-key.pem" in run.stderr
+    assert _tree(ca) == {"ca.pem": b"the certificate of a CA whose key is elsewhere\n"}
+    assert not list((tmp_path / "tls").iterdir())
+
+
+def test_a_failed_run_leaves_output_dir_as_it_was_and_can_be_run_again(tmp_path):
+    """A bad SAN makes openssl fail after the CA and the first key are written: the keys and ca.pem it wrote in
+    OUTPUT_DIR used to stay (and would now block the corrected run); they are removed, the user's file kept."""
+    out = tmp_path / "tls"
+    out.mkdir()
+    (out / "README").write_text("the user's\n")
+    run = _make(out, "not-a-subject-alt-name", check=False)
+    assert run.returncode == 1 and "openssl failed" in run.stderr
+    assert _tree(out) == {"README": b"the user's\n"}
+    _make(out, "DNS:localhost")
+    assert "worker.pem: OK" in _openssl("verify", "-CAfile", str(out / "ca.pem"), str(out / "worker.pem"))
