@@ -7,6 +7,7 @@ stores are tested end to end in ``test_paper_study.py``.
 """
 
 import json
+from pathlib import Path
 
 import matplotlib.image
 import numpy as np
@@ -23,6 +24,7 @@ from tubeid.identification.loads import delta_f_likelihood
 from tubeid.report import OUTPUTS, PAPER_VALUES, _plot_d_map, make_report, region_coverage
 from tubeid.seeds import rng_for
 
+REPO = Path(__file__).resolve().parents[1]
 F = np.arange(0.0, 150.5, 0.5)  # Hz, 0 .. 150 (a Welch grid beyond the 100 Hz band)
 SENS = ["P_obs"]
 N_BOOT = 50
@@ -446,10 +448,16 @@ def _tubeid_study_store(path):
     ("empty directory", "is not a Zarr store (GroupNotFoundError)"),
     ("plain zarr", "is not a paper study store: a Zarr store with none of the paper study's groups"),
     ("tubeid study", "is not a paper study store: a tubeid study store (study 'pi') with none"),
+    ("tubeid pipeline sharing stage names", "is not a paper study store: a tubeid pipeline store (pipeline "
+     "'two-stage', stages ['delta', 'response']) without the paper study's stages reference, calibration, load_r, "
+     "load_r_fine, load_delta_f"),
 ])
 def test_what_is_not_a_paper_store_is_refused_and_nothing_is_written(tmp_path, capsys, kind, rule):
     """``tubeid report`` on anything that exists used to "succeed" (status 0, every stage "missing") and create
-    ``<store>-report/``: now one line saying it is not a paper study store, status 2, no output directory."""
+    ``<store>-report/``: now one line saying it is not a paper study store, status 2, no output directory.
+    ``studies/two_stage.py``'s store (stages ``delta`` and ``response``, named as the paper's) used to be
+    reported as a paper store: a "quick run" with δ_opt "missing" and the two-stage study's δ_opt as "δ of
+    the later stages", status 0."""
     store = tmp_path / "thing"
     if kind == "file":
         store.write_text("hi\n")
@@ -457,6 +465,10 @@ def test_what_is_not_a_paper_store_is_refused_and_nothing_is_written(tmp_path, c
         store.mkdir()
     elif kind == "plain zarr":
         zarr.open_group(str(store), mode="w").create_array("x", shape=(3,), dtype="f8")
+    elif kind == "tubeid pipeline sharing stage names":
+        from tubeid.runner.execute import run
+
+        run(REPO / "studies" / "two_stage.py", store, workers=0, quiet=True, overrides={"size": "quick"})
     else:
         _tubeid_study_store(store)
     before = sorted(p.name for p in tmp_path.iterdir())

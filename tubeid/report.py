@@ -26,8 +26,10 @@ spreads, and says so if a recomputed point estimate ever differs from the stored
 two-sided per Hz (m²/Hz), complex or real. Realisations with missing values (a partial run reads
 them as NaN) are left out and counted; a missing stage is reported, not fatal (a paper store whose
 later stages are not written yet is reported as far as it goes). What is not a paper study store (not
-a Zarr group, or a Zarr store with none of the groups above, e.g. another study's store) is refused
-before anything is written, as is an unknown ``sensor``.
+a Zarr group, a Zarr store with none of the groups above, e.g. another study's store, or a tubeid
+pipeline store without all of them among its stages, e.g. ``studies/two_stage.py``'s, whose stages
+``delta`` and ``response`` share the paper's names) is refused before anything is written, as is an
+unknown ``sensor``.
 
 Writes into DIR (default: ``<store>-report`` beside the store), through ``tubeid._outputs.OutputDir``
 (a file there that tubeid did not write, e.g. the user's own ``summary.md``, is never overwritten:
@@ -151,9 +153,9 @@ class _Store:
     """The groups of a paper store, opened once (lazily), with their parameters.
 
     Opening refuses (``SpecificationError``) what is not a paper study store: a path that is not a
-    Zarr group, or a Zarr store with none of the paper study's groups (:data:`GROUPS`), neither written
-    nor, for a pipeline store of tubeid, among its stages. A paper store whose later stages are not
-    written yet is a paper store: the report lists them as missing.
+    Zarr group, a Zarr store with none of the paper study's groups (:data:`GROUPS`), and a pipeline
+    store of tubeid whose stages (all listed from its start) are not all the paper study's. A paper
+    store whose later stages are not written yet is a paper store: the report lists them as missing.
     """
 
     def __init__(self, path: str):
@@ -174,13 +176,22 @@ class _Store:
         except Exception as exc:  # zarr raises several not-a-group types across versions
             raise SpecificationError("store", path, f"is not a Zarr store ({type(exc).__name__}): give the store "
                                      "that `tubeid run studies/paper.py` wrote") from None
+        from tubeid.runner.status import FORMAT, PIPELINE_FORMAT
+
         stages = self.root.get("stages")
         stages = set(stages) if isinstance(stages, list) and all(isinstance(n, str) for n in stages) else set()
+        fmt, name = self.root.get("format"), self.root.get("study_name")
+        if fmt == PIPELINE_FORMAT and stages and not set(GROUPS) <= stages:
+            # a tubeid pipeline lists all its stages from the start: another pipeline whose stages share a
+            # name with the paper's (studies/two_stage.py: delta, response) is not the paper study
+            raise SpecificationError("store", path, f"is not a paper study store: a tubeid pipeline store (pipeline "
+                                     f"{name!r}, stages {sorted(stages)}) without the paper study's stages "
+                                     f"{', '.join(g for g in GROUPS if g not in stages)} (a paper store is written "
+                                     "by `tubeid run studies/paper.py`)")
         if not set(GROUPS) & (members | stages):
-            fmt, name = self.root.get("format"), self.root.get("study_name")
-            what = (f"a tubeid study store (study {name!r})" if fmt == "tubeid-study-store/2" else
+            what = (f"a tubeid study store (study {name!r})" if fmt == FORMAT else
                     f"a tubeid pipeline store (pipeline {name!r}, stages {sorted(stages)})"
-                    if fmt == "tubeid-pipeline-store/2" else "a Zarr store"
+                    if fmt == PIPELINE_FORMAT else "a Zarr store"
                     + (f" (groups {sorted(members)[:8]})" if members else ""))
             raise SpecificationError("store", path, f"is not a paper study store: {what} with none of the paper "
                                      f"study's groups {', '.join(GROUPS)} (a paper store is written by "
