@@ -29,6 +29,7 @@ catalog entry k; ``right``: 1 when exactly the true effects are named), the posi
 located effect [m], the held-out errors before and after, the time taken [s].
 """
 
+import json
 import time
 
 import numpy as np
@@ -36,6 +37,9 @@ import numpy as np
 from tubeid.diagnose import CATALOG, DiagnoseSettings, diagnose
 from tubeid.diagnose._detection import STATISTICS
 from tubeid.diagnose.testing import HandEffects, make_record
+from tubeid.errors import SpecificationError
+from tubeid.mechanics.library import model_content
+from tubeid.mechanics.spec import spec_from_dict
 from tubeid.runner.pipeline import Pipeline
 from tubeid.runner.study import Output, Parameter, Study, pointwise
 
@@ -89,6 +93,23 @@ OUTPUTS = {
 }
 
 
+class ModelParameter(Parameter):
+    """The declared model: a built-in name or a .yaml/.toml file, checked when the study is loaded (before
+    any stage runs); its value becomes the specification's content, so the stages store and hash what
+    they diagnose with (a changed file is a changed study) and the workers need no file."""
+
+    def check(self, name, value):
+        text, spec = model_content(f"parameters.{name}", value)
+        if spec.effects:
+            raise SpecificationError(f"parameters.{name}: effects", spec.effects, "diagnose a model without carried effects")
+        return text
+
+
+def _declared(model: str):
+    """The model ``diagnose`` receives: a built-in name as is, a ``ModelParameter``'s content as its specification."""
+    return spec_from_dict(json.loads(model)["spec"]) if model.lstrip().startswith("{") else model
+
+
 def _tone_db(case, seed, xs, effects: HandEffects) -> float:
     """The line's power over the broadband power in the 1 Hz band at its frequency, mean over the
     sensors [dB]: the record against the same record without the tone (the same load)."""
@@ -111,7 +132,7 @@ def _diagnose_point(point, rng, *, model, settings: DiagnoseSettings):
     seed = int(rng.integers(2**31))
     data = make_record(effects=effects, xs=xs, seed=seed)
     t0 = time.perf_counter()
-    rep = diagnose(data, model, settings.replace(seed=seed % 10_000), workers=0).report
+    rep = diagnose(data, _declared(model), settings.replace(seed=seed % 10_000), workers=0).report
     seconds = time.perf_counter() - t0
     det = rep["detection"]
     named = [e["name"] for e in rep["effects"]]
@@ -184,7 +205,8 @@ study = Pipeline(
         "control_records": Parameter(20, bounds=(1, 1000), doc="control records of the false-alarm campaign"),
         "records": Parameter(10, bounds=(1, 1000), doc="records per case of the power campaign"),
         "two_records": Parameter(5, bounds=(1, 1000), doc="records per case of the two-at-once campaign"),
-        "simplified_model": Parameter("paper-simplified", doc="the simplified model declared (name or specification file)"),
+        "simplified_model": ModelParameter("paper-simplified", doc="the simplified model declared (name or specification "
+                                           "file; stored as its content)"),
         "simplified_records": Parameter(5, bounds=(1, 1000), doc="records per effect with the simplified model declared"),
     },
 )

@@ -55,7 +55,7 @@ from tubeid.errors import SpecificationError
 from tubeid.identification.delta import default_delta_grid, reference_j
 from tubeid.identification.likelihood import likelihood_curve
 from tubeid.identification.trial import DISTANCES, fine_grid, identify_r
-from tubeid.mechanics.library import builtin_spec, resolve_spec
+from tubeid.mechanics.library import builtin_spec, model_content
 from tubeid.mechanics.reduction import J_UNITS, j_functional, reduce
 from tubeid.mechanics.spec import spec_from_dict, spec_to_dict
 from tubeid.runner.pipeline import Pipeline
@@ -80,19 +80,7 @@ class ModelParameter(Parameter):
 
     def check(self, name, value):
         field = f"parameters.{name}"
-        if not isinstance(value, str) or not value:
-            raise SpecificationError(field, value, "must be a built-in model name or a .yaml/.toml specification file")
-        try:
-            if value.lstrip().startswith("{"):
-                content = json.loads(value)
-                source, spec = str(content["source"]), spec_from_dict(content["spec"])
-            else:
-                source, spec = value, resolve_spec(value)
-        except SpecificationError as exc:
-            raise SpecificationError(field, value if len(value) < 200 else value[:200] + "...", str(exc)) from None
-        except (ValueError, KeyError, TypeError, OSError) as exc:
-            raise SpecificationError(field, value[:200], f"is neither a model name, a specification file nor its "
-                                                          f"content ({type(exc).__name__}: {exc})") from None
+        text, spec = model_content(field, value)
         ref = REFERENCE.spec
         p_obs = ref.sensors[0]
         if spec.a_tube != "centre":
@@ -102,7 +90,7 @@ class ModelParameter(Parameter):
                                      f"must observe the reference's {p_obs.name} (tube {p_obs.tube!r}, x = {p_obs.x:g} m)")
         if spec.band_hz != ref.band_hz:
             raise SpecificationError(f"{field}: band_hz", spec.band_hz, f"must be the reference's {ref.band_hz:g} Hz")
-        return json.dumps({"source": source, "spec": spec_to_dict(spec)}, sort_keys=True)
+        return text
 
 
 @functools.lru_cache(maxsize=4)

@@ -1801,3 +1801,49 @@ def test_the_figures_show_names_as_written_not_as_tex(tmp_path):
     first = figures["residual.png"].axes[0]
     assert first.title.get_text() == "c\\$\\nope\\$: before"  # shown as c$\nope$
     assert any("mathdefault" in t.get_text() for t in first.get_yticklabels())  # the log ticks' own math kept
+
+
+def test_the_campaign_study_checks_its_declared_model_and_stores_its_content(tmp_path):
+    """studies/diagnose_effects.py: ``--set simplified_model=NAME`` with a typo used to be accepted and fail only in
+    the fifth stage, after hours of the first four; a specification file was stored by its path, so a resume after
+    the file was edited mixed records diagnosed with two models in one stage. Now a bad name, a missing file and a
+    model carrying effects are refused when the file is loaded (no store), and a file's content is the value the
+    stages store and hash (an edited file: another stage, refused on resume rather than mixed)."""
+    import pathlib
+
+    import yaml
+
+    from tubeid.mechanics.spec import spec_from_dict
+    from tubeid.runner.execute import run
+    from tubeid.runner.study import _CACHE, load_definition
+
+    study = pathlib.Path(__file__).resolve().parents[1] / "studies" / "diagnose_effects.py"
+    for value, match in (("no-such-model", "unknown built-in model"), (str(tmp_path / "none.yaml"), "does not exist"),
+                         (3, "must be a built-in model name")):
+        rule = r"parameters\.simplified_model = .*" + match
+        with pytest.raises(SpecificationError, match=rule):  # when the file is loaded: before anything runs
+            load_definition(study, overrides={"simplified_model": value})
+        with pytest.raises(SpecificationError, match=rule):
+            run(study, tmp_path / "s.zarr", workers=0, quiet=True, overrides={"simplified_model": value})
+        assert not (tmp_path / "s.zarr").exists()
+    with_effects = spec_to_dict(dataclasses.replace(builtin_spec("paper-simplified"), effects=(Tone(37.0, 20.0),)))
+    carrying = tmp_path / "carrying.yaml"
+    carrying.write_text(yaml.safe_dump(with_effects))
+    with pytest.raises(SpecificationError, match=r"parameters\.simplified_model: effects = .*without carried effects"):
+        load_definition(study, overrides={"simplified_model": str(carrying)})
+
+    d = spec_to_dict(builtin_spec("paper-simplified"))
+    spec = tmp_path / "declared.yaml"
+    spec.write_text(yaml.safe_dump(d))
+    pipeline = load_definition(study, overrides={"simplified_model": str(spec)})[0]
+    first = pipeline.values["simplified_model"]
+    assert json.loads(first)["source"] == str(spec)
+    assert spec_to_dict(spec_from_dict(json.loads(first)["spec"])) == spec_to_dict(builtin_spec("paper-simplified"))
+    stage = dict(zip([f.__name__ for f in pipeline.stages], pipeline.stages))["simplified_false_alarm"]
+    built = stage({}, simplified_model=first, control_records=1)
+    assert built.values["model"] == first  # the content reaches the task, its parameters and so the stage's hash
+    d["tubes"][0]["damping_ratio"] = 0.03
+    spec.write_text(yaml.safe_dump(d))
+    _CACHE.clear()  # a new process, as the next `tubeid run` is (this one keeps definitions by source and --set)
+    edited = load_definition(study, overrides={"simplified_model": str(spec)})[0].values["simplified_model"]
+    assert edited != first and stage({}, simplified_model=edited, control_records=1).values["model"] == edited

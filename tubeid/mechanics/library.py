@@ -45,7 +45,7 @@ if TYPE_CHECKING:
 # the specification classes (and numpy, which they need) are imported where a model is built: the
 # registry's names alone (``tubeid model --help``) load no numerical library
 
-__all__ = ["builtin_spec", "BUILTIN_MODELS", "resolve_spec"]
+__all__ = ["builtin_spec", "BUILTIN_MODELS", "resolve_spec", "model_content"]
 
 GRIDS = (4.0, 8.0, 12.0)
 SECTION = dict(length=16.0, outer_radius=0.5, wall=0.2, n_elements=8, ends=("clamped", "clamped"), damping_ratio=0.02)
@@ -143,3 +143,51 @@ def resolve_spec(name_or_path: BundleSpec | str | os.PathLike) -> BundleSpec:
     if s.endswith((".yaml", ".yml", ".toml")):
         return load_spec(s)
     return builtin_spec(s)
+
+
+def model_content(field: str, value) -> tuple[str, BundleSpec]:
+    """A model given as a built-in name, a ``.yaml``/``.toml`` file or its content, as its content.
+
+    For a study parameter naming a model: the value a study stores, hashes and sends to its workers is
+    the specification's content, so that a changed file is a changed study (never mixed into a store
+    made with the earlier content) and the workers need no file. Idempotent: the content passes
+    through unchanged.
+
+    Parameters
+    ----------
+    field : str
+        The field named in a refusal (e.g. ``"parameters.simplified"``).
+    value : str
+        A built-in name, a specification file, or canonical JSON text ``{"source": ..., "spec": {...}}``.
+
+    Returns
+    -------
+    text : str
+        Canonical JSON text ``{"source": the name or file as given, "spec": the specification's fields}``
+        (keys sorted).
+    spec : BundleSpec
+        The specification.
+
+    Raises
+    ------
+    SpecificationError
+        Not a non-empty string, an unknown name, a missing or invalid file, or text that is none of these.
+    """
+    import json
+
+    from tubeid.mechanics.spec import spec_from_dict, spec_to_dict
+
+    if not isinstance(value, str) or not value:
+        raise SpecificationError(field, value, "must be a built-in model name or a .yaml/.toml specification file")
+    try:
+        if value.lstrip().startswith("{"):
+            content = json.loads(value)
+            source, spec = str(content["source"]), spec_from_dict(content["spec"])
+        else:
+            source, spec = value, resolve_spec(value)
+    except SpecificationError as exc:
+        raise SpecificationError(field, value if len(value) < 200 else value[:200] + "...", str(exc)) from None
+    except (ValueError, KeyError, TypeError, OSError) as exc:
+        raise SpecificationError(field, value[:200], f"is neither a model name, a specification file nor its "
+                                                      f"content ({type(exc).__name__}: {exc})") from None
+    return json.dumps({"source": source, "spec": spec_to_dict(spec)}, sort_keys=True), spec
