@@ -783,6 +783,32 @@ def test_set_refuses_a_number_beyond_a_floats_range(tmp_path, capsys, text, read
     assert _setting('x="1e-400"') == ("x", "1e-400")  # text stays text
 
 
+@pytest.mark.parametrize("samples", [-5, 0, 10**7 + 1])
+def test_the_pi_study_refuses_a_sample_count_it_cannot_use_before_any_store(tmp_path, capsys, samples):
+    """studies/pi.py: `--set samples=-5` ended in numpy's traceback ("negative dimensions are not allowed") from
+    the first block, 0 in a NaN refusal from the first block (a store left), 10**10 would ask for 160 GB per
+    point; each is now refused when the file is loaded, naming the parameter and its bounds."""
+    from tubeid.cli import main
+    from tubeid.runner.study import load_definition
+
+    with pytest.raises(SpecificationError, match=rf"parameters\.samples = {samples}: must lie in \[1, 10000000\]"):
+        load_definition(REPO / "studies" / "pi.py", overrides={"samples": samples})
+    assert main(["run", str(REPO / "studies" / "pi.py"), "--store", str(tmp_path / "pi.zarr"), "--workers", "0",
+                 "--set", f"samples={samples}"]) == 2
+    assert capsys.readouterr().err.count("\n") == 1 and not (tmp_path / "pi.zarr").exists()
+    assert load_definition(REPO / "studies" / "pi.py", overrides={"samples": 1})[0].values["samples"] == 1
+
+
+def test_a_bound_left_open_is_not_shown_as_none():
+    """`bounds=(1, None)` was said as "must lie in [1, None]"."""
+    with pytest.raises(SpecificationError, match=r"^parameters\.n = 0: must be >= 1$"):
+        Parameter(5, bounds=(1, None)).check("n", 0)
+    with pytest.raises(SpecificationError, match=r"^parameters\.x = 2\.5: must be <= 2\.0$"):
+        Parameter(1.0, bounds=(None, 2.0)).check("x", 2.5)
+    with pytest.raises(SpecificationError, match=r"^parameters\.x = 2\.5: must lie in \[0\.0, 2\.0\]$"):
+        Parameter(1.0, bounds=(0.0, 2.0)).check("x", 2.5)
+
+
 def test_a_float_parameter_refuses_an_integer_a_float_cannot_hold():
     with pytest.raises(SpecificationError, match=r"parameters.x = <integer of 1329 bits>: must be a number a float can"):
         Parameter(1.0).check("x", 10 ** 400)

@@ -172,7 +172,8 @@ class Parameter:
             if isinstance(value, bool) or not isinstance(value, (int, float)):
                 raise SpecificationError(field, value, "must be a number")
             if (lo is not None and value < lo) or (hi is not None and value > hi):
-                raise SpecificationError(field, value, f"must lie in [{lo}, {hi}]")
+                raise SpecificationError(field, value, f"must be >= {lo}" if hi is None else f"must be <= {hi}"
+                                         if lo is None else f"must lie in [{lo}, {hi}]")
         return value
 
     def check_with(self, name: str, value: Any, values: Mapping[str, Any]) -> None:
