@@ -112,3 +112,54 @@ def test_workers_past_their_lifetime_are_replaced_and_the_study_completes(tmp_pa
     assert len(submitted) >= 4, log                # the 2 first jobs and at least 2 replacements
     assert len(retired) >= 2, log                  # their workers retired at the end of their lifetime
     assert not [e for e in log if e[:1] == ["end"] and e[2:] == ["walltime"]], log  # none reached the walltime
+
+
+def _refusal(tmp_path, *args):
+    """run_study.py with a fake sbatch on PATH: (exit status, stderr, jobs submitted)."""
+    bin_dir, state = tmp_path / "bin", tmp_path / "slurm"
+    fake_slurm.install(bin_dir, state)
+    env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}", "TUBEID_RUNNER__PROGRESS": "false"}
+    res = subprocess.run([sys.executable, str(SCRIPT), *map(str, args)], capture_output=True, text=True, env=env,
+                         cwd=tmp_path, timeout=120)
+    return res.returncode, res.stderr, [e for e in fake_slurm.events(state) if e[0] == "submit"]
+
+
+@pytest.mark.parametrize("config, rule", [
+    ("missing.yaml", "cannot be read (No such file or directory)"),
+    ("README.md", "is not YAML (mapping values are not allowed here, line 1)"),
+    ("list.yaml", "must hold a YAML mapping of settings (jobqueue: slurm: ...), not a list"),
+])
+def test_a_bad_config_file_is_one_line(tmp_path, config, rule):
+    """`--config` missing, not YAML, or not a mapping: each ended in a traceback (FileNotFoundError, yaml's
+    ScannerError, AttributeError); now one line naming the option, the file and the rule, exit status 2."""
+    (tmp_path / "README.md").write_text("Run: it: like this\n")
+    (tmp_path / "list.yaml").write_text("- jobqueue\n")
+    status, err, submitted = _refusal(tmp_path, REPO / "studies" / "pi.py", "--config", tmp_path / config)
+    assert status == 2 and err == f"tubeid: error: --config = {str(tmp_path / config)!r}: {rule}\n", err
+    assert not submitted
+
+
+@pytest.mark.parametrize("args, rule", [
+    (["no-such-study.py"], "study = 'no-such-study.py': no such study file"),
+    ([REPO / "studies" / "pi.py", "--set", "samples=0"], "parameters.samples = 0: must lie in [1, 10000000]"),
+])
+def test_a_bad_study_is_refused_before_the_cluster_starts(tmp_path, args, rule):
+    """A missing study file used to be refused only after the SLURM cluster had started and printed "2 worker
+    jobs kept running"; run_study.py had no --set at all. Both are now checked before any cluster or job."""
+    config = tmp_path / "jobqueue.yaml"
+    shipped = yaml.safe_load((REPO / "cluster/slurm/jobqueue.yaml").read_text())
+    shipped["jobqueue"]["slurm"].update({"python": sys.executable, "scheduler-options": {"host": "127.0.0.1"}})
+    config.write_text(yaml.safe_dump(shipped))
+    status, err, submitted = _refusal(tmp_path, *args, "--store", tmp_path / "s.zarr", "--config", config)
+    assert status == 2 and err == f"tubeid: error: {rule}\n", err
+    assert not submitted and not (tmp_path / "s.zarr").exists()
+
+
+def test_the_runner_job_script_names_its_arguments_when_they_are_missing(tmp_path):
+    """`sbatch tubeid-run.sbatch` without STORE: bash's "$2: unbound variable" in the job's log; now the usage."""
+    env = {**os.environ, "TUBEID_VENV": str(pathlib.Path(sys.executable).parents[1]), "SLURM_SUBMIT_DIR": str(REPO)}
+    for args in ([], ["studies/pi.py"]):
+        res = subprocess.run(["bash", str(REPO / "cluster/slurm/tubeid-run.sbatch"), *args], capture_output=True,
+                             text=True, env=env, cwd=tmp_path, timeout=60)
+        assert res.returncode != 0 and "usage: sbatch cluster/slurm/tubeid-run.sbatch STUDY.py STORE [JOBS]" in res.stderr
+        assert "unbound variable" not in res.stderr.replace("usage", "")

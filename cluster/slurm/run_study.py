@@ -110,6 +110,33 @@ def worker_lifetime(settings: dict) -> tuple[float, float, float]:
     return life_s, stagger_s, walltime
 
 
+def read_config(path: str) -> dict:
+    """The dask-jobqueue settings of a YAML file (a mapping; an empty file is no settings).
+
+    Raises
+    ------
+    SpecificationError
+        A file that cannot be read, is not YAML, or does not hold a mapping.
+    """
+    from tubeid.errors import SpecificationError
+
+    try:
+        with open(path) as fh:
+            settings = yaml.safe_load(fh)
+    except OSError as exc:
+        raise SpecificationError("--config", path, f"cannot be read ({exc.strerror or exc})") from None
+    except yaml.YAMLError as exc:
+        where = getattr(exc, "problem_mark", None)
+        raise SpecificationError("--config", path, f"is not YAML ({getattr(exc, 'problem', None) or exc}"
+                                 + (f", line {where.line + 1}" if where else "") + ")") from None
+    if settings is None:
+        return {}
+    if not isinstance(settings, dict):
+        raise SpecificationError("--config", path, f"must hold a YAML mapping of settings (jobqueue: slurm: ...), "
+                                 f"not a {type(settings).__name__}")
+    return settings
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run a study on SLURM worker jobs that are replaced as their lifetime ends.
 
@@ -129,6 +156,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--jobs", type=int, default=2, help="SLURM worker jobs kept running (each replaced when it ends)")
     p.add_argument("--config", default=str(CONFIG), help="dask-jobqueue settings (YAML)")
     p.add_argument("--print-job-script", action="store_true", help="print the worker batch script and exit")
+    from tubeid.runner.cli import _setting
+
+    p.add_argument("--set", dest="overrides", action="append", type=_setting, default=[], metavar="NAME=VALUE",
+                   help="override a study (or pipeline) parameter, as `tubeid run --set`")
     args = p.parse_args(argv)
 
     from tubeid import _validation
@@ -138,10 +169,13 @@ def main(argv: list[str] | None = None) -> int:
     try:
         SLURMCluster = require("dask_jobqueue", "cluster/slurm/run_study.py").SLURMCluster
         jobs = _validation.integer("--jobs", args.jobs, minimum=1)
-        with open(args.config) as fh:
-            dask.config.update(dask.config.config, yaml.safe_load(fh), priority="new")
+        dask.config.update(dask.config.config, read_config(args.config), priority="new")
         life, stagger, walltime = worker_lifetime(dask.config.get("jobqueue.slurm"))
         from tubeid.runner.execute import run
+        from tubeid.runner.study import load_definition
+
+        if not args.print_job_script:  # the study and its --set refused before any job is submitted
+            load_definition(args.study, overrides=dict(args.overrides))
 
         with SLURMCluster() as cluster:
             if args.print_job_script:
@@ -151,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"tubeid: SLURM: {jobs} worker jobs kept running (walltime {walltime:g} s; each worker retires "
                   f"after {life:g} ± {stagger:g} s and its job is replaced); dashboard {cluster.dashboard_link}",
                   file=sys.stderr)
-            run(args.study, args.store, scheduler=cluster.scheduler_address)
+            run(args.study, args.store, scheduler=cluster.scheduler_address, overrides=dict(args.overrides))
     except (SpecificationError, MissingDependencyError) as exc:
         print(f"tubeid: error: {exc}", file=sys.stderr)
         return 2
