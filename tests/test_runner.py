@@ -799,6 +799,27 @@ def test_the_pi_study_refuses_a_sample_count_it_cannot_use_before_any_store(tmp_
     assert load_definition(REPO / "studies" / "pi.py", overrides={"samples": 1})[0].values["samples"] == 1
 
 
+def test_run_help_with_a_study_lists_its_parameters(tmp_path, capsys):
+    """`tubeid run studies/pi.py --help` printed only the runner's options: which --set names a study takes (and
+    their types, bounds, docs: ``Parameter.doc`` says it is for this help) could only be read in its source."""
+    from tubeid.cli import main
+
+    with pytest.raises(SystemExit) as info:
+        main(["run", str(REPO / "studies" / "pi.py"), "--help"])
+    out = capsys.readouterr().out
+    assert info.value.code == 0 and "--set NAME=VALUE" in out
+    assert out.endswith(f"\nparameters of {REPO / 'studies' / 'pi.py'} (study 'pi'; --set NAME=VALUE):\n"
+                        "  samples = 100000  (an integer in [1, 10000000]: points per realisation)\n"), out
+    with pytest.raises(SystemExit):
+        main(["run", "--help", str(REPO / "studies" / "two_stage.py")])  # the study after --help too
+    assert capsys.readouterr().out.endswith("  size = 'paper'  (one of ['paper', 'quick'])\n")
+    with pytest.raises(SystemExit):
+        main(["run", "--help"])  # no study: the options only
+    assert "parameters of" not in capsys.readouterr().out
+    assert main(["run", str(tmp_path / "none.py"), "--help"]) == 2
+    assert capsys.readouterr().err == f"tubeid: error: study = {str(tmp_path / 'none.py')!r}: no such study file\n"
+
+
 def test_a_bound_left_open_is_not_shown_as_none():
     """`bounds=(1, None)` was said as "must lie in [1, None]"."""
     with pytest.raises(SpecificationError, match=r"^parameters\.n = 0: must be >= 1$"):

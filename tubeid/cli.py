@@ -158,7 +158,21 @@ def _main(argv: Sequence[str] | None) -> int:
         except MissingDependencyError as exc:
             print(f"tubeid: error: {exc}", file=sys.stderr)
             return 2
-    args = build_parser(command).parse_args(argv)
+    try:
+        args = build_parser(command).parse_args(argv)
+    except SystemExit as exc:  # `tubeid run STUDY.py --help`: the study's own parameters after the options
+        if exc.code == 0 and command == "run" and {"-h", "--help"} & set(argv):
+            from tubeid.errors import SpecificationError
+            from tubeid.runner.cli import study_help
+
+            try:
+                text = study_help(argv)
+            except SpecificationError as err:
+                print(f"tubeid: error: {err}", file=sys.stderr)
+                return 2
+            if text:
+                print("\n" + text)
+        raise
 
     from threadpoolctl import threadpool_limits
 

@@ -102,6 +102,47 @@ def register(sub) -> None:
     p.set_defaults(func=_bench)
 
 
+def study_help(argv) -> str | None:
+    """The parameters of the study that ``tubeid run ... --help`` names, as text (None if it names none).
+
+    Parameters
+    ----------
+    argv : sequence of str
+        The ``tubeid`` arguments (``run STUDY.py ... --help``).
+
+    Raises
+    ------
+    SpecificationError
+        The study file named cannot be loaded (missing, not Python, no ``study``, a refused definition).
+    """
+    import argparse as _argparse
+
+    parser = _argparse.ArgumentParser(add_help=False)
+    sub = parser.add_subparsers(dest="command")
+    register(sub)
+    run_parser = sub.choices["run"]
+    run_parser.exit = run_parser.error = lambda *a, **k: (_ for _ in ()).throw(ValueError())  # no exit here
+    try:
+        args, _ = parser.parse_known_args([a for a in argv if a not in ("-h", "--help")])
+    except (ValueError, SystemExit):
+        return None
+    if getattr(args, "command", None) != "run" or not getattr(args, "study", None):
+        return None
+    from tubeid.errors import shown
+    from tubeid.runner.study import load_definition  # numpy and the rest: only when a study is named
+
+    study = load_definition(args.study)[0]
+    lines = [f"parameters of {args.study} (study {study.name!r}; --set NAME=VALUE):"]
+    for name, p in study.parameters.items():
+        value = shown(p.value)
+        if len(repr(p.value)) > LONG_VALUE:  # e.g. a model's specification, stored as its content
+            value = f"{repr(p.value)[:40]}... ({len(repr(p.value))} characters)"
+        lines.append(f"  {name} = {value}  ({p.describe()})")
+    if len(lines) == 1:
+        lines.append("  none")
+    return "\n".join(lines)
+
+
 def _run(args) -> int:
     from tubeid.runner.execute import run
 

@@ -176,6 +176,25 @@ class Parameter:
                                          if lo is None else f"must lie in [{lo}, {hi}]")
         return value
 
+    def describe(self) -> str:
+        """What the parameter admits, for ``tubeid run STUDY.py --help``.
+
+        Returns
+        -------
+        str
+            Its type (or choices), bounds, units and doc, e.g. ``"an integer in [1, 64]: matrix size"``.
+        """
+        want = self.type if self.type is not None else _type_of(self.value)
+        parts = [_TYPES[want] if want is not None else "any plain value"]
+        if self.choices is not None:
+            parts = ["one of [" + ", ".join(shown(c) for c in self.choices) + "]"]
+        if self.bounds is not None:
+            lo, hi = self.bounds
+            parts.append(f">= {lo}" if hi is None else f"<= {hi}" if lo is None else f"in [{lo}, {hi}]")
+        if self.units:
+            parts.append(f"[{self.units}]")
+        return " ".join(parts) + (f": {self.doc}" if self.doc else "")
+
     def check_with(self, name: str, value: Any, values: Mapping[str, Any]) -> None:
         """Rules that involve other parameters, checked once every parameter has its value.
 
