@@ -820,6 +820,15 @@ def test_run_help_with_a_study_lists_its_parameters(tmp_path, capsys):
     assert capsys.readouterr().err == f"tubeid: error: study = {str(tmp_path / 'none.py')!r}: no such study file\n"
 
 
+def test_a_directory_given_as_the_study_is_named_as_one(tmp_path, capsys):
+    """`tubeid run .` or `tubeid run studies` said "no such study file" of a directory that exists."""
+    from tubeid.cli import main
+
+    assert main(["run", str(tmp_path), "--workers", "0"]) == 2
+    assert capsys.readouterr().err == (f"tubeid: error: study = {str(tmp_path)!r}: is a directory: give a study file "
+                                       "(e.g. studies/pi.py)\n")
+
+
 def test_a_bound_left_open_is_not_shown_as_none():
     """`bounds=(1, None)` was said as "must lie in [1, None]"."""
     with pytest.raises(SpecificationError, match=r"^parameters\.n = 0: must be >= 1$"):

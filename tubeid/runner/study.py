@@ -831,6 +831,8 @@ def load_definition(path: str | pathlib.Path | None = None, *, source: str | Non
 
     if source is None:
         p = pathlib.Path(path)
+        if p.is_dir():
+            raise SpecificationError("study", str(path), "is a directory: give a study file (e.g. studies/pi.py)")
         if not p.is_file():
             raise SpecificationError("study", str(path), "no such study file")
         source = read_source(p)
