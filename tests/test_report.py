@@ -494,6 +494,25 @@ def test_a_paper_store_none_of_whose_stages_is_written_yet_is_reported_as_missin
     assert s["figures"] == [] and all(v.startswith("missing") for v in s["stages"].values())
 
 
+def test_a_stage_the_run_has_not_reached_is_said_so(tmp_path, capsys):
+    """A paper run interrupted after its first stages (``timeout -s INT 5 tubeid run studies/paper.py ...``): the
+    stages it had not reached were reported as "group 'load_r' not found in the store (KeyError)", as if the store
+    were damaged; the store's own stage status says they are pending."""
+    groups = _groups()
+    store = _write(tmp_path / "half.zarr", {k: groups[k] for k in ("delta", "reference", "calibration", "response")},
+                   {"size": "quick"})
+    zarr.open_group(store, mode="a").attrs.update(
+        format="tubeid-pipeline-store/2", study_name="paper", stages=list(groups),
+        stage_status={k: "complete" if k in ("delta", "reference", "calibration", "response") else "pending"
+                      for k in groups})
+    assert _run(store, tmp_path / "out") == 0
+    stages = json.loads((tmp_path / "out" / "summary.json").read_text())["stages"]
+    for name in ("load_r", "load_delta_f"):
+        assert stages[name] == ("missing: stage not written yet (its state in the store: pending): the run has not "
+                                "reached it; `tubeid status` says how far it is, the same `tubeid run` resumes it")
+    assert "KeyError" not in capsys.readouterr().out
+
+
 @pytest.mark.parametrize("real", [True, False])
 def test_an_unknown_sensor_is_refused_before_anything_is_written(tmp_path, capsys, real):
     """``--sensor bogus``: refused whether the PSDs have a sensor dimension or not (without one, the figures

@@ -212,7 +212,12 @@ class _Store:
                     warnings.filterwarnings("ignore", message=".*consolidated metadata.*", category=RuntimeWarning)
                     self._groups[name] = xr.open_zarr(self.path, group=name)
             except (KeyError, FileNotFoundError, ValueError, OSError) as exc:
-                self._groups[name] = _StageMissing(f"group '{name}' not found in the store ({type(exc).__name__})")
+                status = self.root.get("stage_status")
+                state = status.get(name) if isinstance(status, dict) else None
+                self._groups[name] = _StageMissing(
+                    f"stage not written yet (its state in the store: {state}): the run has not reached it; "
+                    "`tubeid status` says how far it is, the same `tubeid run` resumes it" if state == "pending" else
+                    f"group '{name}' not found in the store ({type(exc).__name__})")
             except Exception as exc:  # zarr raises several group-not-found types across versions
                 self._groups[name] = _StageMissing(f"group '{name}' could not be opened ({type(exc).__name__}: {exc})")
         g = self._groups[name]
