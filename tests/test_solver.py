@@ -614,6 +614,16 @@ def test_stop_vector_must_hold_real_numbers(b, needle):
             Stop(b, 1e-6, 1.0)
 
 
+def test_a_matrix_given_as_a_stop_row_is_refused_not_flattened():
+    """b is one row of the model's coordinates: a (2, 2) matrix was flattened into a 4-vector and
+    accepted silently; a single row or column is a vector and is kept."""
+    with pytest.raises(SpecificationError, match=r"^stop\.b = an array of shape \(2, 2\): must be a vector "
+                                                 r"\(1-D, or a single row or column\)$"):
+        Stop(b=[[1.0, 0.0], [0.0, 1.0]], gap=0.0, stiffness=1.0)
+    for b in ([[1.0, 0.0, 2.0]], [[1.0], [0.0], [2.0]], [1.0, 0.0, 2.0]):
+        assert Stop(b=b, gap=0.0, stiffness=1.0).b == (1.0, 0.0, 2.0)
+
+
 def test_bool_and_string_arrays_are_refused():
     M, D, K = chain()
     with pytest.raises(SpecificationError, match=r"^C = array of dtype bool, shape \(4, 4\): must be an array of real numbers"):

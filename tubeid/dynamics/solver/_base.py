@@ -21,8 +21,9 @@ class Stop:
     ----------
     b : sequence of float, length N
         The stop's row in the model's coordinates q: u = bᵀq is the displacement at the stop (m).
-        Real, finite, not all zero; flattened and stored as a tuple of float. Its length must be
-        the N of the matrices it is used with (checked by ``simulate``, ``highest_frequency``).
+        Real, finite, not all zero; 1-D, or a single row or column (a matrix is refused); stored as
+        a tuple of float. Its length must be the N of the matrices it is used with (checked by
+        ``simulate``, ``highest_frequency``).
     gap : float
         g (m), finite, >= 0.
     stiffness : float
@@ -50,7 +51,11 @@ class Stop:
 
     def __post_init__(self):
         # complex values refused (never truncated to their real part), bools and strings are not numbers
-        b = numeric_array("stop.b", self.b, finite=False, dtype=float).ravel()
+        b = numeric_array("stop.b", self.b, finite=False, dtype=float)
+        if b.ndim > 1 and sum(d > 1 for d in b.shape) > 1:  # a matrix is not a stop's row: never flattened
+            raise SpecificationError("stop.b", Described(f"an array of shape {b.shape}"),
+                                     "must be a vector (1-D, or a single row or column)")
+        b = b.ravel()
         if b.size == 0 or not np.all(np.isfinite(b)) or not np.any(b != 0):
             raise SpecificationError("stop.b", self.b, "must be a finite, non-zero vector")
         object.__setattr__(self, "b", tuple(float(v) for v in b))
