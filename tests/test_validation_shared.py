@@ -216,3 +216,41 @@ def test_on_tube_is_the_one_check_of_a_point_on_a_tube():
         v.on_tube("x", tube, math.nan, "the point")
     assert not hasattr(FEModel, "_check_on_tube")
     assert "fe._" not in inspect.getsource(response)  # no private member of the FE model
+
+
+def test_bootstrap_replicates_beyond_the_limit_are_refused_up_front_everywhere(tmp_path):
+    """``tubeid report --n-bootstrap 100000000`` ran for minutes, its memory growing, with no word: every
+    bootstrap count (the identification functions, ``tubeid report``, diagnose's settings) is checked by
+    ``_validation.replicates`` against ``tubeid.io.max-bootstrap`` (default 100 000) before any work."""
+    import pathlib
+    import re
+
+    import dask.config
+
+    from tubeid.diagnose import DiagnoseSettings
+    from tubeid.identification import likelihood_curve
+    from tubeid.report import make_report
+
+    assert v.replicates("n_bootstrap", 0) == 0 and v.replicates("n_bootstrap", 100_000) == 100_000
+    with pytest.raises(SpecificationError, match=r"^n_bootstrap = 100001: must be at most 100000 \(configuration "
+                                                 r"tubeid\.io\.max-bootstrap\): .* 0\.22% there$"):
+        v.replicates("n_bootstrap", 100_001)
+    with pytest.raises(SpecificationError, match=r"^n_bootstrap = -1: must be an integer >= 0$"):
+        v.replicates("n_bootstrap", -1)
+    grid = np.linspace(0.0, 1.0, 11)
+    J = grid[:, None] + 0.1 * np.random.default_rng(1).standard_normal(50)  # (grid, samples)
+    with dask.config.set({"tubeid.io.max-bootstrap": 20}):
+        assert v.replicates("n", 20) == 20
+        with pytest.raises(SpecificationError, match=r"^n_bootstrap = 21: must be at most 20 "):
+            likelihood_curve(J, 0.4, grid, n_bootstrap=21, rng=1)
+        assert likelihood_curve(J, 0.4, grid, n_bootstrap=20, rng=1).attrs["n_bootstrap"] == 20
+        with pytest.raises(SpecificationError, match=r"^settings\.n_bootstrap = 21: must be at most 20 "):
+            DiagnoseSettings(n_bootstrap=21)
+        with pytest.raises(SpecificationError, match=r"^n_bootstrap = 21: must be at most 20 "):
+            make_report(tmp_path, n_bootstrap=21)
+    # every module that takes a bootstrap count checks it with the one shared rule, none with its own
+    root = pathlib.Path(v.__file__).parent
+    for path in root.rglob("*.py"):
+        text = path.read_text()
+        assert not re.search(r"integer\([^)]*n_bootstrap", text), path
+        assert not re.search(r"SpecificationError\(\s*\"n_bootstrap\"", text), path

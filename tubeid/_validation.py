@@ -109,6 +109,23 @@ def integer(field: str, value: Any, *, minimum: int | None = None, maximum: int 
     return v
 
 
+def replicates(field: str, value: Any) -> int:
+    """A bootstrap's replicate count B: an integer >= 0 (0: no bootstrap), at most ``tubeid.io.max-bootstrap``.
+
+    Time and memory grow as B (every replicate re-evaluates the criterion on resampled data and its
+    values are kept); the Monte Carlo error of a bootstrap standard deviation is about 1/sqrt(2 B) of
+    it, 0.2 % at the default limit of 100 000, so more buys nothing the data can tell.
+    """
+    n = integer(field, value, minimum=0)
+    bound = int(limit("max-bootstrap"))
+    if n > bound:
+        raise SpecificationError(field, value, f"must be at most {bound} (configuration tubeid.io.max-bootstrap): "
+                                 f"time and memory grow with the replicates, and the bootstrap's own Monte Carlo "
+                                 f"error on a standard deviation, about 1/sqrt(2 B), is already "
+                                 f"{1 / math.sqrt(2 * bound):.2%} there")
+    return n
+
+
 def open_unit(field: str, value: Any) -> float:
     """A number in the open interval (0, 1) (a probability or confidence level), as ``float``."""
     return real(field, value, low=0.0, high=1.0, low_open=True, high_open=True)

@@ -246,6 +246,7 @@ def schema() -> dict[str, dict[str, Callable]]:
             "max-dof": count(1),
             "max-specification-bytes": v.byte_count,
             "max-substeps": lambda field, value: v.real(field, value, low=1.0),
+            "max-bootstrap": count(1),
         },
     }
 

@@ -68,7 +68,7 @@ import numpy as np
 import xarray as xr
 
 from tubeid._outputs import OutputDir
-from tubeid._validation import integer, seed as _seed
+from tubeid._validation import replicates, seed as _seed
 from tubeid.dynamics.spectra import confidence_band, j_s
 from tubeid.errors import SpecificationError
 from tubeid._paths import local_path
@@ -1027,7 +1027,7 @@ def make_report(store, out=None, *, n_bootstrap: int = 200, seed: int = 2008, se
     store = os.fspath(store)
     if not os.path.exists(local_path(store)):
         raise SpecificationError("store", store, "no such Zarr store")
-    n_bootstrap = integer("n_bootstrap", n_bootstrap, minimum=0)
+    n_bootstrap = replicates("n_bootstrap", n_bootstrap)
     seed = _seed("seed", seed)
     if sensor is not None and not isinstance(sensor, str):
         raise SpecificationError("sensor", sensor, "must be a sensor name (a string)")

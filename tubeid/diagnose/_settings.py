@@ -199,7 +199,7 @@ class DiagnoseSettings:
         v.integer(f + "delta_realisations", self.delta_realisations, minimum=10)
         v.integer(f + "delta_f_realisations", self.delta_f_realisations, minimum=5)
         v.integer(f + "delta_f_min_blocks", self.delta_f_min_blocks, minimum=2)
-        v.integer(f + "n_bootstrap", self.n_bootstrap, minimum=0)
+        v.replicates(f + "n_bootstrap", self.n_bootstrap)
         v.integer(f + "r_points", self.r_points, minimum=1)
         v.integer(f + "r_fine_points", self.r_fine_points, minimum=3)
         v.integer(f + "max_effects", self.max_effects, minimum=0, maximum=MAX_EFFECTS)

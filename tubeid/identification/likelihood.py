@@ -36,7 +36,7 @@ import xarray as xr
 from numpy.typing import ArrayLike
 from scipy.special import logsumexp
 
-from tubeid._validation import numeric_array
+from tubeid._validation import numeric_array, replicates
 from tubeid.errors import Described as _Desc, SpecificationError
 from tubeid.seeds import rng_for
 
@@ -271,10 +271,7 @@ def likelihood_curve(samples: ArrayLike | xr.DataArray, x_ref: float | ArrayLike
     if isinstance(x_ref, (bool, np.bool_)) or xs.ndim != 1 or xs.size == 0 or not np.all(np.isfinite(xs)):
         raise SpecificationError("x_ref", x_ref, "must be a finite real number or a 1-D array of them")
     x_ref = float(xs[0]) if xs.size == 1 else xs
-    if isinstance(n_bootstrap, (bool, np.bool_)) or not isinstance(n_bootstrap, (numbers.Integral, np.integer)) \
-            or n_bootstrap < 0:
-        raise SpecificationError("n_bootstrap", n_bootstrap, "must be an integer >= 0")
-    n_bootstrap = int(n_bootstrap)
+    n_bootstrap = replicates("n_bootstrap", n_bootstrap)
     if not (isinstance(confidence, (numbers.Real, np.floating)) and 0 < float(confidence) < 1):
         raise SpecificationError("confidence", confidence, "must lie in the open interval (0, 1)")
     if n_bootstrap > 0:

@@ -55,7 +55,7 @@ import xarray as xr
 from numpy.typing import ArrayLike
 
 from tubeid.dynamics.spectra import distance, j_s, log_band_energies
-from tubeid._validation import integer, numeric_array, open_unit, positive, real
+from tubeid._validation import integer, numeric_array, open_unit, positive, real, replicates
 from tubeid.errors import Described as _Desc, SpecificationError
 from tubeid.identification.likelihood import _aligned, likelihood_curve
 from tubeid.seeds import rng_for
@@ -351,7 +351,7 @@ def _grid_inputs(psd_model, psd_exp, band_hz, n_bootstrap, rng, dim, fit, confid
     if fit not in ("log", "linear"):
         raise SpecificationError("fit", fit, "must be 'log' or 'linear'")
     band = positive("band_hz", band_hz, "Hz")
-    n_bootstrap = integer("n_bootstrap", n_bootstrap, minimum=0)
+    n_bootstrap = replicates("n_bootstrap", n_bootstrap)
     confidence = open_unit("confidence", confidence)
     sensor_dims = tuple(d for d in _SENSOR_DIMS if d in psd_model.dims)
     if tuple(d for d in _SENSOR_DIMS if d in psd_exp.dims) != sensor_dims:

@@ -37,7 +37,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import xarray as xr
 
-from tubeid._validation import allocation, integer, is_number, one_of, positive
+from tubeid._validation import allocation, integer, is_number, one_of, positive, replicates
 from tubeid.errors import Described as _Desc, SpecificationError
 from tubeid.identification.loads import (distance_map, log_band_distance_map, log_spectral_distance_map,
                                          refine_grid, relative_weight)
@@ -119,7 +119,7 @@ def identify_r(psd_grid: xr.DataArray, psd_exp: xr.DataArray, *, distance: str =
     if not isinstance(refine, (bool, np.bool_)):
         raise SpecificationError("refine", refine, "must be True or False")
     band = positive("band_hz", band_hz, "Hz")
-    n_bootstrap = integer("n_bootstrap", n_bootstrap, minimum=0)
+    n_bootstrap = replicates("n_bootstrap", n_bootstrap)
     if weight_psd is not None and distance != "relative":
         raise SpecificationError("weight_psd", _Desc(type(weight_psd).__name__), f"is only used by distance='relative', not {distance!r}")
     common = dict(band_hz=band, n_bootstrap=n_bootstrap, rng=rng, dim=dim, confidence=confidence)
