@@ -579,3 +579,24 @@ def test_an_interrupted_report_leaves_no_half_written_report(tmp_path, capsys, m
     assert not left & set(OUTPUTS) and (out / "notes.txt").read_text() == "mine", left
     assert OutputDir(out).entries() == {}
     assert _run(store, out) == 0 and "summary.md" in {p.name for p in out.iterdir()}  # the next run is clean
+
+
+def test_an_out_that_is_the_store_or_inside_it_is_refused_and_the_store_is_untouched(tmp_path, capsys, monkeypatch):
+    """``tubeid report paper.zarr --out paper.zarr`` read the store's own files as an output directory's (a
+    runner store's manifest was called "not a tubeid manifest"), and a plain Zarr store got the report's files
+    among its arrays: an ``--out`` that is the store, or lies inside it, is refused up front."""
+    store = _write(tmp_path / "paper.zarr", _groups(), {"size": "paper", "delta": 0.45, "experiment": "reference",
+                                                        "distance": "relative"})
+
+    def state():
+        return sorted((str(p.relative_to(tmp_path)), p.read_bytes() if p.is_file() else b"")
+                      for p in tmp_path.rglob("*"))
+
+    before = state()
+    monkeypatch.chdir(tmp_path)
+    for out in (store, str(tmp_path / "paper.zarr" / "figures"), "./paper.zarr/", "paper.zarr/delta/.."):
+        assert main(["report", store, "--out", out]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"tubeid: error: out = {out!r}: is the store {store!r} or inside it"), err
+        assert err.count("\n") == 1
+        assert state() == before

@@ -1038,6 +1038,10 @@ def make_report(store, out=None, *, n_bootstrap: int = 200, seed: int = 2008, se
         except _StageMissing:  # no experimental PSD: no figure that names a sensor
             pass
     out_path = Path(out) if out is not None else Path(store.rstrip("/\\").removesuffix(".zarr") + "-report")
+    store_dir = Path(local_path(store)).resolve()
+    if out_path.resolve() == store_dir or store_dir in out_path.resolve().parents:
+        raise SpecificationError("out", str(out), f"is the store {store!r} or inside it: the report is written beside "
+                                 "the store, never into it; choose another --out (the default is <store>-report)")
     created = [p for p in (out_path, *out_path.parents) if not (p.exists() or p.is_symlink())]
     od = OutputDir(out_path, "out")
     try:
