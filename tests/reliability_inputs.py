@@ -295,7 +295,27 @@ def tls(tmp: Path) -> dict:
             out["wrong"] += 1
         else:
             out["refused" if r.returncode else "accepted"] += 1
-    return {"make-certs.sh layouts": out}
+    # a user's files where the kit writes: each must be refused and left byte-identical
+    kept = collections.Counter()
+    (tmp / "u1").mkdir()
+    users = {tmp / "u1" / "mine.csr": "x\n", tmp / "u1" / "notes.ext": "y\n", tmp / "u1" / "client.pem": "z\n"}
+    (tmp / "u3ca").mkdir()
+    users[tmp / "u3ca" / "ca.pem"] = "a CA certificate without its key\n"
+    for f, text in users.items():
+        f.write_text(text)
+    t1_files = {f: f.read_bytes() for f in (tmp / "t1").rglob("*") if f.is_file()}
+    cases = [((tmp / "u1",), [f for f in users if f.parent.name == "u1"]),  # OUTPUT_DIR holding a user's files
+             ((tmp / "t1",), list(t1_files)),  # a second run into the same OUTPUT_DIR
+             ((tmp / "u3", "DNS:x", tmp / "u3ca"), [tmp / "u3ca" / "ca.pem"])]  # CA_DIR with ca.pem, no key
+    for args, files in cases:
+        before = {f: f.read_bytes() for f in files}
+        r = run(*args)
+        same = all(f.exists() and f.read_bytes() == b for f, b in before.items())
+        kept["refused" if r.returncode == 2 and same else "wrong" if not same else "accepted"] += 1
+    r = run(tmp / "u4", "nonsense")  # a failed run (bad SAN) leaves none of its keys
+    left = [p for p in (tmp / "u4").rglob("*") if p.is_file()] if (tmp / "u4").exists() else []
+    kept["refused" if r.returncode and not left else "wrong"] += 1
+    return {"make-certs.sh layouts": out, "make-certs.sh over a user's files": kept}
 
 
 def main() -> None:
