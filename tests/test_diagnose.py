@@ -1815,7 +1815,7 @@ def test_the_campaign_study_checks_its_declared_model_and_stores_its_content(tmp
 
     from tubeid.mechanics.spec import spec_from_dict
     from tubeid.runner.execute import run
-    from tubeid.runner.study import _CACHE, load_definition
+    from tubeid.runner.study import load_definition
 
     study = pathlib.Path(__file__).resolve().parents[1] / "studies" / "diagnose_effects.py"
     for value, match in (("no-such-model", "unknown built-in model"), (str(tmp_path / "none.yaml"), "does not exist"),
@@ -1844,6 +1844,6 @@ def test_the_campaign_study_checks_its_declared_model_and_stores_its_content(tmp
     assert built.values["model"] == first  # the content reaches the task, its parameters and so the stage's hash
     d["tubes"][0]["damping_ratio"] = 0.03
     spec.write_text(yaml.safe_dump(d))
-    _CACHE.clear()  # a new process, as the next `tubeid run` is (this one keeps definitions by source and --set)
+    # the same process (a notebook): the edited file is read again, not the content of the first load
     edited = load_definition(study, overrides={"simplified_model": str(spec)})[0].values["simplified_model"]
     assert edited != first and stage({}, simplified_model=edited, control_records=1).values["model"] == edited

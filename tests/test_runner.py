@@ -576,7 +576,7 @@ def test_resume_with_another_default_chunk_is_refused(tmp_path, monkeypatch):
         run(path, store, workers=0, quiet=True)
         four = load_study(path)[0]
     clear_flag(store, (1,))  # as if interrupted before block 1 finished
-    monkeypatch.setattr(study_module, "_CACHE", {})  # a fresh process would rebuild the definition
+    monkeypatch.setattr(study_module, "_DEFINITIONS", {})  # a fresh process would rebuild the definition
     with dask.config.set({"tubeid.runner.default-chunk": 3}):
         three = load_study(path)[0]
         assert three.chunks == {"r": 3}
@@ -584,7 +584,7 @@ def test_resume_with_another_default_chunk_is_refused(tmp_path, monkeypatch):
             run(path, store, workers=0, quiet=True)
         with pytest.raises(SpecificationError, match="chunks"):  # the worker-side guard
             write_block(store, three, three.block((1,)), {"y": np.zeros(3)})
-    monkeypatch.setattr(study_module, "_CACHE", {})
+    monkeypatch.setattr(study_module, "_DEFINITIONS", {})
     with dask.config.set({"tubeid.runner.default-chunk": 4}):
         run(path, store, workers=0, quiet=True)  # the store's own layout resumes
     np.testing.assert_array_equal(open_results(store).y.values, 2.0 * np.arange(12))

@@ -817,15 +817,18 @@ def study_hash(source: str, overrides: Mapping[str, Any] | None = None) -> str:
     return h.hexdigest()
 
 
-_CACHE: dict[str, Any] = {}
+#: The definitions as written, executed once per process: {hash of the source alone: study or pipeline}
+_DEFINITIONS: dict[str, Any] = {}
 
 
 def load_definition(path: str | pathlib.Path | None = None, *, source: str | None = None,
                     overrides: Mapping[str, Any] | None = None):
     """Execute a study file (or its ``source`` text) and return ``(study or pipeline, source, hash)``.
 
-    The file defines a module-level ``study = Study(...)`` or ``study = Pipeline(...)``. Cached per
-    process by hash, so a worker executes each source once.
+    The file defines a module-level ``study = Study(...)`` or ``study = Pipeline(...)``. Its execution
+    is kept per process by the source's hash, so a worker executes each source once; ``overrides`` are
+    applied at every call, never kept: a parameter whose check reads a file (a model specification)
+    sees the file as it is now, also in a process that loaded the study before the file was edited.
     """
     from tubeid.runner.pipeline import Pipeline
 
@@ -838,8 +841,9 @@ def load_definition(path: str | pathlib.Path | None = None, *, source: str | Non
         source = read_source(p)
     overrides = dict(overrides or {})
     key = study_hash(source, overrides)
-    if key not in _CACHE:
-        module = types.ModuleType(f"tubeid_study_{key[:12]}")
+    written = study_hash(source, {})
+    if written not in _DEFINITIONS:
+        module = types.ModuleType(f"tubeid_study_{written[:12]}")
         module.__file__ = str(path or "<study>")
         try:
             code = compile(source, module.__file__, "exec")
@@ -861,8 +865,9 @@ def load_definition(path: str | pathlib.Path | None = None, *, source: str | Non
         study = getattr(module, "study", None)
         if not isinstance(study, (Study, Pipeline)):
             raise SpecificationError("study", str(path), "must define a module-level `study = Study(...)` or `Pipeline(...)`")
-        _CACHE[key] = study.with_parameters(overrides) if overrides else study.check_parameters()
-    return _CACHE[key], source, key
+        _DEFINITIONS[written] = study
+    study = _DEFINITIONS[written]
+    return (study.with_parameters(overrides) if overrides else study.check_parameters()), source, key
 
 
 def read_source(path: str | pathlib.Path) -> str:
