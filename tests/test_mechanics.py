@@ -156,6 +156,21 @@ def test_j_closed_form_against_refined_quadrature(name):
     assert Jb[1] == pytest.approx(j_quadrature(sub.M, sub.D, 1.3 * sub.K, sub.n_c, 100.0, 32001), rel=1e-6, abs=0)
 
 
+def test_j_of_a_very_stiff_b_against_quadrature_and_the_rigid_limit():
+    """With the equivalent tube's E raised to 1e20, 1e25 and 1e30 Pa, B's poles sit 1e8 to 1e13 times above
+    the band with damping ratios near 1e-7; the closed form gave J = 1.242e-13, 4.69e-14 and 0.0 against
+    1.473e-13 by quadrature (its band integrals cancelled). A rigid B leaves the grid links alone on the
+    interface, Z = diag(1.6e8 N/m), hence J = 2Ω · 3 / (1.6e8)² exactly."""
+    spec = builtin_spec("paper-simplified")
+    rigid_limit = 2 * (2 * np.pi * 100.0) * 3 / 1.6e8**2
+    for E in (1e20, 1e25, 1e30):
+        tubes = tuple(TubeSpec(**{**t.__dict__, "youngs_modulus": E}) if t.name == "equivalent" else t for t in spec.tubes)
+        sub = reduce(spec.replace(tubes=tubes)).subsystem
+        J = float(j_functional(sub.M, sub.D, sub.K, sub.n_c, 100.0))
+        assert J == pytest.approx(float(j_quadrature(sub.M, sub.D, sub.K, sub.n_c, 100.0)), rel=1e-9, abs=0)
+        assert J == pytest.approx(rigid_limit, rel=1e-8, abs=0)
+
+
 def test_condensed_stiffness_against_a_two_dof_closed_form():
     """Internal DOF (mass m, spring k0 and damper c0 to the ground) tied by k1 to the interface DOF:
     Z(ω) = k1 − k1² / (k0 + k1 − ω² m + iω c0). Its imaginary part is the damping's (> 0 for ω > 0)."""
