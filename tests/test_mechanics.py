@@ -787,6 +787,42 @@ def test_a_stop_at_a_clamped_or_pinned_end_is_refused(ends, x, end):
     assert np.any(model.stop_vectors() != 0)
 
 
+@pytest.mark.parametrize("ends, x, kind, end", [
+    (("clamped", "clamped"), 0.0, "force", "clamped end x = 0.0 m"),
+    (("clamped", "clamped"), 16.0 - 1e-10, "moment", "clamped end x = 16.0 m"),
+    (("pinned", "clamped"), 1e-300, "force", "pinned end x = 0.0 m"),
+    (("clamped", "pinned"), 16.0, "force", "pinned end x = 16.0 m"),
+])
+def test_a_load_on_a_degree_of_freedom_an_end_holds_is_refused(ends, x, kind, end):
+    """A force at a clamped or pinned end (y held) or a moment at a clamped end (θ held) had a zero load
+    column: accepted, and the load silently did nothing. A moment at a pinned end, and any load at a free
+    end, act on a free degree of freedom and are accepted."""
+    spec = builtin_spec("paper-simplified")
+
+    def centre(ends):
+        return tuple(t if t.name != "centre" else TubeSpec(**{**t.__dict__, "ends": ends}) for t in spec.tubes)
+
+    load = LoadPoint("P", "centre", x, kind)
+    with pytest.raises(SpecificationError, match=rf"^loads\[7\]\.x = {x!r}: load 'P', a {kind}, is at the {end} of "
+                                                 rf"tube 'centre', whose .* the model holds at zero: the {kind} would do "
+                                                 rf"nothing; a {kind} must lie inside the tube \(0 < x < 16\.0 m\)"):
+        spec.replace(tubes=centre(ends), loads=spec.loads + (load,))
+    acting = [(("pinned", "clamped"), 0.0, "moment"), (("clamped", "pinned"), 16.0, "moment"),
+              (("free", "clamped"), 0.0, "force"), (("clamped", "free"), 16.0, "moment")]
+    for ends_ok, x_ok, kind_ok in acting:
+        model = assemble(spec.replace(tubes=centre(ends_ok), loads=(LoadPoint("P", "centre", x_ok, kind_ok),)))
+        assert np.any(model.load_matrix() != 0)
+
+
+def test_a_tone_at_a_clamped_end_is_refused():
+    """A tone is a force: at the centre tube's clamped end it did nothing, silently."""
+    from tubeid.mechanics.effects import Tone
+
+    with pytest.raises(SpecificationError, match=r"^effects\[0\]\.x = 0\.0: the tone, a force, is at the clamped end "
+                                                 r"x = 0\.0 m of tube 'centre'"):
+        builtin_spec("paper-simplified").replace(effects=(Tone(23.0, 10.0, "centre", 0.0),))
+
+
 def test_a_weak_link_to_b_is_named_as_the_cause_of_a_singular_reduced_mass():
     """Grid links of 1 N/m (5e-8 times the tubes' element stiffness, within the specification's range)
     leave B's interface coordinates almost without mass: J's refusal said 'keep fewer fixed-interface

@@ -378,10 +378,14 @@ def test_results_carry_the_units_the_docstring_states():
                                            r"must be in \[0, 16\] m"),
     (force_and_moment(1e-2, 1e-2, x=-20.0), r"^load.x\[0\] = -20.0: load 'T' is off tube 'centre'"),
     (coherent_forces(x=[8.0, 100.0]), r"^load.x\[1\] = 100.0: load 'F2' is off tube 'centre' of length 16 m"),
+    # on a degree of freedom the clamped end holds: a zero load column, which silently did nothing
+    (coherent_forces(x=[8.0, 16.0]), r"^load.x\[1\] = 16.0: load 'F2', a force, is at the clamped end x = 16.0 m of "
+                                     r"tube 'centre', whose displacement y the model holds at zero"),
+    (force_and_moment(1e-2, 1e-2, x=0.0), r"^load.x\[0\] = 0.0: load 'T', a force, is at the clamped end x = 0.0 m"),
 ])
 def test_a_load_off_its_tube_is_refused_before_the_run(load, needle):
     """The element index was clamped and the Hermite polynomials extrapolated: a force at x = 40 m on the
-    16 m tube gave a response (97 % contact) as if it were valid."""
+    16 m tube gave a response (97 % contact) as if it were valid. A load at the clamped end did nothing."""
     with pytest.raises(SpecificationError, match=needle):
         simulate_responses(reduce(builtin_spec("paper-simplified")), load, [0], seed=1, settings=SHORT)
 

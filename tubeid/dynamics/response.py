@@ -32,7 +32,7 @@ from tubeid.dynamics.solver import METHODS, Stop, check_substeps, simulate
 from tubeid.dynamics.spectra import psd_matrix
 from tubeid.errors import Described, SpecificationError
 from tubeid.mechanics.reduction import ReducedModel
-from tubeid.mechanics.spec import LoadPoint
+from tubeid.mechanics.spec import LoadPoint, held_load_rule
 from tubeid.seeds import rng_for
 from tubeid.uncertainty.loads import LoadSpectrum, randomised
 from tubeid.uncertainty.processes import gaussian_loads
@@ -182,7 +182,8 @@ def simulate_responses(
         The reduced (mean) model, with its stops, sensors and carried effects.
     load : LoadSpectrum
         The mean load spectrum, acting on the model's tube at its load positions (each within
-        [0, length] of that tube: a load off the tube is refused).
+        [0, length] of that tube: a load off the tube is refused, and so is a load on a degree of
+        freedom a clamped or pinned end holds, see ``tubeid.mechanics.spec.held_load_rule``).
     realisations : array_like of int
         Realisation indices (R of them): distinct integers (not bools or floats; each keys its
         realisation's streams, a repeat would duplicate a realisation).
@@ -225,8 +226,12 @@ def simulate_responses(
     tube_names = [t.name for t in model.spec.tubes]
     if load.tube not in tube_names:
         raise SpecificationError("load.tube", load.tube, f"no such tube in model {model.spec.name!r}; tubes are {tube_names}")
-    for i, (name, x) in enumerate(zip(load.names, load.x)):
-        on_tube(f"load.x[{i}]", model.spec.tube(load.tube), x, f"load {name!r}")
+    for i, (name, kind, x) in enumerate(zip(load.names, load.kinds, load.x)):
+        tube = model.spec.tube(load.tube)
+        on_tube(f"load.x[{i}]", tube, x, f"load {name!r}")
+        rule = held_load_rule(f"load {name!r}", tube, x, kind)  # a zero load column, silently
+        if rule is not None:
+            raise SpecificationError(f"load.x[{i}]", x, rule)
     if not isinstance(dispersion, Dispersion):
         raise SpecificationError("dispersion", dispersion, "must be a tubeid.uncertainty.Dispersion "
                                  "(e.g. Dispersion(stiffness=0.1))")

@@ -213,10 +213,27 @@ class TubeSpec:
             (within the tolerance of :meth:`node_index`) and the end is clamped or pinned; None for a
             point inside the tube or at a free end.
         """
+        end = self.end_at(x)
+        return f"{end[0]} end x = {end[1]!r} m" if end is not None and end[0] in ("clamped", "pinned") else None
+
+    def end_at(self, x: float) -> tuple[str, float] | None:
+        """The end ``x`` sits at, with its condition.
+
+        Parameters
+        ----------
+        x : float
+            Abscissa along the tube [m].
+
+        Returns
+        -------
+        tuple of (str, float) or None
+            ``(condition, abscissa)``, e.g. ``("pinned", 16.0)``, when ``x`` is an end's node (within the
+            tolerance of :meth:`node_index`); None for a point inside the tube.
+        """
         k = self.node_index(x)
         for index, end, at in ((0, self.ends[0], 0.0), (self.n_elements, self.ends[1], self.length)):
-            if k == index and end in ("clamped", "pinned"):
-                return f"{end} end x = {at!r} m"
+            if k == index:
+                return end, at
         return None
 
 
@@ -225,6 +242,40 @@ def held_sensor_rule(name: str, tube: TubeSpec, x: float) -> str:
     return (f"sensor {name!r} is at the {tube.held_end(x)} of tube {tube.name!r}: the model's displacement there is "
             f"identically zero (a clamped or pinned end does not move), so nothing can be compared or identified; "
             f"a sensor must lie inside the tube (0 < x < {tube.length!r} m) or at a free end")
+
+
+def held_load_rule(what: str, tube: TubeSpec, x: float, kind: str) -> str | None:
+    """The rule refusing a load that would do nothing, else None.
+
+    The finite-element model removes the degrees of freedom an end holds (clamped: y and θ; pinned: y),
+    so a load on a removed one has a zero column: a force (on y) at a clamped or pinned end, a moment
+    (on θ) at a clamped end. A moment at a pinned end turns its free rotation and acts; so does any load
+    at a free end.
+
+    Parameters
+    ----------
+    what : str
+        How the load is named in the rule, e.g. ``"load 'F1'"``.
+    tube : TubeSpec
+        The tube it acts on.
+    x : float
+        Its abscissa [m] (on the tube).
+    kind : str
+        ``"force"`` or ``"moment"``.
+
+    Returns
+    -------
+    str or None
+        The rule, or None when the load acts.
+    """
+    end = tube.end_at(x)
+    if end is None or end[0] == "free" or (kind == "moment" and end[0] == "pinned"):
+        return None
+    held = "displacement y" if kind == "force" else "rotation θ"
+    where = ("inside the tube (0 < x < {L!r} m) or at a free end" if kind == "force" else
+             "inside the tube (0 < x < {L!r} m), at a free end or at a pinned end (whose rotation is free)")
+    return (f"{what}, a {kind}, is at the {end[0]} end x = {end[1]!r} m of tube {tube.name!r}, whose {held} the model "
+            f"holds at zero: the {kind} would do nothing; a {kind} must lie " + where.format(L=tube.length))
 
 
 @dataclass(frozen=True)
@@ -290,7 +341,9 @@ class LoadPoint:
     tube : str
         The tube it acts on.
     x : float
-        Its abscissa [m].
+        Its abscissa [m]: inside the tube, at a free end, or (a moment) at a pinned end; a force at a
+        clamped or pinned end, or a moment at a clamped end, acts on a degree of freedom the end holds
+        and is refused (:func:`held_load_rule`).
     kind : str
         ``"force"`` (transverse, N, on ``y``) or ``"moment"`` (N·m, on ``theta``).
     """
@@ -388,7 +441,7 @@ class BundleSpec:
     stops : sequence of StopSpec
         Elastic stops, all on the non-linear tube.
     loads : sequence of LoadPoint
-        Load points, names unique.
+        Load points, names unique, none on a degree of freedom a clamped or pinned end holds.
     sensors : sequence of SensorSpec
         Displacement sensors, names unique, none at a clamped or pinned end.
     band_hz : float
@@ -516,15 +569,23 @@ class BundleSpec:
                 on_tube(f"{w}.x", t, p.x)
                 if what == "sensors" and t.held_end(p.x) is not None:
                     raise SpecificationError(f"{w}.x", p.x, held_sensor_rule(p.name, t, p.x))
-                if what == "loads" and p.kind not in LOAD_KINDS:
-                    raise SpecificationError(f"{w}.kind", p.kind, f"must be one of {LOAD_KINDS}")
+                if what == "loads":
+                    if p.kind not in LOAD_KINDS:
+                        raise SpecificationError(f"{w}.kind", p.kind, f"must be one of {LOAD_KINDS}")
+                    rule = held_load_rule(f"load {p.name!r}", t, p.x, p.kind)
+                    if rule is not None:
+                        raise SpecificationError(f"{w}.x", p.x, rule)
         from tubeid.mechanics.effects import SensorNoise, Tone
 
         for i, e in enumerate(self.effects):
             if not isinstance(e, (Tone, SensorNoise)):
                 raise SpecificationError(f"effects[{i}]", e, "must be a tone or sensor_noise effect (use apply_effects for structural effects)")
             if isinstance(e, Tone):
-                on_tube(f"effects[{i}].x", tube_of(f"effects[{i}].tube", e.tube), e.x)
+                t = tube_of(f"effects[{i}].tube", e.tube)
+                on_tube(f"effects[{i}].x", t, e.x)
+                rule = held_load_rule("the tone", t, e.x, "force")
+                if rule is not None:
+                    raise SpecificationError(f"effects[{i}].x", e.x, rule)
         a = self.a_tube
         if a is not None:
             tube_of("nonlinear_tube", a)
