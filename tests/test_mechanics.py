@@ -171,6 +171,32 @@ def test_j_of_a_very_stiff_b_against_quadrature_and_the_rigid_limit():
         assert J == pytest.approx(rigid_limit, rel=1e-8, abs=0)
 
 
+def test_j_of_a_very_heavy_b_is_computed_and_a_rigid_one_refused_for_its_cause():
+    """With the equivalent tube's density at 1e10 or 1e20 kg/m³, M_B's unit-mass modal coordinates and its
+    interface coordinates (mass in kg, ∝ density) made its eigenvalue ratio fall below 1e-12: J was refused
+    as 'keep fewer fixed-interface modes', though M_B scaled to a unit diagonal is well conditioned. J now
+    agrees with a quadrature of ‖Z(ω)⁻¹‖²_F (condensed_stiffness) on a geometric grid that resolves B's
+    resonances, at 1e-7 to 1e-9 rad/s and 1e-2 rad/s (a uniform grid would miss them)."""
+    import scipy.integrate
+
+    spec = builtin_spec("paper-simplified")
+    for rho, lowest in ((1e10, 1e-6), (1e20, 1e-11)):
+        tubes = tuple(TubeSpec(**{**t.__dict__, "density": rho}) if t.name == "equivalent" else t for t in spec.tubes)
+        sub = reduce(spec.replace(tubes=tubes)).subsystem
+        J = float(j_functional(sub.M, sub.D, sub.K, sub.n_c, 100.0))
+        omega = np.concatenate([[0.0], np.geomspace(lowest, 2 * np.pi * 100.0, 100001)])
+        Z = condensed_stiffness(sub.M, sub.D, sub.K, sub.n_c, omega)
+        quadrature = 2 * scipy.integrate.simpson(np.sum(np.abs(np.linalg.inv(Z)) ** 2, axis=(-2, -1)), x=omega)
+        assert J == pytest.approx(quadrature, rel=1e-9, abs=0)
+    # E = 1e300: B's static modes do not move it at all (its interface mass underflows to 0): refused for
+    # that cause, not as 'keep fewer fixed-interface modes'
+    tubes = tuple(TubeSpec(**{**t.__dict__, "youngs_modulus": 1e300}) if t.name == "equivalent" else t for t in spec.tubes)
+    sub = reduce(spec.replace(tubes=tubes)).subsystem
+    with pytest.raises(SpecificationError, match=r"^M_B = .*: .*carries only 0 of its largest reduced mass, so the links "
+                                                 r"joining B to A there are far softer than B.*less stiff \(youngs_modulus\)"):
+        j_functional(sub.M, sub.D, sub.K, sub.n_c, 100.0)
+
+
 def test_condensed_stiffness_against_a_two_dof_closed_form():
     """Internal DOF (mass m, spring k0 and damper c0 to the ground) tied by k1 to the interface DOF:
     Z(ω) = k1 − k1² / (k0 + k1 − ω² m + iω c0). Its imaginary part is the damping's (> 0 for ω > 0)."""

@@ -333,22 +333,32 @@ def condensed_stiffness(M: np.ndarray, D: np.ndarray, K: np.ndarray, n_c: int, o
 
 
 def _check_mass(M: np.ndarray, n_c: int) -> None:
-    """M positive definite (its least eigenvalue above 1e-12 of its largest), else refused naming the
-    cause: interface coordinates that carry almost no mass (below 1e-6 of the largest eigenvalue: the
-    links joining B to A are far softer than B, whose static modes then hardly move it), or else
-    fixed-interface modes that, with the static modes, span more than B's DOFs."""
+    """M positive definite, else refused naming the cause.
+
+    M_B mixes units: its fixed-interface modal coordinates have unit mass, its interface coordinates a
+    mass in kg (B's mass moved by a static mode), so its eigenvalue ratio says nothing by itself (a
+    density of 1e10 kg/m³ made the paper's M_B look singular). It is refused when its least eigenvalue is
+    at most 1e-12 of its largest both as it is and scaled to a unit diagonal (D^-1/2 M D^-1/2, D = diag M):
+    then either an interface coordinate carries almost no mass (below 1e-6 of the largest eigenvalue, or
+    none: the links joining B to A are far softer than B, whose static modes then hardly move it), or the
+    fixed-interface modes, with the static modes, span more than B's DOFs."""
     ev = np.linalg.eigvalsh(M)
     if np.any(ev[..., 0] <= 1e-12 * ev[..., -1]):
-        share = np.diagonal(M, axis1=-2, axis2=-1)[..., M.shape[-1] - n_c:] / ev[..., -1:]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            share = np.nan_to_num(np.diagonal(M, axis1=-2, axis2=-1)[..., M.shape[-1] - n_c:] / ev[..., -1:], nan=0.0)
         if float(np.min(share)) < 1e-6:
             rule = (f"the reduced mass must be positive definite: an interface coordinate of B carries only "
                     f"{float(np.min(share)):.2g} of its largest reduced mass, so the links joining B to A there are "
-                    "far softer than B (B is hardly coupled: Z -> 0 and J grows without bound as the links soften): "
-                    "stiffen the links (links[*].stiffness) or remove them")
-        else:
+                    "far softer than B (B is hardly coupled: Z -> 0 and J grows without bound as the links soften; "
+                    "B's static modes hardly move it): stiffen the links (links[*].stiffness) or remove them, or "
+                    "make B's tubes less stiff (youngs_modulus)")
+            raise SpecificationError("M_B", f"min eigenvalue {float(np.min(ev[..., 0])):.3g}", rule)
+        d = np.sqrt(np.diagonal(M, axis1=-2, axis2=-1))
+        scaled = np.linalg.eigvalsh(M / (d[..., :, None] * d[..., None, :]))
+        if np.any(scaled[..., 0] <= 1e-12 * scaled[..., -1]):
             rule = ("the reduced mass must be positive definite: keep fewer fixed-interface modes of B "
                     "(reduction.b_modes / b_cutoff_hz); with every mode kept the massless interface makes M_B singular")
-        raise SpecificationError("M_B", f"min eigenvalue {float(np.min(ev[..., 0])):.3g}", rule)
+            raise SpecificationError("M_B", f"min eigenvalue {float(np.min(ev[..., 0])):.3g}", rule)
 
 
 def _log_integral(a: np.ndarray, Omega: float) -> np.ndarray:
