@@ -180,3 +180,26 @@ def test_a_reference_beyond_reach_of_every_sample_is_refused_without_warnings():
         with pytest.raises(SpecificationError, match=r"^x_ref = 1e\+300: lies so far from the samples that its "
                                                      r"log-likelihood is -inf at every delta"):
             identify_delta(j_reference=1e300, n_realisations=20, n_bootstrap=0)
+
+
+def test_an_undamped_tube_of_b_is_named_by_its_specification_field():
+    """tubes[1].damping_ratio = 0 (the equivalent tube, subsystem B) was refused as "damping = 'D_B': every
+    pole of subsystem B must be damped", a name the user never wrote; J, δ's identification and the model
+    summary now name tubes[1].damping_ratio. The non-linear tube's damping does not enter J."""
+    from tubeid.mechanics.cli import model_summary
+    from tubeid.mechanics.spec import TubeSpec
+
+    spec = builtin_spec("paper-simplified")
+
+    def undamped(name):
+        return spec.replace(tubes=tuple(TubeSpec(**{**t.__dict__, "damping_ratio": 0.0}) if t.name == name else t
+                                        for t in spec.tubes))
+
+    needle = (r"^tubes\[1\]\.damping_ratio = 0\.0: tube 'equivalent' is in subsystem B \(every tube but the non-linear "
+              r"tube 'centre'\), whose every pole must be damped")
+    for call in (lambda s: reference_j(s), lambda s: model_summary(s),
+                 lambda s: identify_delta(s, j_reference=2.9e-10, n_realisations=5, n_bootstrap=0)):
+        with pytest.raises(SpecificationError, match=needle):
+            call(undamped("equivalent"))
+    sub = reduce(spec).subsystem
+    assert reference_j(undamped("centre")) == float(j_functional(sub.M, sub.D, sub.K, sub.n_c, 100.0))

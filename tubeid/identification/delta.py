@@ -20,7 +20,7 @@ from tubeid.errors import SpecificationError
 from tubeid._validation import seed as _seed
 from tubeid.identification.likelihood import likelihood_curve
 from tubeid.mechanics.library import resolve_spec
-from tubeid.mechanics.reduction import J_UNITS, j_functional, reduce
+from tubeid.mechanics.reduction import J_UNITS, j_of_spec, reduce
 from tubeid.mechanics.spec import BundleSpec
 from tubeid.uncertainty.random_matrices import delta_max
 from tubeid.uncertainty.random_models import j_monte_carlo
@@ -45,7 +45,7 @@ def reference_j(reference: BundleSpec | str | os.PathLike = "paper-reference") -
     spec = resolve_spec(reference)
     sub = reduce(spec).subsystem
     _check_interface("reference", spec, sub)
-    return float(j_functional(sub.M, sub.D, sub.K, sub.n_c, spec.band_hz))
+    return j_of_spec(spec, sub)
 
 
 def _check_interface(field: str, spec: BundleSpec, sub) -> None:
@@ -130,6 +130,7 @@ def identify_delta(
     spec = resolve_spec(model)
     sub = reduce(spec).subsystem
     _check_interface("model", spec, sub)
+    j_of_spec(spec, sub)  # the mean model's J is defined (refusals name the specification's fields), before the draws
     j_ref = reference_j(reference) if j_reference is None else j_reference
     grid = default_delta_grid(sub.n) if deltas is None else given
     J = j_monte_carlo(sub, grid, seed, np.arange(n_realisations), spec.band_hz, which=which)

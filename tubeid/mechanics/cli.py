@@ -12,12 +12,12 @@ def model_summary(name_or_path) -> dict:
     import math
 
     from tubeid.mechanics.library import resolve_spec
-    from tubeid.mechanics.reduction import J_UNITS, j_functional, reduce
+    from tubeid.mechanics.reduction import J_UNITS, j_of_spec, reduce
 
     spec = resolve_spec(name_or_path)
     red = reduce(spec)
     sub = red.subsystem
-    J = float(j_functional(sub.M, sub.D, sub.K, sub.n_c, spec.band_hz)) if sub.n_c else None
+    J = j_of_spec(spec, sub) if sub.n_c else None
     return {
         "model": spec.name,
         "n_dof": red.fe.n_dof,

@@ -39,6 +39,7 @@ __all__ = [
     "reduce",
     "condensed_stiffness",
     "j_functional",
+    "j_of_spec",
     "j_quadrature",
 ]
 
@@ -426,6 +427,38 @@ def j_functional(M: np.ndarray, D: np.ndarray, K: np.ndarray, n_c: int, band_hz:
     Il = _log_integral(lam.conj(), Omega)
     P = -(Ik[..., None, :] + Il[..., :, None]) / (lam[..., None, :] + lam.conj()[..., :, None])
     return np.real(np.sum(coef * P, axis=(-2, -1)))
+
+
+def j_of_spec(spec: BundleSpec, sub: ReducedSubsystem) -> float:
+    """J of a specification's mean reduced B over its band, refusals naming the specification's fields.
+
+    Parameters
+    ----------
+    spec : BundleSpec
+        The bundle.
+    sub : ReducedSubsystem
+        Its reduced B (``reduce(spec).subsystem``), with n_c >= 1.
+
+    Returns
+    -------
+    float
+        J [m²·rad/(N²·s)] (:func:`j_functional`). An undamped pole of B is refused naming the first
+        tube of B whose ``damping_ratio`` is 0 (``tubes[i].damping_ratio``) when there is one.
+    """
+    try:
+        return float(j_functional(sub.M, sub.D, sub.K, sub.n_c, spec.band_hz))
+    except SpecificationError as exc:
+        if exc.field != "damping":
+            raise
+        for i, t in enumerate(spec.tubes):
+            if t.name != spec.a_tube and t.damping_ratio == 0:
+                raise SpecificationError(
+                    f"tubes[{i}].damping_ratio", t.damping_ratio,
+                    f"tube {t.name!r} is in subsystem B (every tube but the non-linear tube {spec.a_tube!r}), whose "
+                    "every pole must be damped (Re λ < 0) for J = ∫ ‖Z(ω)⁻¹‖²_F dω: with damping ratio 0 its modes "
+                    "are undamped (links are undamped too) and an undamped pole in the band makes J infinite; "
+                    "give it a damping ratio in (0, 1)") from None
+        raise
 
 
 def j_quadrature(M, D, K, n_c: int, band_hz: float, n_freq: int = 20001) -> np.ndarray:
