@@ -664,7 +664,8 @@ def _paths(node, path=()):
 def test_any_value_anywhere_is_accepted_whole_or_refused_clearly(value):
     """Every field and container of a specification (with effects) replaced by a hostile value: the
     result is a specification whose matrices are finite, or a SpecificationError, never another
-    exception (111 places × 20 values; 2026: 179 accepted, the rest refused)."""
+    exception (111 places × 20 values; the counts are in the README's reliability table, from
+    `python tests/reliability_inputs.py`)."""
     import copy
     import warnings
 
