@@ -56,7 +56,7 @@ from tubeid.identification.delta import default_delta_grid, reference_j
 from tubeid.identification.likelihood import likelihood_curve
 from tubeid.identification.trial import DISTANCES, fine_grid, identify_r
 from tubeid.mechanics.library import builtin_spec, model_content
-from tubeid.mechanics.reduction import J_UNITS, j_functional, reduce
+from tubeid.mechanics.reduction import J_UNITS, j_functional, j_of_spec, reduce
 from tubeid.mechanics.spec import spec_from_dict, spec_to_dict
 from tubeid.runner.pipeline import Pipeline
 from tubeid.runner.study import Output, Parameter, Study, Warmup
@@ -90,6 +90,10 @@ class ModelParameter(Parameter):
                                      f"must observe the reference's {p_obs.name} (tube {p_obs.tube!r}, x = {p_obs.x:g} m)")
         if spec.band_hz != ref.band_hz:
             raise SpecificationError(f"{field}: band_hz", spec.band_hz, f"must be the reference's {ref.band_hz:g} Hz")
+        try:  # the stages compute J of its B: defined (e.g. B damped), refused here rather than in the first block
+            j_of_spec(spec, _model(text).subsystem)
+        except SpecificationError as exc:
+            raise SpecificationError(f"{field}: {exc.field}", exc.value, exc.rule) from None
         return text
 
 

@@ -167,6 +167,28 @@ def test_a_bad_simplified_model_is_refused_before_anything_runs(tmp_path):
         assert not (tmp_path / "s.zarr").exists()
 
 
+def test_a_simplified_model_whose_j_is_undefined_is_refused_before_anything_runs(tmp_path):
+    """A declared simplified model with an undamped B (its tube ``equivalent`` at damping ratio 0) made J
+    infinite: it was accepted, a store created, and the first block of stage ``delta`` failed naming
+    ``damping = 'D_B'``. It is refused when the study loads, naming the parameter and the tube's field."""
+    import yaml
+
+    from tubeid.mechanics import builtin_spec
+    from tubeid.mechanics.spec import spec_to_dict
+
+    d = spec_to_dict(builtin_spec("paper-simplified"))
+    d["tubes"][1]["damping_ratio"] = 0.0
+    spec = tmp_path / "undamped.yaml"
+    spec.write_text(yaml.safe_dump(d))
+    with pytest.raises(SpecificationError, match=r"^parameters\.simplified: tubes\[1\]\.damping_ratio = 0\.0: tube "
+                                                 r"'equivalent' is in subsystem B .* must be damped"):
+        run(STUDY, tmp_path / "s.zarr", workers=0, quiet=True, overrides={"size": "quick", "simplified": str(spec)})
+    assert not (tmp_path / "s.zarr").exists()
+    d["tubes"][1]["damping_ratio"] = 0.01  # damped: accepted
+    spec.write_text(yaml.safe_dump(d))
+    load_definition(STUDY, overrides={"simplified": str(spec)})
+
+
 def test_an_inadmissible_delta_is_refused_before_anything_runs(tmp_path, capsys):
     """``--set delta=0.8`` with the default simplified model (δ_max = 0.7746): refused before any task runs and
     before the store exists, naming the parameter, the value and the interval (it used to be refused only by
