@@ -208,7 +208,9 @@ def _read_netcdf(path: Path, source: str) -> tuple[xr.Dataset, str]:
         require("h5netcdf", "reading NetCDF-4 files")
         return _open_xarray(path, source, "h5netcdf", "NetCDF-4"), "netcdf4"
     if magic[:4] in _CDF3_MAGIC:
-        return _open_xarray(path, source, "scipy", "NetCDF-3"), "netcdf3"
+        # read, not memory-mapped: arrays left pointing into a mapping kept the file open past close()
+        # (scipy's "Cannot close a netcdf_file opened with mmap=True" warning, printed by diagnose's workers)
+        return _open_xarray(path, source, "scipy", "NetCDF-3", mmap=False), "netcdf3"
     raise SpecificationError(source, magic[:4],
                              "not a NetCDF file: neither the NetCDF-4/HDF5 nor the classic NetCDF-3 signature")
 
