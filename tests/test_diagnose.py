@@ -1012,6 +1012,25 @@ def test_bad_input_is_refused(tmp_path, capsys):
     assert "--set nonsense" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("tube", [0, 1])
+def test_a_declared_model_with_an_undamped_tube_is_refused_before_any_run(tmp_path, capsys, tube):
+    """A declared tube at damping ratio 0 ran four stages and then ended in numpy's traceback
+    ('Geometric sequence cannot include zero': the damping candidate's trials scale the declared ratio);
+    with B undamped, J is infinite. Refused before anything is written, naming the tube's field."""
+    import yaml
+
+    d = spec_to_dict(builtin_spec("paper-simplified"))
+    d["tubes"][tube]["damping_ratio"] = 0.0
+    spec = tmp_path / "undamped.yaml"
+    spec.write_text(yaml.safe_dump(d))
+    name = d["tubes"][tube]["name"]
+    rule = rf"^model\.tubes\[{tube}\]\.damping_ratio = 0\.0: tube '{name}' is declared undamped: a diagnosis needs"
+    with pytest.raises(SpecificationError, match=rule):
+        diagnose(record(duration=16.0), str(spec), SMALL)
+    assert main(["diagnose", str(tmp_path / "none.nc"), "--model", str(spec), "--out", str(tmp_path / "o")]) == 2
+    assert "Traceback" not in capsys.readouterr().err and not (tmp_path / "o").exists()
+
+
 @pytest.mark.parametrize("x, end", [(0.0, "clamped end x = 0.0 m"), (16.0, "clamped end x = 16.0 m")])
 def test_a_record_with_a_sensor_at_a_clamped_end_is_refused_before_any_run(tmp_path, capsys, x, end):
     """Its model displacement is zero: the diagnosis failed deep in its pipeline ('loads = non-finite

@@ -462,6 +462,12 @@ def diagnose(data: xr.Dataset | str | os.PathLike, model: str | BundleSpec = "pa
     spec0 = resolve_spec(model)
     if spec0.effects:
         raise SpecificationError("model.effects", spec0.effects, "diagnose a model without carried effects")
+    for i, t in enumerate(spec0.tubes):
+        if t.damping_ratio == 0:
+            raise SpecificationError(f"model.tubes[{i}].damping_ratio", t.damping_ratio,
+                                     f"tube {t.name!r} is declared undamped: a diagnosis needs every tube damped "
+                                     "(> 0; a measured bundle is), since the damping candidate scales the declared "
+                                     "ratio and J of an undamped subsystem B is infinite")
     data, source = _resolve_data(data, spec0)
     ctx = _context(data, spec0, settings)  # everything that can be refused, before any run
     h = data_hash(data)
