@@ -814,6 +814,25 @@ def test_a_stop_at_a_clamped_or_pinned_end_is_refused(ends, x, end):
     assert np.any(model.stop_vectors() != 0)
 
 
+def test_a_link_neither_of_whose_ends_moves_is_refused():
+    """A link from a clamped or pinned end to the ground, or to another held end, carries nothing: the
+    assembly dropped it silently ('both ends constrained'). Refused naming the link's x and both ends;
+    a link from a held end to a moving point is a spring to that point and is kept."""
+    spec = builtin_spec("paper-simplified")
+    pinned = tuple(t if t.name != "equivalent" else TubeSpec(**{**t.__dict__, "ends": ("clamped", "pinned")})
+                   for t in spec.tubes)
+    for link, other in ((LinkSpec("centre", 1e-300, 1.6e8), "the ground"),
+                        (LinkSpec("centre", 16.0, 1.6e8, "equivalent", 16.0),
+                         "the pinned end x = 16.0 m of tube 'equivalent'")):
+        rule = (rf"^links\[3\]\.x = {link.x!r}: the link joins the clamped end x = {float(round(link.x))!r} m of tube "
+                rf"'centre' to {other}: neither end moves, so it would never act")
+        with pytest.raises(SpecificationError, match=rule):
+            spec.replace(tubes=pinned, links=spec.links + (link,))
+    kept = spec.replace(links=spec.links + (LinkSpec("centre", 0.0, 1.6e8, "equivalent", 8.0),))
+    K_with, K_without = assemble(kept).K, assemble(spec).K
+    assert np.any(K_with != K_without)  # a spring from the clamped end to the equivalent tube's midpoint acts
+
+
 @pytest.mark.parametrize("ends, x, kind, end", [
     (("clamped", "clamped"), 0.0, "force", "clamped end x = 0.0 m"),
     (("clamped", "clamped"), 16.0 - 1e-10, "moment", "clamped end x = 16.0 m"),

@@ -542,6 +542,11 @@ class BundleSpec:
                     raise SpecificationError(f"{w}.to_x", link.other_x, f"must be a node of tube {o.name!r}")
                 if o.name == t.name and abs(link.other_x - link.x) < _NODE_TOL:
                     raise SpecificationError(f"{w}.to_tube", link.to_tube, "a link cannot join a point to itself")
+            held = t.held_end(link.x)
+            if held is not None and (link.to_tube is None or o.held_end(link.other_x) is not None):
+                other = "the ground" if link.to_tube is None else f"the {o.held_end(link.other_x)} of tube {o.name!r}"
+                raise SpecificationError(f"{w}.x", link.x, f"the link joins the {held} of tube {t.name!r} to {other}: "
+                                         "neither end moves, so it would never act; a link needs a moving end")
             stiffness_in_range(f"{w}.stiffness", link.stiffness,
                                (t,) if link.to_tube is None else (t, tube_of(f"{w}.to_tube", link.to_tube)), "link")
         for i, s in enumerate(self.stops):
