@@ -16,8 +16,12 @@ def test_bench_transient_reports_the_issue_keys():
     out = bench_transient(duration=24.0, baseline_window=0.2, n_psd_realisations=1, realisations_per_call=2, repeat=1,
                           psd_sets=3)
     for key in ("seconds_per_realisation", "baseline_seconds_per_realisation", "speedup", "flop_bound_seconds",
-                "psd_error_vs_fine_step", "seconds_fast_path", "microseconds_per_flagged_step"):
+                "psd_error_vs_fine_step", "seconds_fast_path"):
         assert key in out and math.isfinite(out[key]) and out[key] >= 0
+    # differences of two separately timed runs (with the stops, with the gaps opened): their sign is a
+    # timing, which a loaded machine may flip on this short record, so only their presence is checked
+    for key in ("seconds_event_handling", "microseconds_per_flagged_step"):
+        assert key in out and math.isfinite(out[key])
     assert out["f_max_hz"] > 900  # the stop-closed highest frequency of the paper model (947 Hz, MODEL.md 3.7)
     assert out["integration_step_s"] == 2.5e-4  # default rule: 4 points per period of f_max, dividing 2 ms and 3 ms
     # the step error's scatter: three independent sets, the first the one reported alone (so they differ)
