@@ -304,12 +304,19 @@ def test_show_cuts_a_long_parameter_value_unless_full(tmp_path, capsys):
 
 
 @pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs Linux's /dev/full")
-def test_output_that_cannot_be_written_is_one_error_line(store):
-    """Buffered output to a full device (``/dev/full``: ENOSPC at the final flush): exit status 74
-    and one line on stderr, no traceback and no second report at interpreter exit."""
+@pytest.mark.parametrize("buffered", [True, False])
+@pytest.mark.parametrize("command", ["show", "--version"])
+def test_output_that_cannot_be_written_is_one_error_line(store, command, buffered):
+    """Output to a full device (``/dev/full``: ENOSPC): exit status 74 and one line on stderr, no
+    traceback and no second report at interpreter exit. Buffered, the error comes at the final flush;
+    unbuffered (``PYTHONUNBUFFERED=1``, as many container images set), at the first print inside the
+    command (it was a traceback), or inside argparse's ``--version`` (which ignored it: status 0)."""
     env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}
+    if not buffered:
+        env["PYTHONUNBUFFERED"] = "1"
+    argv = [command, str(store)] if command == "show" else [command]
     with open("/dev/full", "w") as full:
-        proc = subprocess.run([sys.executable, "-m", "tubeid", "show", str(store)], stdout=full,
+        proc = subprocess.run([sys.executable, "-m", "tubeid", *argv], stdout=full,
                               stderr=subprocess.PIPE, text=True, env=env, timeout=60)
     assert proc.returncode == 74, proc.stderr
     assert proc.stderr.startswith("tubeid: error: cannot write the output:") and proc.stderr.count("\n") == 1, proc.stderr

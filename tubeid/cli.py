@@ -131,8 +131,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         own code (a failing task, or a study file that raises while being executed: the traceback of
         the study's code, then one line); 130 when interrupted (Ctrl-C, SIGINT), said in one line
         (``run`` adds how to resume); a command may return others (141, silently, when the reader of
-        its output went away, as ``tubeid status STORE | head -1``; 74 when the output's last write
-        failed otherwise, e.g. on a full disk, said in one line on stderr).
+        its output went away, as ``tubeid status STORE | head -1``; 74 when a write of its output
+        failed otherwise, e.g. on a full disk, buffered or not, said in one line on stderr).
     """
     try:
         return _main(argv)
@@ -144,7 +144,62 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130  # 128 + SIGINT, as a shell reports a process ended by Ctrl-C
 
 
+class _OutputFailed(Exception):
+    """A write to stdout failed other than by a closed pipe (e.g. ENOSPC on a full disk); the cause is the OSError."""
+
+
+class _Stdout:
+    """``sys.stdout`` while a command runs: a write or flush that fails with an OSError other than
+    BrokenPipeError raises :class:`_OutputFailed`, so that the failure is told apart from the command's
+    own file errors whether or not the stream is buffered (``PYTHONUNBUFFERED=1`` writes at each print).
+    Everything else is the wrapped stream's."""
+
+    def __init__(self, stream) -> None:
+        self._stream = stream
+
+    def write(self, text):
+        try:
+            return self._stream.write(text)
+        except BrokenPipeError:
+            raise
+        except OSError as exc:
+            raise _OutputFailed() from exc
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            raise
+        except OSError as exc:
+            raise _OutputFailed() from exc
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
+def _output_failed(exc: OSError) -> int:
+    """Say once that the output could not be written; later writes (at interpreter exit) go nowhere."""
+    print(f"tubeid: error: cannot write the output: {exc}", file=sys.stderr)
+    try:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    except (OSError, ValueError):  # a stdout without a file descriptor (e.g. captured in a test)
+        pass
+    return 74  # EX_IOERR
+
+
 def _main(argv: Sequence[str] | None) -> int:
+    stdout = sys.stdout
+    sys.stdout = _Stdout(stdout)  # every write of the command, argparse's help and version included
+    try:
+        return _parse_and_run(argv)
+    except _OutputFailed as exc:  # e.g. a full disk: said once, not again at interpreter exit
+        return _output_failed(exc.__cause__)
+    finally:
+        if isinstance(sys.stdout, _Stdout):
+            sys.stdout = stdout
+
+
+def _parse_and_run(argv: Sequence[str] | None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     command = _chosen(argv)
     needs = next((c.needs for c in COMMANDS if c.name == command), ())
@@ -172,6 +227,12 @@ def _main(argv: Sequence[str] | None) -> int:
                 return 2
             if text:
                 print("\n" + text)
+        if exc.code == 0:  # --help, --version: their text meets a write error here, not at interpreter exit
+            try:
+                sys.stdout.flush()
+            except BrokenPipeError:
+                os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+                return 128 + 13
         raise
 
     from threadpoolctl import threadpool_limits
@@ -187,14 +248,7 @@ def _main(argv: Sequence[str] | None) -> int:
         # worker processes and with each other; dask workers are pinned to 1 thread by their nanny
         with threadpool_limits(limits=1):
             status = int(args.func(args) or 0)
-        try:
-            sys.stdout.flush()  # output still buffered (stdout a pipe or a file) meets its error here, not at exit
-        except BrokenPipeError:
-            raise
-        except OSError as exc:  # e.g. a full disk: said once, not again at interpreter exit
-            print(f"tubeid: error: cannot write the output: {exc}", file=sys.stderr)
-            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-            return 74  # EX_IOERR
+        sys.stdout.flush()  # output still buffered (stdout a pipe or a file) meets its error here, not at exit
         return status
     except (SpecificationError, MissingDependencyError) as exc:
         print(f"tubeid: error: {exc}", file=sys.stderr)
