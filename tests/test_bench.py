@@ -83,3 +83,62 @@ def test_bench_runner_refuses_bad_arguments_before_any_work(capsys, monkeypatch)
 
     with pytest.raises(SpecificationError, match="--workers"):
         bench.main(worker_counts=[])
+
+
+def test_bench_transient_warms_up_on_any_load_sampling():
+    """The kernels' warm-up integrates realisation 0 over discard + 22 s whatever ``dt_load``: it took the
+    first 12 001 load samples (24 s at 2 ms), so at 1e-4 s it integrated 1.2 s, less than the 2 s discarded,
+    and the bench ended in "discard = 2.0: must be ... in [0, 0.12)" after drawing the loads."""
+    out = bench_transient(duration=24.0, baseline_window=0.05, n_psd_realisations=1, realisations_per_call=1,
+                          repeat=1, dt_load=1e-4)
+    assert out["integration_step_s"] <= 1e-4  # the step divides the load sampling
+    assert math.isfinite(out["seconds_per_realisation"]) and out["seconds_per_realisation"] > 0
+
+
+def test_bench_transient_refuses_bad_arguments_before_any_work(monkeypatch):
+    """Each argument out of its range is one SpecificationError naming it, raised before a realisation is
+    drawn (a count of 0 ended in an UnboundLocalError or an empty mean after the timed runs)."""
+    import pytest
+
+    from tubeid.dynamics import bench
+    from tubeid.errors import SpecificationError
+
+    def never(*args, **kwargs):
+        raise AssertionError("the benchmark started")
+
+    monkeypatch.setattr(bench, "simulate", never)
+    for kwargs, field in ((dict(repeat=0), "repeat = 0"), (dict(realisations_per_call=0), "realisations_per_call = 0"),
+                          (dict(n_psd_realisations=0), "n_psd_realisations = 0"), (dict(bands_hz=0.0), "bands_hz = 0.0"),
+                          (dict(baseline_window=0.0), "baseline_window = 0.0"), (dict(seed=-1), "seed = -1"),
+                          (dict(psd_sets=bench.MAX_PSD_SETS + 1), f"psd_sets = {bench.MAX_PSD_SETS + 1}"),
+                          (dict(dt_load=0.01), "dt_load = 0.01: must resolve the band"),
+                          (dict(dt_load=1e-9), "dt_load = 1e-09: needs")):
+        with pytest.raises(SpecificationError, match="^" + field.replace("(", r"\(")):
+            bench.bench_transient(duration=24.0, **kwargs)
+
+
+def test_bench_command_refuses_bad_options_before_any_section_runs(monkeypatch, capsys):
+    """``tubeid bench``: a bad --psd-sets or --dt-load is one line naming the option, status 2, before the j
+    section runs (it ran first, then the refusal named ``psd_sets`` or ``dt_load``, or ``duration`` and ``dt``
+    for a --dt-load too fine or too coarse); an option of the transient section given to ``bench j`` is
+    refused, not ignored; a set count is bounded (1e9 sets ran for years)."""
+    import tubeid.bench as cli_bench
+    from tubeid.cli import main
+    from tubeid.dynamics import bench
+
+    def never(*args, **kwargs):
+        raise AssertionError("the benchmark started")
+
+    monkeypatch.setattr(cli_bench, "bench_j", never)
+    monkeypatch.setattr(bench, "bench_transient", never)
+    for args, start in ((["--psd-sets", "0"], "--psd-sets = 0: must be an integer in [1, "),
+                        (["transient", "--psd-sets", "1000000000"], "--psd-sets = 1000000000: must be an integer in"),
+                        (["--dt-load", "nan"], "--dt-load = nan: must be"),
+                        (["--dt-load", "0.01"], "--dt-load = 0.01: must resolve the band"),
+                        (["--dt-load", "1e-9"], "--dt-load = 1e-09: needs"),
+                        (["j", "--dt-load", "1e-3"], "--dt-load = 0.001: applies to the transient section only"),
+                        (["j", "--psd-sets", "3"], "--psd-sets = 3: applies to the transient section only"),
+                        (["j", "--compile-time"], "--compile-time = True: applies to the transient section only")):
+        assert main(["bench", *args]) == 2, args
+        out, err = capsys.readouterr()
+        assert out == "" and err.startswith(f"tubeid: error: {start}") and err.count("\n") == 1, (args, err)

@@ -62,14 +62,30 @@ def bench_j(n_realisations: int = 200, n_deltas: int = 10, n_baseline: int = 4, 
     }
 
 
+#: How a refusal names ``bench_transient``'s arguments that the command line sets.
+OPTIONS = {"psd_sets": "--psd-sets", "dt_load": "--dt-load"}
+
+
 def _run(args) -> int:
+    from tubeid.errors import SpecificationError
+
+    transient = {"psd_sets": args.psd_sets, "dt_load": args.dt_load}
+    if args.section == "j":  # an option of the other section is refused, not ignored
+        given = [(OPTIONS[k], v) for k, v in transient.items() if v is not None]
+        given += [("--compile-time", True)] if args.compile_time else []
+        if given:
+            raise SpecificationError(given[0][0], given[0][1], "applies to the transient section only "
+                                     "(tubeid bench transient, or tubeid bench for both sections)")
+    transient = {k: v for k, v in transient.items() if v is not None}
     out: dict = {}
+    if args.section in ("transient", "all"):
+        from tubeid.dynamics.bench import bench_transient, check_transient
+
+        check_transient(**transient, names=OPTIONS)  # before any section runs
     if args.section in ("j", "all"):
         out.update(bench_j())
     if args.section in ("transient", "all"):
-        from tubeid.dynamics.bench import bench_transient
-
-        out.update(bench_transient(compile_time=args.compile_time, psd_sets=args.psd_sets, dt_load=args.dt_load))
+        out.update(bench_transient(compile_time=args.compile_time, names=OPTIONS, **transient))
     if args.json:
         print(json.dumps(out, indent=2))
     else:
@@ -86,8 +102,9 @@ def register(sub) -> None:
     p.add_argument("--json", action="store_true", help="print a JSON object")
     p.add_argument("--compile-time", action="store_true",
                    help="transient: also time the solver's compilation in a new process (empty numba cache)")
-    p.add_argument("--psd-sets", type=int, default=1, metavar="N",
-                   help="transient: the step error of the PSD over N independent sets of realisations (its scatter)")
+    p.add_argument("--psd-sets", type=int, default=None, metavar="N",
+                   help="transient: the step error of the PSD over N independent sets of realisations (its scatter; "
+                        "default 1)")
     p.add_argument("--dt-load", type=float, default=None, metavar="S",
                    help="transient: the load sampling [s] (default: the response settings')")
     p.set_defaults(func=_run)

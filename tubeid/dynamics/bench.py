@@ -19,13 +19,14 @@ import time
 import numba
 import numpy as np
 
-from tubeid._validation import integer, positive
+from tubeid._validation import allocation, integer, real, seed as _seed
 from tubeid.dynamics.solver import Stop, choose_step, highest_frequency, simulate
 from tubeid.dynamics.solver._checks import prepare
 from tubeid.dynamics.solver._regimes import BLOCK_MAX, forget_tables
 from tubeid.dynamics.solver._simulate import METHODS, simulate_with_diagnostics
 
-__all__ = ["bench_transient", "measure_flop_rate", "simulate_baseline", "exact_step_flops", "compile_seconds"]
+__all__ = ["bench_transient", "check_transient", "measure_flop_rate", "simulate_baseline", "exact_step_flops",
+           "compile_seconds", "MAX_PSD_SETS"]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -159,10 +160,71 @@ def measure_flop_rate(seconds=0.1, repeat=3):
 # ----------------------------------------------------------------------------------------------
 
 
+#: The most independent sets ``psd_sets`` takes: each set integrates ``n_psd_realisations`` realisations at two
+#: steps (about 1 s per set of 4 here at the default settings), and the scatter of the step error is
+#: summarised by quantiles that 1000 sets already give to within a few percent.
+MAX_PSD_SETS = 1000
+
+
+def check_transient(*, duration: float = 220.0, seed: int = 1, baseline_window: float = 1.0, bands_hz: float = 5.0,
+                    n_psd_realisations: int = 4, realisations_per_call: int = 4, repeat: int = 3, psd_sets: int = 1,
+                    dt_load: float | None = None, names: dict[str, str] | None = None) -> tuple[int, "ResponseSettings"]:
+    """Check the arguments of :func:`bench_transient`, before any work.
+
+    Parameters
+    ----------
+    duration, seed, baseline_window, bands_hz, n_psd_realisations, realisations_per_call, repeat, psd_sets, dt_load
+        As for :func:`bench_transient`.
+    names : dict, optional
+        How a refusal names an argument, e.g. ``{"dt_load": "--dt-load"}`` (default: its own name).
+
+    Returns
+    -------
+    psd_sets : int
+        The set count.
+    settings : ResponseSettings
+        The response settings of the run (``dt_load`` the default when None).
+
+    Raises
+    ------
+    SpecificationError
+        An argument out of its range: ``dt_load`` also when it does not resolve the load's band, or
+        when the loads of one simulate call (``realisations_per_call`` realisations) and one synthesis
+        would take more than half of this machine's memory.
+    """
+    from tubeid.dynamics.response import ResponseSettings
+    from tubeid.errors import SpecificationError
+    from tubeid.uncertainty.loads import coherent_forces
+    from tubeid.uncertainty.processes import resolving_step, synthesis_grid
+
+    name = (lambda k: (names or {}).get(k, k))
+    psd_sets = integer(name("psd_sets"), psd_sets, minimum=1, maximum=MAX_PSD_SETS)
+    for key, value in (("n_psd_realisations", n_psd_realisations), ("realisations_per_call", realisations_per_call),
+                       ("repeat", repeat)):
+        integer(name(key), value, minimum=1)
+    _seed(name("seed"), seed)
+    st = ResponseSettings(duration=duration)
+    real(name("baseline_window"), baseline_window, unit="s", low=0.0, high=st.duration, low_open=True)
+    real(name("bands_hz"), bands_hz, unit="Hz", low=0.0, high=100.0, low_open=True)
+    if dt_load is None:
+        return psd_sets, st
+    load = coherent_forces()
+    dt_load = resolving_step(name("dt_load"), dt_load, load.band)
+    try:
+        st = ResponseSettings(duration=st.duration, dt_load=dt_load)
+    except SpecificationError as exc:  # the only new value is dt_load
+        raise SpecificationError(name("dt_load"), dt_load, exc.rule) from None
+    n_t, N = synthesis_grid(st.duration, st.dt_load)
+    m = len(load.names)
+    allocation(name("dt_load"), dt_load, 8.0 * m * (realisations_per_call * n_t + (N // 2 + 1) + N / 2),
+               f"the loads of {realisations_per_call} realisation(s) of {m} load(s) over {n_t} samples and one synthesis")
+    return psd_sets, st
+
+
 def bench_transient(duration: float = 220.0, delta: float = 0.45, delta_f: float = 0.04, seed: int = 1,
                     baseline_window: float = 1.0, bands_hz: float = 5.0, n_psd_realisations: int = 4,
                     realisations_per_call: int = 4, repeat: int = 3, compile_time: bool = False,
-                    psd_sets: int = 1, dt_load: float | None = None) -> dict:
+                    psd_sets: int = 1, dt_load: float | None = None, names: dict[str, str] | None = None) -> dict:
     """Realisations of the paper's stochastic simplified model, end to end, on one core.
 
     A realisation: random stiffness (δ = ``delta``), random load spectrum (the paper's 7-point load
@@ -186,7 +248,9 @@ def bench_transient(duration: float = 220.0, delta: float = 0.45, delta_f: float
     against one that loads them (``seconds_compile``). ``psd_sets`` > 1: the same error for that many
     independent sets of ``n_psd_realisations`` (the first is the one above), summarised as
     ``psd_error_sets`` (median, 90th percentile, maximum): the statistic's own scatter, against which
-    a change of the solver is judged. ``dt_load``: the load sampling [s] (default: ``ResponseSettings``').
+    a change of the solver is judged (at most :data:`MAX_PSD_SETS`). ``dt_load``: the load sampling [s]
+    (default: ``ResponseSettings``'). Every argument is checked before any work (:func:`check_transient`;
+    ``names``: how a refusal names them).
     """
     import tracemalloc
 
@@ -199,9 +263,9 @@ def bench_transient(duration: float = 220.0, delta: float = 0.45, delta_f: float
     from tubeid.uncertainty.random_matrices import Dispersion, sg_plus
     from tubeid.uncertainty.random_models import germs_from_rngs, random_subsystem
 
-    psd_sets = integer("psd_sets", psd_sets, minimum=1)
-    st = ResponseSettings(duration=duration) if dt_load is None else ResponseSettings(
-        duration=duration, dt_load=positive("dt_load", dt_load, "s"))
+    psd_sets, st = check_transient(duration=duration, seed=seed, baseline_window=baseline_window, bands_hz=bands_hz,
+                                   n_psd_realisations=n_psd_realisations, realisations_per_call=realisations_per_call,
+                                   repeat=repeat, psd_sets=psd_sets, dt_load=dt_load, names=names)
     model = reduce(builtin_spec("paper-simplified"))
     load = coherent_forces()
     B = model.load_matrix(_load_points(load))
@@ -240,7 +304,9 @@ def bench_transient(duration: float = 220.0, delta: float = 0.45, delta_f: float
         return np.array([t1 - t0, t2 - t1, time.perf_counter() - t2]), (M, D, K, F)
 
     batch = list(range(realisations_per_call))
-    integrate(*(a[None] for a in draw(0)[:3]), draw(0)[3][None, :12001])  # compile or load the kernels
+    # compile or load the kernels: realisation 0 over discard + 22 s (24 s at the default settings)
+    M0, D0, K0, F0 = draw(0)
+    integrate(M0[None], D0[None], K0[None], F0[None, :int(round((st.discard + 22.0) / st.dt_load)) + 1])
     best, best_one = None, None
     for _ in range(repeat):
         times, mats = chain(batch)

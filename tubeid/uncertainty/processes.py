@@ -90,6 +90,30 @@ def synthesis_grid(duration: float, dt: float) -> tuple[int, int]:
     return n_t, int(scipy.fft.next_fast_len(n_t, real=True))
 
 
+def resolving_step(field: str, dt: float, band: float) -> float:
+    """A sampling step [s] whose Nyquist frequency 1/(2 dt) exceeds ``band`` [Hz], as ``float``.
+
+    Parameters
+    ----------
+    field : str
+        How a refusal names the step (``"dt"``, ``"--dt-load"``).
+    dt : float
+        The step [s], > 0.
+    band : float
+        The load's band [Hz], > 0.
+
+    Returns
+    -------
+    float
+        ``dt``.
+    """
+    dt = positive(field, dt, "s")
+    if not 1.0 / (2.0 * dt) > band:
+        raise SpecificationError(field, dt, f"must resolve the band: Nyquist 1/(2 dt) = {1 / (2 * dt):g} Hz "
+                                 f"must exceed band = {band:g} Hz")
+    return dt
+
+
 def gaussian_loads(spectrum: LoadSpectrum, duration: float, dt: float, rngs: Sequence[np.random.Generator],
                    interpolation: str = "linear", out: np.ndarray | None = None) -> np.ndarray:
     """Realisations of the centred stationary Gaussian load with two-sided PSD ``spectrum.matrix(f)``.
@@ -126,10 +150,7 @@ def gaussian_loads(spectrum: LoadSpectrum, duration: float, dt: float, rngs: Seq
             raise SpecificationError("spectrum", type(spectrum).__name__, f"must have a '{attr}' (a LoadSpectrum)")
     band = positive("spectrum.band", spectrum.band, "Hz")
     n_t, N = synthesis_grid(duration, dt)
-    dt = float(dt)
-    if not 1.0 / (2.0 * dt) > band:
-        raise SpecificationError("dt", dt, f"must resolve the band: Nyquist 1/(2 dt) = {1 / (2 * dt):g} Hz "
-                                 f"must exceed band = {band:g} Hz")
+    dt = resolving_step("dt", dt, band)
     if isinstance(rngs, np.random.Generator) or not isinstance(rngs, Sequence) or len(rngs) == 0:
         raise SpecificationError("rngs", type(rngs).__name__, "must be a non-empty sequence of numpy Generators "
                                  "(one per realisation)")
