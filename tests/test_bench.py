@@ -75,10 +75,17 @@ def test_bench_runner_refuses_bad_arguments_before_any_work(capsys, monkeypatch)
                         (["--block-seconds", "1e308"], "--block-seconds = 1e+308"),
                         (["--workers", "-1"], "--workers = -1"),
                         (["--workers", "1", "-2"], "--workers = -2"),
-                        (["--blocks", "0"], "--blocks = 0")):
+                        (["--blocks", "0"], "--blocks = 0"),
+                        # huge: a Study over 4e9 realisations (a MemoryError traceback, or the machine's memory),
+                        # days of compute, or a million worker processes
+                        (["--blocks", "1000000000"], "--blocks = 1000000000"),
+                        (["--blocks", "100000", "--block-seconds", "1"], "--blocks = 100000"),
+                        (["--blocks", "200", "--block-seconds", "3600"], "--blocks = 200"),
+                        (["--workers", "1", "1000000"], "--workers = 1000000")):
         assert main(["bench-runner", *args]) == 2, args
         out, err = capsys.readouterr()
-        assert out == "" and err.startswith(f"tubeid: error: {field}: must be") and err.count("\n") == 1, (args, err)
+        assert out == "" and err.startswith(f"tubeid: error: {field}:") and err.count("\n") == 1, (args, err)
+        assert ": must be" in err or "more than 86400 s (a day)" in err, (args, err)
     from tubeid.errors import SpecificationError
 
     with pytest.raises(SpecificationError, match="--workers"):
