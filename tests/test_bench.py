@@ -149,3 +149,18 @@ def test_bench_command_refuses_bad_options_before_any_section_runs(monkeypatch, 
         assert main(["bench", *args]) == 2, args
         out, err = capsys.readouterr()
         assert out == "" and err.startswith(f"tubeid: error: {start}") and err.count("\n") == 1, (args, err)
+
+
+def test_bench_j_refuses_bad_counts_naming_them():
+    """More baseline realisations than Monte Carlo ones ended in numpy's broadcast ValueError after the
+    timed runs; a count of 0 was refused as ``realisations = array([])``, naming neither argument."""
+    import pytest
+
+    from tubeid.errors import SpecificationError
+
+    for kwargs, field in ((dict(n_baseline=20, n_realisations=10), "n_baseline = 20: must be an integer in [1, 10]"),
+                          (dict(n_baseline=0), "n_baseline = 0"), (dict(n_realisations=0), "n_realisations = 0"),
+                          (dict(n_realisations=2.5), "n_realisations = 2.5"), (dict(n_deltas=0), "n_deltas = 0"),
+                          (dict(seed=-1), "seed = -1")):
+        with pytest.raises(SpecificationError, match="^" + field.replace("[", r"\[")):
+            bench_j(**kwargs)

@@ -35,12 +35,37 @@ def _baseline_j(M, D, K, n_c: int, band_hz: float, n_freq: int = 2001) -> float:
 
 
 def bench_j(n_realisations: int = 200, n_deltas: int = 10, n_baseline: int = 4, seed: int = 1) -> dict:
-    """J evaluations per second (vectorised) and the speedup over the straightforward loop."""
+    """J evaluations per second (vectorised) and the speedup over the straightforward loop.
+
+    Parameters
+    ----------
+    n_realisations : int
+        Realisations of B per δ in the vectorised Monte Carlo, >= 1.
+    n_deltas : int
+        Dispersions δ, >= 1, evenly spaced from 0.05 to 0.95 δ_max of ``paper-simplified``'s B.
+    n_baseline : int
+        Realisations (at the largest δ) the loop computes, in [1, n_realisations]: the first ones of the
+        Monte Carlo, against which ``j_baseline_relative_difference`` is taken.
+    seed : int
+        Seed of the realisations, >= 0.
+
+    Returns
+    -------
+    dict
+        ``j_evaluations_per_second`` (vectorised), ``j_baseline_evaluations_per_second`` (loop),
+        ``j_speedup`` (their ratio), ``j_baseline_relative_difference`` (largest relative difference of
+        the loop's J from the closed form's, same realisations), ``j_monte_carlo`` (what was timed).
+    """
+    from tubeid._validation import integer, seed as _seed
     from tubeid.mechanics.library import builtin_spec
     from tubeid.mechanics.reduction import reduce
     from tubeid.uncertainty.random_matrices import Dispersion, delta_max
     from tubeid.uncertainty.random_models import j_monte_carlo, random_subsystem
 
+    n_realisations = integer("n_realisations", n_realisations, minimum=1)
+    n_deltas = integer("n_deltas", n_deltas, minimum=1)
+    n_baseline = integer("n_baseline", n_baseline, minimum=1, maximum=n_realisations)
+    seed = _seed("seed", seed)
     sub = reduce(builtin_spec("paper-simplified")).subsystem
     deltas = np.linspace(0.05, 0.95 * delta_max(sub.n), n_deltas)  # inside the admissible set of this B
     j_monte_carlo(sub, deltas[:1], seed, np.arange(4), 100.0)  # warm-up
