@@ -254,3 +254,36 @@ def test_bootstrap_replicates_beyond_the_limit_are_refused_up_front_everywhere(t
         text = path.read_text()
         assert not re.search(r"integer\([^)]*n_bootstrap", text), path
         assert not re.search(r"SpecificationError\(\s*\"n_bootstrap\"", text), path
+
+
+def test_worker_counts_beyond_four_per_usable_core_are_refused_before_anything_starts(tmp_path, monkeypatch):
+    """``tubeid run --workers 1000000`` (or the configuration's runner.workers) asked the embedded cluster
+    for a million processes; ``bench-runner --workers`` had the same bound on its own. One rule now,
+    ``_validation.worker_count``: at most WORKERS_PER_CORE per core this process may use."""
+    import pathlib
+
+    import dask.config
+
+    from tubeid import config
+    from tubeid.runner.execute import run
+
+    monkeypatch.setattr(v, "usable_cores", lambda: 3)
+    assert v.worker_count("workers", 12) == 12 and v.worker_count("workers", 0) == 0
+    with pytest.raises(SpecificationError, match=r"^workers = 13: must be at most 12: 4 worker processes per core "
+                                                 r"this process may use \(3 here\)"):
+        v.worker_count("workers", 13)
+    with pytest.raises(SpecificationError, match=r"^workers = -1: must be an integer >= 0$"):
+        v.worker_count("workers", -1)
+    import tubeid.runner.execute as execute
+
+    def never(*args, **kwargs):  # a million processes must never be asked for, even when this test fails
+        raise AssertionError("the cluster was started")
+
+    monkeypatch.setattr(execute, "_client", never)
+    study = pathlib.Path(v.__file__).parents[1] / "studies" / "pi.py"
+    with pytest.raises(SpecificationError, match=r"^workers = 1000000: must be at most 12"):
+        run(study, tmp_path / "pi.zarr", workers=10**6, quiet=True)
+    with dask.config.set({"tubeid.runner.workers": 10**6}):
+        with pytest.raises(SpecificationError, match=r"runner.workers .*1000000.*must be at most 12"):
+            config.check()
+    assert not (tmp_path / "pi.zarr").exists()

@@ -109,6 +109,27 @@ def integer(field: str, value: Any, *, minimum: int | None = None, maximum: int 
     return v
 
 
+#: The most worker processes per usable core an embedded cluster may start: beyond, they only
+#: oversubscribe the machine (and thousands of processes exhaust it).
+WORKERS_PER_CORE = 4
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity where the system has one), at least 1."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def worker_count(field: str, value: Any, minimum: int = 0) -> int:
+    """A number of worker processes to start here: an integer in [minimum, WORKERS_PER_CORE x usable cores]."""
+    n = integer(field, value, minimum=minimum)
+    cores = usable_cores()
+    if n > WORKERS_PER_CORE * cores:
+        raise SpecificationError(field, value, f"must be at most {WORKERS_PER_CORE * cores}: {WORKERS_PER_CORE} worker "
+                                 f"processes per core this process may use ({cores} here); more only oversubscribe "
+                                 "the machine (for a larger cluster give --scheduler)")
+    return n
+
+
 def replicates(field: str, value: Any) -> int:
     """A bootstrap's replicate count B: an integer >= 0 (0: no bootstrap), at most ``tubeid.io.max-bootstrap``.
 

@@ -224,7 +224,7 @@ def schema() -> dict[str, dict[str, Callable]]:
 
     return {
         "runner": {
-            "workers": _or_null(count(1), "one per core"),
+            "workers": _or_null(lambda field, value: v.worker_count(field, value, minimum=1), "one per core"),
             "threads-per-worker": count(1),
             "host": _text("must be a host name or address to bind to (e.g. 127.0.0.1)"),
             "embedded-tls": v.boolean,

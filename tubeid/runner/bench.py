@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-__all__ = ["main", "startup", "integrity", "BENCH_STUDY", "MAX_BLOCKS", "MAX_COMPUTE_SECONDS", "WORKERS_PER_CORE"]
+__all__ = ["main", "startup", "integrity", "BENCH_STUDY", "MAX_BLOCKS", "MAX_COMPUTE_SECONDS"]
 
 BENCH_STUDY = '''
 import numpy as np
@@ -46,9 +46,6 @@ MAX_BLOCKS = 10_000
 #: The most compute one worker count's run is asked for (blocks x block_seconds), in seconds: a day.
 MAX_COMPUTE_SECONDS = 86_400.0
 
-#: The most worker processes per core a worker count may start: beyond, the benchmark measures the
-#: machine's oversubscription, not the runner (and thousands of processes exhaust it).
-WORKERS_PER_CORE = 4
 
 
 def _calibrate(block_seconds: float) -> int:
@@ -129,18 +126,16 @@ def main(blocks: int = 16, block_seconds: float = 1.0, worker_counts=(1, 2)) -> 
         Target compute seconds per block, > 0 and at most a day; ``blocks`` x ``block_seconds`` at most
         :data:`MAX_COMPUTE_SECONDS`.
     worker_counts : sequence of int
-        Worker counts to compare, each in [0, WORKERS_PER_CORE x this machine's cores] (0: in this
-        process), the first the baseline of the speedup.
+        Worker counts to compare, each in [0, ``tubeid._validation.WORKERS_PER_CORE`` x this process's
+        usable cores] (0: in this process), the first the baseline of the speedup.
 
     Returns
     -------
     int
         0 if the stores of every worker count are identical, else 1.
     """
-    from tubeid._validation import integer, real
+    from tubeid._validation import integer, real, worker_count
     from tubeid.errors import SpecificationError
-
-    import os
 
     blocks = integer("--blocks", blocks, minimum=1, maximum=MAX_BLOCKS)
     block_seconds = real("--block-seconds", block_seconds, unit="s", low=0.0, low_open=True, high=86400.0)
@@ -150,8 +145,7 @@ def main(blocks: int = 16, block_seconds: float = 1.0, worker_counts=(1, 2)) -> 
     worker_counts = list(worker_counts)
     if not worker_counts:
         raise SpecificationError("--workers", worker_counts, "must name at least one worker count")
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    worker_counts = [integer("--workers", w, minimum=0, maximum=WORKERS_PER_CORE * cores) for w in worker_counts]
+    worker_counts = [worker_count("--workers", w) for w in worker_counts]
 
     from tubeid.runner.execute import run
     from tubeid.runner.testing import store_digest

@@ -33,6 +33,7 @@ from tubeid.errors import BlockFailed, SpecificationError
 from tubeid.runner.integrity import repair_structure, verify
 from tubeid.runner.lock import StoreLock
 from tubeid._paths import local_path
+from tubeid._validation import usable_cores, worker_count
 from tubeid.runner._terms import current as _terms
 from tubeid.runner.pipeline import End, Pipeline, stage_hash
 from tubeid.runner.status import NOT_NEEDED
@@ -438,7 +439,7 @@ def _embedded_settings(workers: int | None) -> tuple[int, int, str, str]:
     ``workers`` if given, else the configuration, checked here (a refusal names the setting and its
     environment variable, :func:`tubeid.config.value`) rather than by the cluster, which would hang on
     0 workers or fail deep inside."""
-    n = workers or config.value("runner.workers") or os.cpu_count() or 1
+    n = workers or config.value("runner.workers") or usable_cores()
     return (int(n), config.value("runner.threads-per-worker"), config.value("runner.host"),
             config.value("runner.dashboard-address"))
 
@@ -727,8 +728,8 @@ def run(study_path: str | os.PathLike, store: str | os.PathLike | None = None, *
     # now, never from a cache): the workers and the study hash get that, not the raw text
     overrides = {k: base.parameters[k].check(k, v) if k in base.parameters else v for k, v in dict(overrides or {}).items()}
     study, source, key = load_definition(study_path, source=source, overrides=overrides)
-    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 0):
-        raise SpecificationError("workers", workers, "must be a non-negative integer")
+    if workers is not None:
+        workers = worker_count("workers", workers)
     if client is not None and (workers is not None or scheduler):
         raise SpecificationError("client", client, "give a client, --workers or --scheduler, not several")
     if client is not None and not hasattr(client, "submit"):
