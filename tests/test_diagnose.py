@@ -1866,3 +1866,30 @@ def test_the_campaign_study_checks_its_declared_model_and_stores_its_content(tmp
     # the same process (a notebook): the edited file is read again, not the content of the first load
     edited = load_definition(study, overrides={"simplified_model": str(spec)})[0].values["simplified_model"]
     assert edited != first and stage({}, simplified_model=edited, control_records=1).values["model"] == edited
+
+
+def test_max_frequency_keeps_an_anti_alias_filter_out_of_the_diagnosis():
+    """A data-acquisition system filters its channels below the Nyquist frequency (anti-alias); the
+    model's realisations are sampled without a filter. A control record passed through a typical
+    filter (8th-order Butterworth at 0.4 × the sampling rate, 1 kHz here) is detected at the smallest
+    p-value, every statistic reading the attenuated top bins (gof 1 → 300). With
+    ``max_frequency_hz`` below the filter's edge, the filtered record gives the raw record's
+    statistics and p-value: the compared spectra end there, record and realisations alike. The
+    filter is applied forward and backward (zero phase): a causal one delays the record by its
+    group delay, a record shifted in time, whose estimates differ by their own scatter."""
+    import scipy.signal
+
+    dt = 1e-3
+    raw = record(duration=24.0, dt=dt)
+    sos = scipy.signal.butter(8, 0.4 / dt, fs=1 / dt, output="sos")
+    filtered = raw.copy(data={"displacement": scipy.signal.sosfiltfilt(sos, raw["displacement"].values, axis=0)})
+    s = SMALL.replace(max_effects=0)
+    assert diagnose(filtered, "paper-reference", s).report["detection"]["p_value"] == pytest.approx(1 / 20, abs=0)
+    cut = s.replace(max_frequency_hz=250.0)  # |H|² = 1 - 5e-4 there
+    a = diagnose(raw, "paper-reference", cut).report["detection"]
+    b = diagnose(filtered, "paper-reference", cut).report["detection"]
+    assert b["p_value"] == a["p_value"] > 1 / 20
+    assert b["statistics"] == pytest.approx(a["statistics"], rel=1e-6, abs=0)
+    for bad in (100.0, 500.0):  # the model band; the record's Nyquist frequency
+        with pytest.raises(SpecificationError, match=r"^settings\.max_frequency_hz = "):
+            diagnose(raw, "paper-reference", s.replace(max_frequency_hz=bad))

@@ -144,6 +144,14 @@ class DiagnoseSettings:
         Bound on the load's sampling step [s].
     seed : int
         Seed of all random streams (common random numbers across trials).
+    max_frequency_hz : float or None
+        Upper end [Hz] of every spectrum the diagnosis compares, the record's and the realisations'
+        alike (the test's statistics, the errors, the fits). ``None``: the record's Nyquist
+        frequency. Set it below the passband edge of the data-acquisition system's anti-alias
+        filter: the filter attenuates the record's top bins, which the model (sampled without a
+        filter) does not, and every statistic reading them sees a departure. Must lie above the
+        declared model's band and below the record's Nyquist frequency (checked against the record).
+        The time statistics (RMS, skewness, kurtosis) still read the samples as recorded.
     """
 
     blocks: int = 4
@@ -182,6 +190,7 @@ class DiagnoseSettings:
     discard: float = 2.0
     dt_load_max: float = 2e-3
     seed: int = 0
+    max_frequency_hz: float | None = None
 
     def __post_init__(self):
         for name in _TUPLE_FIELDS:
@@ -211,6 +220,8 @@ class DiagnoseSettings:
                      "band_width_hz"):
             v.positive(f + name, getattr(self, name))
         v.open_unit(f + "level", self.level)
+        if self.max_frequency_hz is not None:
+            v.positive(f + "max_frequency_hz", self.max_frequency_hz, "Hz")
         v.real(f + "false_alarm", self.false_alarm, low=0.0, high=0.5, low_open=True, high_open=True)
         if self.fine_segment_seconds < self.segment_seconds:
             raise SpecificationError(f + "fine_segment_seconds", self.fine_segment_seconds,
@@ -332,7 +343,10 @@ class DiagnoseSettings:
         -------
         str
         """
-        return json.dumps(dataclasses.asdict(self), sort_keys=True)
+        d = dataclasses.asdict(self)
+        if d["max_frequency_hz"] is None:  # absent by default: the identity of settings from before the field
+            del d["max_frequency_hz"]
+        return json.dumps(d, sort_keys=True)
 
     @classmethod
     def from_json(cls, text: str) -> "DiagnoseSettings":

@@ -112,5 +112,5 @@ def simulate_blocks(spec: BundleSpec, r, effects, meas: MeasuredSpectra, n_block
         cf = np.repeat(cf, R)
     blocks = y.reshape(y.shape[0], n_blocks, meas.block_samples, y.shape[2])
     out = block_observations(blocks, meas.dt, settings.segment_seconds, meas.fine_seconds if observed else None,
-                             residual="residual" in observed)
+                             residual="residual" in observed, f_max=settings.max_frequency_hz)
     return {k: out[k] for k in ("psd", "stats", *observed)} | {"contact": cf}

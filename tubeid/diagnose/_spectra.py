@@ -12,7 +12,7 @@ from tubeid.dynamics.spectra import psd_matrix
 from tubeid.errors import SpecificationError
 
 __all__ = ["MeasuredSpectra", "measured_spectra", "time_statistics", "auto_psd", "analysis_bins", "log10",
-           "conditional_psd", "block_observations", "fine_segment", "welch_segments"]
+           "conditional_psd", "block_observations", "kept_bins", "fine_segment", "welch_segments"]
 
 
 def log10(P) -> np.ndarray:
@@ -97,28 +97,42 @@ def fine_segment(block_seconds: float, fine_seconds: float) -> float:
     return min(float(fine_seconds), 0.5 * float(block_seconds))
 
 
+def kept_bins(f: np.ndarray, f_max: float | None) -> slice:
+    """The bins of a spectrum on frequencies ``f`` (uniform from 0) that the diagnosis keeps: all of
+    them when ``f_max`` is None, else those at or below ``f_max`` [Hz] and the next one (the edge
+    bin :func:`analysis_bins` drops, as it drops the Nyquist bin of a whole spectrum)."""
+    if f_max is None:
+        return slice(None)
+    return slice(0, min(int(np.searchsorted(f, f_max * (1 + 1e-12), side="right")) + 1, f.size))
+
+
 def block_observations(blocks: np.ndarray, dt: float, segment_seconds: float, fine_seconds: float | None,
-                       residual: bool = True) -> dict:
+                       residual: bool = True, f_max: float | None = None) -> dict:
     """What the test's statistics read of records cut into blocks (..., n_blocks, L, m), each
     quantity averaged over the blocks: ``psd`` (..., F, m) at ``segment_seconds``, ``stats``
     (..., m, 3) of all the blocks' samples and the frequencies ``frequency`` (F,) [Hz]; unless
     ``fine_seconds`` is None (nothing reads them), also ``fine`` (..., F', m) at ``fine_seconds``
     with ``frequency_fine`` (F',) [Hz] and, with ``residual``, ``residual`` (..., F, m) [m²/Hz]
-    from the block-averaged PSD matrix."""
+    from the block-averaged PSD matrix. Spectra end at ``f_max`` [Hz] (:func:`kept_bins`; None:
+    at the Nyquist frequency); ``stats`` read every sample."""
     y = blocks.reshape(blocks.shape[:-3] + (-1, blocks.shape[-1]))
     if fine_seconds is not None and residual:  # the cross spectra are read
         f, S = psd_matrix(blocks, dt, segment_seconds=segment_seconds)
+        k = kept_bins(f, f_max)
+        f, S = f[k], S[..., k, :, :]
         # the diagonal averaged as the auto-PSDs are (a complex mean divides by a complex count: 1 ulp
         # off the real mean for block counts that are not powers of 2)
         out = {"frequency": f, "psd": np.real(np.diagonal(S, axis1=-2, axis2=-1)).mean(axis=-3),
                "residual": conditional_psd(S.mean(axis=-4))}
     else:  # the auto-PSDs only: psd_matrix's diagonal, bit for bit
         f, P = auto_psd(blocks, dt, segment_seconds)
-        out = {"frequency": f, "psd": P.mean(axis=-3)}
+        k = kept_bins(f, f_max)
+        out = {"frequency": f[k], "psd": P[..., k, :].mean(axis=-3)}
     out["stats"] = time_statistics(y)
     if fine_seconds is not None:
         ff, Pf = auto_psd(blocks, dt, fine_seconds)
-        out |= {"frequency_fine": ff, "fine": Pf.mean(axis=-3)}
+        k = kept_bins(ff, f_max)
+        out |= {"frequency_fine": ff[k], "fine": Pf[..., k, :].mean(axis=-3)}
     return out
 
 
@@ -146,9 +160,11 @@ def _split(y: np.ndarray, blocks: int) -> tuple[np.ndarray, np.ndarray, int]:
     return cut[0::2], cut[1::2], L
 
 
-def measured_spectra(data: xr.Dataset, blocks: int, segment_seconds: float, fine_seconds: float = 8.0) -> MeasuredSpectra:
+def measured_spectra(data: xr.Dataset, blocks: int, segment_seconds: float, fine_seconds: float = 8.0,
+                     f_max: float | None = None) -> MeasuredSpectra:
     """Fitting and held-out spectra of a validated record (``displacement`` (time, sensor) [m]);
-    the fine segment is :func:`fine_segment` of the block length and ``fine_seconds``."""
+    the fine segment is :func:`fine_segment` of the block length and ``fine_seconds``; spectra end
+    at ``f_max`` [Hz] (:func:`kept_bins`; None: at the Nyquist frequency)."""
     y = np.asarray(data["displacement"].transpose("time", "sensor").values, dtype=float)
     t = np.asarray(data["time"].values, dtype=float)
     dt = float((t[-1] - t[0]) / (t.size - 1))
@@ -162,8 +178,10 @@ def measured_spectra(data: xr.Dataset, blocks: int, segment_seconds: float, fine
     fit, held, L = _split(y, blocks)
     fine = fine_segment(L * dt, fine_seconds)
     f, S_fit = psd_matrix(fit, dt, segment_seconds=segment_seconds)
-    o_fit = block_observations(fit, dt, segment_seconds, fine)
-    o_held = block_observations(held, dt, segment_seconds, fine)
+    k = kept_bins(f, f_max)
+    f, S_fit = f[k], S_fit[..., k, :, :]
+    o_fit = block_observations(fit, dt, segment_seconds, fine, f_max=f_max)
+    o_held = block_observations(held, dt, segment_seconds, fine, f_max=f_max)
     return MeasuredSpectra(
         frequency=f, fit=o_fit["psd"], held_out=o_held["psd"], fit_cross=S_fit,
         stats=time_statistics(held.reshape(-1, y.shape[1])), fit_stats=time_statistics(fit.reshape(-1, y.shape[1])),

@@ -162,7 +162,12 @@ def _context(data: xr.Dataset, spec0: BundleSpec, settings: DiagnoseSettings) ->
     dt = float((t[-1] - t[0]) / (t.size - 1))
     if 1.0 / (2.0 * dt) < spec0.band_hz:
         raise SpecificationError("data dt", dt, f"the Nyquist frequency 1/(2 dt) must reach the model band {spec0.band_hz} Hz")
-    meas = measured_spectra(data, settings.blocks, settings.segment_seconds, settings.fine_segment_seconds)
+    f_max = settings.max_frequency_hz
+    if f_max is not None and not spec0.band_hz < f_max < 1.0 / (2.0 * dt):
+        raise SpecificationError("settings.max_frequency_hz", f_max,
+                                 f"must lie above the model band {spec0.band_hz} Hz and below the record's Nyquist "
+                                 f"frequency 1/(2 dt) = {1.0 / (2.0 * dt):.6g} Hz")
+    meas = measured_spectra(data, settings.blocks, settings.segment_seconds, settings.fine_segment_seconds, f_max)
     spec = spec_for(spec0, meas.sensors, meas.tube, meas.x)
     m = load_dimension(spec, settings)
     dmax = delta_max(m)
