@@ -802,6 +802,32 @@ def test_epoch_time_stamps_pass_the_uniformity_rule(tmp_path):
     assert read_measurements(good_csv(tmp_path / "exact.csv", t=exact)).attrs["dt"] == 2.0**-14
 
 
+@pytest.mark.parametrize("fmt", ["netcdf3", "netcdf", "zarr"])
+def test_float32_time_stamps_are_judged_by_float32_rounding(tmp_path, fmt):
+    """A logger's float32 time axis (t_i = float32(i dt)) is uniform up to float32's rounding, which
+    the rule measured in float64 spacings: 2 s at 1 kHz were refused as 'non-uniform' (7e-5 of a
+    step). Now the stamps' own type sets the rounding allowed (within STAMP_RTOL): 2 s pass, read as
+    the float32 stamps exactly; 30 s (rounding 7.6e-3 of a step) are refused naming float32 and the
+    remedy (float64 stamps), not as non-uniform sampling or with advice to count from the start."""
+    dt = 1e-3
+    for seconds, accepted in ((2.0, True), (30.0, False)):
+        n = int(seconds / dt)
+        t32 = (np.arange(n) * dt).astype(np.float32)
+        assert np.abs(np.diff(t32.astype(float)) - dt).max() > validation.UNIFORM_RTOL * dt  # not uniform in float64
+        ds = raw_dataset(gaussian(n), time=t32).assign_coords(time=("time", t32, {"units": "s"}))
+        path = write_measurements(ds, tmp_path / f"f32-{seconds:g}.{'zarr' if fmt == 'zarr' else 'nc'}", format=fmt,
+                                  validate=False)
+        for call in (lambda: validate_measurements(ds), lambda: read_measurements(path)):
+            if accepted:
+                back = call()
+                np.testing.assert_array_equal(back.time.values, t32.astype(float))
+                # dt from the end points: their float32 rounding over n - 1 steps
+                assert back.attrs["dt"] == pytest.approx(dt, rel=validation.STAMP_RTOL / (2 * (n - 1)), abs=0)
+            else:
+                msg = refused(call, "time = float32 stamps", "too coarse", "store time as float64")
+                assert "record's start" not in msg
+
+
 # --------------------------------------------------------------------------- review: measured files
 def _by_xarray(ds: xr.Dataset, path: Path, zarr: bool = False) -> Path:
     """A record written by xarray itself (not tubeid's writer): NetCDF-4 by h5netcdf, or Zarr; under a

@@ -28,14 +28,16 @@ when there is one, and the rule):
   an unknown tube or off it (``x < 0`` or ``x > length``);
 - missing or unknown units;
 - non-finite, non-increasing or non-uniform time: uniform means
-  ``max |diff(t) - dt| <= UNIFORM_RTOL * dt + 4 * spacing(max |t|)``, the second term the float64
-  rounding of the stamps (``spacing``: the gap between adjacent float64 numbers there). It matters for
-  stamps far from 0 only: epoch seconds (t ≈ 1.7e9 s) are stored to ±1.2e-7 s, 1.2e-4 of a 1 ms step,
-  whatever the record's length. When that rounding exceeds ``UNIFORM_RTOL * dt`` it is allowed only
+  ``max |diff(t) - dt| <= UNIFORM_RTOL * dt + 4 * spacing(max |t|)``, the second term the rounding
+  of the stamps in their own type (``spacing``: the gap between adjacent numbers of that type there;
+  float64, or float32 for float32 stamps as data loggers write them). It matters for float32 stamps
+  and for float64 stamps far from 0: epoch seconds (t ≈ 1.7e9 s) are stored to ±1.2e-7 s, 1.2e-4 of a
+  1 ms step, whatever the record's length; float32 stamps at 30 s to ±9.5e-7 s. When that rounding exceeds ``UNIFORM_RTOL * dt`` it is allowed only
   while it stays within ``STAMP_RTOL * dt`` (epoch seconds: dt >= ~1 ms); beyond, the stamps are too
   coarse to show uniform sampling and a record that is not exactly uniform is refused, asking for time
-  from the record's start (``dt`` of accepted rounded stamps carries the rounding of its end points,
-  at most ``STAMP_RTOL / (2 (n - 1))`` relative);
+  from the record's start, or for float64 stamps when they are float32 (at 1 ms, float32 stamps pass
+  up to about 4 s; ``dt`` of accepted rounded stamps carries the rounding of its end points, at most
+  ``STAMP_RTOL / (2 (n - 1))`` relative);
 - NaN or infinite samples; implausible samples, beyond ± ``tubeid.io.max-displacement`` m (default
   1 m: tube vibrations are micrometres; a sample of metres means wrong units or unscaled counts);
 - clipped channels: a channel is clipped at its top (bottom) when more than ``CLIP_FRACTION`` of
@@ -154,7 +156,8 @@ def layout(ds, source: str) -> dict:
     """Structural reading of a measurement Dataset (no rule checks beyond structure).
 
     Returns time (float64), values (float64, time x sensor), names, x (NaN where absent), x_units,
-    tube ("" where absent), units (one per channel, None where absent) and time_units.
+    tube ("" where absent), units (one per channel, None where absent), time_units and
+    time_dtype (the time stamps' own dtype: float32 stamps are rounded to float32's precision).
     """
     if not isinstance(ds, xr.Dataset):
         raise SpecificationError(f"{source}: measurements", type(ds).__name__, "must be an xarray.Dataset")
@@ -213,6 +216,7 @@ def layout(ds, source: str) -> dict:
         "tube": tube,
         "units": units,
         "time_units": time.attrs.get("units"),
+        "time_dtype": np.dtype(time.encoding.get("dtype", time.dtype)),
     }
 
 
@@ -271,7 +275,14 @@ def _check_clipping(col: np.ndarray, name: str, source: str) -> None:
                     f"{run} consecutive (>= {CLIP_RUN})")
 
 
-def _time_checks(t: np.ndarray, time_units, source: str) -> float:
+def _stamp_spacing(t_max: float, stored: np.dtype) -> float:
+    """The gap between adjacent numbers of the stamps' own floating type at ``t_max`` (float64 for
+    integer or float64 stamps): float32 stamps, as data loggers write them, are rounded to it."""
+    kind = stored if stored.kind == "f" and stored.itemsize < 8 else np.dtype(np.float64)
+    return float(np.spacing(np.asarray(t_max, dtype=kind)))
+
+
+def _time_checks(t: np.ndarray, time_units, source: str, stored: np.dtype = np.dtype(np.float64)) -> float:
     if time_units is not None:
         tu = str(time_units).strip()
         base = tu.split(" since ")[0].strip() if " since " in tu else tu
@@ -292,17 +303,26 @@ def _time_checks(t: np.ndarray, time_units, source: str) -> float:
     dev = np.abs(d - dt)
     i = int(np.argmax(dev))
     if dev[i] > UNIFORM_RTOL * dt:
-        # The float64 rounding of the stamps: up to one spacing of max |t| each (t0 + i dt computed or
-        # parsed), two per step, and dt from the end points off by as much over n - 1.
+        # The rounding of the stamps in their own type (float64, or float32 as loggers write them): up to
+        # one spacing of max |t| each (t0 + i dt computed or parsed), two per step, and dt from the end
+        # points off by as much over n - 1.
         t_max = float(np.max(np.abs(t)))
-        rounding = 4.0 * float(np.spacing(t_max))
+        spacing = _stamp_spacing(t_max, stored)
+        kind = "float32" if spacing > np.spacing(t_max) else "float64"
+        rounding = 4.0 * spacing
         if dev[i] > UNIFORM_RTOL * dt + rounding:
-            allowed = f"{UNIFORM_RTOL:g}" + (f" + float64 rounding {rounding / dt:.3g} of stamps up to {t_max:g} s"
+            allowed = f"{UNIFORM_RTOL:g}" + (f" + {kind} rounding {rounding / dt:.3g} of stamps up to {t_max:g} s"
                                              if rounding > UNIFORM_RTOL * dt else "")
             raise SpecificationError(
                 f"{source}: time[{i + 1}] - time[{i}]", float(d[i]),
                 f"time must be uniform: step deviates from dt = {dt!r} s by {dev[i] / dt:.3g} relative "
                 f"(> {allowed})")
+        if rounding > STAMP_RTOL * dt and kind == "float32":
+            raise SpecificationError(
+                f"{source}: time", Described(f"float32 stamps up to {t_max:g} s, float32 spacing {spacing:g} s"),
+                f"too coarse to show uniform sampling at dt = {dt!r} s: float32 keeps about 7 digits, so their "
+                f"rounding moves a step by up to {rounding / dt:.3g} of dt (> {STAMP_RTOL:g}), and the steps deviate "
+                f"by {dev[i] / dt:.3g}; store time as float64 (e.g. t0 + i * dt)")
         if rounding > STAMP_RTOL * dt:
             raise SpecificationError(
                 f"{source}: time", Described(f"stamps up to {t_max:g} s, float64 spacing {np.spacing(t_max):g} s"),
@@ -387,7 +407,7 @@ def validate_measurements(ds: xr.Dataset, *, min_resolution_hz: float | None = N
     scale = np.array([length_scale(u, _where(source, name, "units")) for u, name in zip(lay["units"], names)])
 
     # Time.
-    dt = _time_checks(t, lay["time_units"], source)
+    dt = _time_checks(t, lay["time_units"], source, lay["time_dtype"])
 
     # Samples.
     bound = limit("max-displacement")
