@@ -700,7 +700,7 @@ except SpecificationError as exc:
 
 def test_a_stop_far_too_stiff_is_refused_by_the_sub_steps_it_would_take_before_any_integration():
     """A 1e24 N/m stop makes f_max 1.3e10 Hz: the step rule's 1.9e-11 s step takes 1.15e13 sub-steps for
-    220 s (measured at ~23 ns each: about 73 hours per realisation). It ran; it is now refused at once,
+    220 s (measured at 9-23 ns each: 28 to 73 hours per realisation). It ran; it is now refused at once,
     naming the stop's stiffness, with the count the public step functions give. (In a process of its
     own: the kernels hold the interpreter, so a hang could not be ended from inside.)"""
     import re
