@@ -164,3 +164,27 @@ def test_bench_j_refuses_bad_counts_naming_them():
                           (dict(seed=-1), "seed = -1")):
         with pytest.raises(SpecificationError, match="^" + field.replace("[", r"\[")):
             bench_j(**kwargs)
+
+
+def test_bench_runner_shows_an_in_process_run_as_such(capsys, monkeypatch):
+    """``--workers 0 1``: the in-process run (which counts as one worker in the overhead) was shown as "1" in
+    both rows, and the note said "with 1 workers vs 0"."""
+    from types import SimpleNamespace
+
+    import tubeid.runner.execute as execute
+    import tubeid.runner.testing as testing
+    from tubeid.runner import bench
+
+    def fake_run(study, store, *, workers, progress, quiet):
+        return SimpleNamespace(workers=max(workers, 1), startup=0.1, wall=2.0 if workers == 0 else 1.0,
+                               compute=2.0 if workers == 0 else 1.5, write=0.01, store=store)
+
+    monkeypatch.setattr(bench, "_calibrate", lambda seconds: 1)
+    monkeypatch.setattr(execute, "run", fake_run)
+    monkeypatch.setattr(testing, "store_digest", lambda store: "same")
+    assert bench.main(blocks=2, block_seconds=0.01, worker_counts=(0, 1)) == 0
+    rows = [line.split() for line in capsys.readouterr().out.splitlines()]
+    firsts = [r[:2] for r in rows if r and (r[0].isdigit())]
+    assert firsts[0] == ["0", "(here)"] and firsts[1][0] == "1", firsts
+    note = next(" ".join(r) for r in rows if r and r[0] == "note:")
+    assert "with 1 vs 0 (here)" in note, note

@@ -48,6 +48,12 @@ MAX_COMPUTE_SECONDS = 86_400.0
 
 
 
+def _label(workers: int) -> str:
+    """A worker count as the table shows it: ``0`` runs the blocks in this process, which counts as one
+    worker in the overhead (``RunReport.workers``) but is not a worker process."""
+    return "0 (here)" if workers == 0 else str(workers)
+
+
 def _calibrate(block_seconds: float) -> int:
     """Loop iterations per realisation so that one block takes about ``block_seconds`` here."""
     x = np.random.default_rng(0).standard_normal(4096)
@@ -170,13 +176,13 @@ def main(blocks: int = 16, block_seconds: float = 1.0, worker_counts=(1, 2)) -> 
             digests[w] = store_digest(rep.store)
             overhead = (rep.workers * rep.wall - rep.compute) / rep.compute
             speedup = reports[worker_counts[0]].wall / rep.wall
-            print(f"{rep.workers:>7} {rep.startup:>9.2f} {rep.wall:>8.2f} {rep.compute:>9.2f} {rep.write:>8.3f} "
+            print(f"{_label(w):>7} {rep.startup:>9.2f} {rep.wall:>8.2f} {rep.compute:>9.2f} {rep.write:>8.3f} "
                   f"{100 * overhead:>8.2f}% {speedup:>7.2f}x")
     base = reports[worker_counts[0]]
     for w, rep in reports.items():
         inflation = rep.compute / base.compute - 1
         if abs(inflation) > 0.05:  # same work, more time inside tasks: the cores were shared
-            print(f"note: compute inside tasks took {100 * inflation:+.0f} % with {w} workers vs {worker_counts[0]}: "
+            print(f"note: compute inside tasks took {100 * inflation:+.0f} % with {_label(w)} vs {_label(worker_counts[0])}: "
                   "other processes competed for the cores, which lowers the speedup; rerun on an idle machine")
     same = all(d == digests[worker_counts[0]] for d in digests.values())
     print(f"stores identical across worker counts: {'yes' if same else 'NO'}")
