@@ -159,8 +159,9 @@ def step_for(rule: StepRule, f_max, dt_load, output_dt, dt=None) -> float:
     return base_f / n
 
 
-#: Time of one sub-step of the exact method's event-free path [s] (the README's "Performance": 880 000
-#: sub-steps in 0.016 s); contacts add to it. Only used to state what a refused run would have cost.
+#: Order of magnitude of one sub-step of the exact method [s] (machines and models move it by 2× either
+#: way: ``tubeid bench transient --json``'s ``seconds_fast_path`` over its steps). Only used to state
+#: roughly what a refused run would have cost.
 SUBSTEP_SECONDS = 18e-9
 
 
@@ -172,7 +173,7 @@ def refuse_substeps(rule: StepRule, method: str, h: float, f_max: float, duratio
     with the stiffness that keeps within the limit) when the model with its stops open would keep
     within it, else the duration (``duration_field``, with the duration that keeps within it at this
     f_max). It states f_max with the stops closed and open, the step, the count and the time they would
-    take at :data:`SUBSTEP_SECONDS` each.
+    take, roughly, at :data:`SUBSTEP_SECONDS` each.
 
     Parameters
     ----------
@@ -201,7 +202,8 @@ def refuse_substeps(rule: StepRule, method: str, h: float, f_max: float, duratio
     cost = (f"with the stops closed the highest frequency is f_max = {f_max:.4g} Hz (open: {f_open:.4g} Hz), and the "
             f"{method} method's step rule (dt·f_max <= {rule.default:.3g}) takes dt = {h:.3g} s: {n:.3g} sub-steps "
             f"per realisation for {duration:g} s, more than {bound:.3g} (configuration tubeid.io.max-substeps; at "
-            f"{SUBSTEP_SECONDS * 1e9:g} ns per sub-step or more, {n * SUBSTEP_SECONDS:.3g} s or more per realisation)")
+            f"roughly {SUBSTEP_SECONDS * 1e9:g} ns per sub-step, of the order of {n * SUBSTEP_SECONDS:.1g} s per "
+            f"realisation)")
     if stops and math.ceil(duration * f_open / rule.default) <= bound:
         # a closed stop adds its stiffness on u = bᵀq: the highest eigenvalue grows as k bᵀM⁻¹b
         f_allowed = bound * rule.default / duration  # the f_max whose default step gives the limit's count
