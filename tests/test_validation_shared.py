@@ -264,8 +264,8 @@ def test_worker_counts_beyond_four_per_usable_core_are_refused_before_anything_s
 
     import dask.config
 
+    import tubeid.runner.execute as execute
     from tubeid import config
-    from tubeid.runner.execute import run
 
     monkeypatch.setattr(v, "usable_cores", lambda: 3)
     assert v.worker_count("workers", 12) == 12 and v.worker_count("workers", 0) == 0
@@ -274,7 +274,6 @@ def test_worker_counts_beyond_four_per_usable_core_are_refused_before_anything_s
         v.worker_count("workers", 13)
     with pytest.raises(SpecificationError, match=r"^workers = -1: must be an integer >= 0$"):
         v.worker_count("workers", -1)
-    import tubeid.runner.execute as execute
 
     def never(*args, **kwargs):  # a million processes must never be asked for, even when this test fails
         raise AssertionError("the cluster was started")
@@ -282,7 +281,7 @@ def test_worker_counts_beyond_four_per_usable_core_are_refused_before_anything_s
     monkeypatch.setattr(execute, "_client", never)
     study = pathlib.Path(v.__file__).parents[1] / "studies" / "pi.py"
     with pytest.raises(SpecificationError, match=r"^workers = 1000000: must be at most 12"):
-        run(study, tmp_path / "pi.zarr", workers=10**6, quiet=True)
+        execute.run(study, tmp_path / "pi.zarr", workers=10**6, quiet=True)
     with dask.config.set({"tubeid.runner.workers": 10**6}):
         with pytest.raises(SpecificationError, match=r"runner.workers .*1000000.*must be at most 12"):
             config.check()
